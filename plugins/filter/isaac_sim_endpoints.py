@@ -1,0 +1,42 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Stream addresses of planned instances."""
+
+from __future__ import annotations
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.endpoints import summary_lines
+
+DOCUMENTATION = r"""
+name: isaac_sim_endpoints
+short_description: One line per instance with its GPU and stream addresses
+version_added: "0.1.0"
+description:
+  - For a plan returned by M(isaacsim.fleet.isaac_sim_plan), lists each instance with the addresses
+    its release serves, on the given host address.
+positional: _input, host
+options:
+  _input:
+    description: The plan.
+    type: dict
+    required: true
+  host:
+    description: Address clients use for this host.
+    type: str
+    required: true
+"""
+
+EXAMPLES = r"""
+msg: "{{ plan | isaacsim.fleet.isaac_sim_endpoints('10.0.0.5') }}"
+"""
+
+RETURN = r"""
+_value:
+  description: One line per instance.
+  type: list
+  elements: str
+"""
+
+
+class FilterModule:
+    def filters(self):
+        return {"isaac_sim_endpoints": summary_lines}

@@ -1,0 +1,329 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Turn the isaac_sim role's variables into a per-instance plan, or errors.
+
+Pure functions: no I/O. The host facts (memory, GPUs, ports already held)
+come in as arguments, so every rule here is unit-tested without a host.
+Every error names the variable to change and how.
+"""
+
+from __future__ import annotations
+
+import re
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
+    ENV,
+    KIT,
+    RELEASES,
+    default_image,
+    release_of_tag,
+)
+
+PORT_MIN = 1024
+PORT_MAX = 65535
+CONTAINER_PREFIX = "isaac-sim-"
+
+# https://github.com/distribution/reference grammar, condensed
+_COMPONENT = r"[a-z0-9]+(?:(?:[._]|__|-+)[a-z0-9]+)*"
+_DOMAIN = r"(?:[a-zA-Z0-9](?:[a-zA-Z0-9-]*[a-zA-Z0-9])?(?:\.[a-zA-Z0-9](?:[a-zA-Z0-9-]*[a-zA-Z0-9])?)*(?::[0-9]+)?)"
+_TAG = r"[\w][\w.-]{0,127}"
+_DIGEST = r"[A-Za-z][A-Za-z0-9]*(?:[-_+.][A-Za-z][A-Za-z0-9]*)*:[0-9a-fA-F]{32,}"
+IMAGE_RE = re.compile(
+    rf"^(?:(?P<domain>{_DOMAIN})/)?(?P<path>{_COMPONENT}(?:/{_COMPONENT})*)"
+    rf"(?::(?P<tag>{_TAG}))?(?:@(?P<digest>{_DIGEST}))?$"
+)
+SIZE_RE = re.compile(r"^(\d+(?:\.\d+)?) ?([kmgtp])?(i?b)?$", re.IGNORECASE)
+ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_UNITS = {None: 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4, "p": 1024**5}
+
+
+class PlanError(Exception):
+    def __init__(self, errors):
+        super().__init__("\n".join(errors))
+        self.errors = errors
+
+
+def parse_size(text) -> int | None:
+    """Bytes in a Docker size ("8g", "512m", "2GiB"), or None if it does not parse."""
+    match = SIZE_RE.match(str(text).strip())
+    if not match:
+        return None
+    number, unit, _ = match.groups()
+    return int(float(number) * _UNITS[unit.lower() if unit else None])
+
+
+def human(nbytes: int) -> str:
+    return f"{nbytes / 1024**3:.1f} GiB"
+
+
+def parse_image(ref: str):
+    """(repository, tag, digest) of an image reference, or None if malformed."""
+    match = IMAGE_RE.match(ref or "")
+    if not match or len(ref) > 255:
+        return None
+    repo = match.group("path")
+    if match.group("domain"):
+        repo = f"{match.group('domain')}/{repo}"
+    return repo, match.group("tag"), match.group("digest")
+
+
+def port_blocks(release: str, count: int, bases: dict, stride: int):
+    """{instance: {kind: port}}: each named port is base + i * stride."""
+    profile = RELEASES[release]["ports"]
+    merged = {kind: spec[1] for kind, spec in profile.items()}
+    merged.update(bases or {})
+    return {i: {kind: int(base) + i * stride for kind, base in merged.items()} for i in range(count)}
+
+
+def _check_ports(release, blocks, bases, stride, held):
+    errors = []
+    profile = RELEASES[release]["ports"]
+    unknown = sorted(set(bases or {}) - set(profile))
+    if unknown:
+        errors.append(
+            f"isaac_sim_port_bases: {', '.join(unknown)} is not a port of Isaac Sim {release}, "
+            f"which has {', '.join(sorted(profile))}. Fix: use only those names."
+        )
+        return errors
+    if stride < 1:
+        errors.append(f"isaac_sim_port_stride: {stride} must be at least 1. Fix: set isaac_sim_port_stride: 1 or more.")
+        return errors
+    seen = {}
+    for i, block in blocks.items():
+        for kind, port in block.items():
+            if not PORT_MIN <= port <= PORT_MAX:
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port} is outside {PORT_MIN}-{PORT_MAX}. "
+                    f"Fix: choose a {kind} base between {PORT_MIN} and "
+                    f"{PORT_MAX} - (isaac_sim_instance_count - 1) * isaac_sim_port_stride."
+                )
+                continue
+            if port in seen:
+                j, other = seen[port]
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port} overlaps instance {j} {other} port. "
+                    f"Fix: move the port bases apart by at least isaac_sim_instance_count * isaac_sim_port_stride "
+                    f"({len(blocks) * stride}), or change isaac_sim_port_stride."
+                )
+            else:
+                seen[port] = (i, kind)
+    for i, block in blocks.items():
+        for kind, port in block.items():
+            proto = profile[kind][0]
+            owner = held.get((proto, port))
+            if owner is not None and not owner.get("ours"):
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port}/{proto} is already held on this host by "
+                    f"{owner.get('process') or 'another process'}, which is not an Isaac Sim instance of this "
+                    f"collection. Fix: stop that process, or move the {kind} base (isaac_sim_port_bases.{kind})."
+                )
+    return errors
+
+
+def assign_gpus(count, gpu_count, gpu_map, exclusive):
+    """({instance: gpu index}, errors). Round-robin unless the map says otherwise."""
+    errors = []
+    gpu_map = {int(k): int(v) for k, v in (gpu_map or {}).items()}
+    if gpu_count < 1:
+        return {}, [
+            "isaac_sim_gpu_enabled: true, but this host shows no NVIDIA GPU (nvidia-smi lists none). "
+            "Fix: install the driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
+        ]
+    if exclusive and count > gpu_count:
+        errors.append(
+            f"isaac_sim_instance_count: {count} instances with isaac_sim_gpu_exclusive: true need {count} GPUs, "
+            f"this host has {gpu_count}. Fix: lower isaac_sim_instance_count to {gpu_count} or set "
+            f"isaac_sim_gpu_exclusive: false to share GPUs."
+        )
+    for inst, gpu in sorted(gpu_map.items()):
+        if inst >= count or inst < 0:
+            errors.append(
+                f"isaac_sim_gpu_map: instance {inst} does not exist (instances are 0..{count - 1}). "
+                f"Fix: remove it from isaac_sim_gpu_map."
+            )
+        if not 0 <= gpu < gpu_count:
+            errors.append(
+                f"isaac_sim_gpu_map: instance {inst} is mapped to GPU {gpu}, this host has GPUs 0..{gpu_count - 1}. "
+                f"Fix: map it to an existing GPU."
+            )
+    assignment = {i: gpu_map.get(i, i % gpu_count) for i in range(count)}
+    if exclusive and not errors:
+        used = {}
+        for inst, gpu in assignment.items():
+            if gpu in used:
+                errors.append(
+                    f"isaac_sim_gpu_map: instances {used[gpu]} and {inst} share GPU {gpu} but "
+                    f"isaac_sim_gpu_exclusive is true. Fix: give each instance its own GPU."
+                )
+            used[gpu] = inst
+    return assignment, errors
+
+
+def build(cfg: dict, host: dict) -> dict:
+    """The plan for one host. cfg: the role's variables; host: probed facts.
+
+    Raises PlanError with every problem found, so a user fixes them in one go.
+    """
+    errors = []
+    release = cfg["release"]
+    profile = RELEASES[release]
+    count = cfg["instance_count"]
+
+    if count < 0:
+        errors.append("isaac_sim_instance_count: must be 0 or more.")
+    if count > cfg["max_instances"]:
+        errors.append(
+            f"isaac_sim_instance_count: {count} is above isaac_sim_max_instances ({cfg['max_instances']}). "
+            f"Fix: lower isaac_sim_instance_count, or raise isaac_sim_max_instances if this host can carry them."
+        )
+    if not cfg.get("accept_eula"):
+        errors.append(
+            "isaac_sim_accept_eula: Isaac Sim does not start until its license is accepted. "
+            "Fix: read the NVIDIA Isaac Sim license and set isaac_sim_accept_eula: true."
+        )
+
+    # empty means NVIDIA's image of the chosen release
+    image = cfg.get("image") or default_image(release)
+    parsed = parse_image(image)
+    if parsed is None:
+        errors.append(
+            f"isaac_sim_image: {image!r} is not a valid image reference. "
+            f"Fix: use REGISTRY/REPOSITORY:TAG or REPOSITORY@sha256:DIGEST, e.g. nvcr.io/nvidia/isaac-sim:5.1.0."
+        )
+    else:
+        tag_release = release_of_tag(parsed[1]) if parsed[1] else None
+        if tag_release and tag_release != release:
+            errors.append(
+                f"isaac_sim_image: tag {parsed[1]} is an Isaac Sim {tag_release} image but isaac_sim_release is "
+                f"{release}. Fix: set isaac_sim_release: {tag_release!r}, or pick a {release} image."
+            )
+
+    memory = parse_size(cfg["memory_limit"])
+    shm = parse_size(cfg["shm_size"])
+    if memory is None:
+        errors.append(
+            f"isaac_sim_memory_limit: {cfg['memory_limit']!r} is not a size. Fix: write it as Docker does, e.g. 8g or 16384m."
+        )
+    if shm is None:
+        errors.append(f"isaac_sim_shm_size: {cfg['shm_size']!r} is not a size. Fix: write it as Docker does, e.g. 2g or 512m.")
+    if memory is not None and memory < 6 * 1024**2:
+        errors.append("isaac_sim_memory_limit: Docker needs at least 6m. Fix: raise isaac_sim_memory_limit.")
+    if memory is not None and host.get("memory_bytes") and memory * count > host["memory_bytes"]:
+        errors.append(
+            f"isaac_sim_memory_limit: {count} instances x {cfg['memory_limit']} = {human(memory * count)} is more than "
+            f"this host's {human(host['memory_bytes'])} of memory. Fix: lower isaac_sim_memory_limit or "
+            f"isaac_sim_instance_count."
+        )
+    if memory is not None and shm is not None and shm > memory:
+        errors.append(
+            f"isaac_sim_shm_size: {cfg['shm_size']} is above isaac_sim_memory_limit {cfg['memory_limit']}, and shared "
+            f"memory counts against that limit. Fix: lower isaac_sim_shm_size."
+        )
+
+    data_root = cfg["data_root"]
+    if not data_root.startswith("/") or re.search(r"\s|:", data_root):
+        errors.append(
+            f"isaac_sim_data_root: {data_root!r} must be an absolute path without spaces or colons. "
+            f"Fix: use e.g. /var/lib/isaac-sim."
+        )
+
+    for name in list(cfg.get("env") or {}) + list(cfg.get("secret_env_names") or []):
+        if not ENV_NAME_RE.match(name) or name.startswith("ISAAC_SIM_"):
+            errors.append(
+                f"isaac_sim_env / isaac_sim_secret_env: {name!r} is not a usable variable name "
+                f"(letters, digits, _; the ISAAC_SIM_ prefix is the collection's own). Fix: rename it."
+            )
+    for var in ("docker_args", "app_args"):
+        for arg in cfg.get(var) or []:
+            if re.search(r"\s", str(arg)):
+                errors.append(
+                    f"isaac_sim_extra_{var}: {arg!r} contains whitespace, which systemd would split. "
+                    f"Fix: pass one word per list item (--flag=value)."
+                )
+
+    bases = cfg.get("port_bases") or {}
+    stride = cfg.get("port_stride", 1)
+    blocks = port_blocks(release, max(count, 0), {k: v for k, v in bases.items() if k in profile["ports"]}, stride)
+    held = {(p["proto"], p["port"]): p for p in host.get("ports_held", [])}
+    errors += _check_ports(release, blocks, bases, stride, held)
+
+    gpus = {}
+    if cfg.get("gpu_enabled"):
+        gpus, gpu_errors = assign_gpus(count, host.get("gpu_count", 0), cfg.get("gpu_map"), cfg.get("gpu_exclusive"))
+        errors += gpu_errors
+    elif cfg.get("gpu_map"):
+        errors.append(
+            "isaac_sim_gpu_map: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove the map."
+        )
+
+    if errors:
+        raise PlanError(errors)
+
+    instances = [_instance(cfg, profile, i, blocks[i], gpus.get(i), memory, shm) for i in range(count)]
+    return {
+        "release": release,
+        "image": image,
+        "instances": instances,
+        "ids": list(range(count)),
+        "ready_pattern": cfg.get("ready_pattern") or profile["ready_pattern"],
+        "uid": profile["uid"],
+        "gid": profile["gid"],
+    }
+
+
+def _instance(cfg, profile, i, ports, gpu, memory, shm):
+    root = f"{cfg['data_root']}/instance-{i}"
+    docker = [
+        "--network=host",
+        "--pull=never",
+        f"--memory={cfg['memory_limit']}",
+        f"--memory-swap={cfg['memory_limit']}",
+        f"--shm-size={cfg['shm_size']}",
+        f"--user={profile['uid']}:{profile['gid']}",
+        f"--entrypoint={profile['entrypoint']}",
+        f"--label=org.isaacsim.fleet.instance={i}",
+    ]
+    env_names = ["ACCEPT_EULA", "PRIVACY_CONSENT"]
+    container_env = {"ACCEPT_EULA": "Y", "PRIVACY_CONSENT": "Y" if cfg.get("privacy_consent") else "N"}
+    app = []
+    for kind, port in ports.items():
+        how, setting = profile["ports"][kind][2], profile["ports"][kind][3]
+        if how == KIT:
+            app.append(f"--/{setting.lstrip('/')}={port}")
+        elif how == ENV:
+            container_env[setting] = str(port)
+            env_names.append(setting)
+    public = cfg.get("public_address")
+    if public:
+        how, setting = profile["public_address"]
+        if how == KIT:
+            app.append(f"--/{setting.lstrip('/')}={public}")
+        else:
+            container_env[setting] = public
+            env_names.append(setting)
+    for name, value in (cfg.get("env") or {}).items():
+        container_env[name] = str(value)
+        env_names.append(name)
+    env_names += list(cfg.get("secret_env_names") or [])
+    docker += [f"--env={name}" for name in env_names]
+    dirs = []
+    for sub, target in profile["mounts"].items():
+        dirs.append(f"{root}/{sub}")
+        docker.append(f"--volume={root}/{sub}:{target}:rw")
+    if gpu is not None:
+        docker += ["--runtime=nvidia", f"--gpus=device={gpu}"]
+    docker += list(cfg.get("docker_args") or [])
+    app += [str(a) for a in cfg.get("app_args") or []]
+    return {
+        "id": i,
+        "name": f"{CONTAINER_PREFIX}{i}",
+        "ports": ports,
+        "protocols": {kind: profile["ports"][kind][0] for kind in ports},
+        "gpu": gpu,
+        "root": root,
+        "dirs": dirs,
+        "docker_args": docker,
+        "app_args": app,
+        "container_env": container_env,
+        "secret_env_names": list(cfg.get("secret_env_names") or []),
+    }

@@ -1,0 +1,121 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""What each Isaac Sim release understands at its container interface.
+
+One profile per release family: the container user, where it keeps caches,
+which launch script runs headless streaming, which ports it opens and how each
+port is set (a kit flag or an environment variable), the line it prints when
+ready, and the oldest driver it runs on.
+"""
+
+from __future__ import annotations
+
+# A port is set either by a kit flag ("--/path=VALUE") or an environment
+# variable passed into the container.
+KIT = "kit"
+ENV = "env"
+
+_ROOT_MOUNTS = {
+    "cache/kit": "/isaac-sim/kit/cache",
+    "cache/ov": "/root/.cache/ov",
+    "cache/pip": "/root/.cache/pip",
+    "cache/glcache": "/root/.cache/nvidia/GLCache",
+    "cache/computecache": "/root/.nv/ComputeCache",
+    "logs": "/root/.nvidia-omniverse/logs",
+    "data": "/root/.local/share/ov/data",
+    "documents": "/root/Documents",
+}
+
+# 5.0 and later run as the image's isaac-sim user (uid 1234, home /isaac-sim).
+_ISAAC_USER_MOUNTS = {
+    "cache/main": "/isaac-sim/.cache",
+    "cache/computecache": "/isaac-sim/.nv/ComputeCache",
+    "logs": "/isaac-sim/.nvidia-omniverse/logs",
+    "config": "/isaac-sim/.nvidia-omniverse/config",
+    "data": "/isaac-sim/.local/share/ov/data",
+    "pkg": "/isaac-sim/.local/share/ov/pkg",
+    "documents": "/isaac-sim/Documents",
+}
+
+_STREAMING_PORTS_5X = {
+    # kind: (protocol, default base, how it is set, setting)
+    "signal": ("tcp", 49100, KIT, "/app/livestream/port"),
+    "stream": ("udp", 47998, KIT, "/app/livestream/fixedHostPort"),
+    "http": ("tcp", 8011, KIT, "/exts/omni.services.transport.server.http/port"),
+}
+
+RELEASES = {
+    "2023.1": {
+        "default_tag": "2023.1.1",
+        "uid": 0,
+        "gid": 0,
+        "entrypoint": "/isaac-sim/runheadless.webrtc.sh",
+        "mounts": _ROOT_MOUNTS,
+        "ports": {
+            "http": ("tcp", 8211, KIT, "/exts/omni.services.transport.server.http/port"),
+            "webrtc": ("tcp", 8011, KIT, "/exts/omni.kit.livestream.webrtc/port"),
+            "native": ("tcp", 8899, KIT, "/exts/omni.kit.livestream.native/port"),
+        },
+        "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
+        "ready_pattern": r"App is loaded\.",
+        "min_driver": "525.85",
+        "env": {},
+    },
+    "4.x": {
+        "default_tag": "4.5.0",
+        "uid": 0,
+        "gid": 0,
+        "entrypoint": "/isaac-sim/runheadless.sh",
+        "mounts": _ROOT_MOUNTS,
+        "ports": _STREAMING_PORTS_5X,
+        "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
+        "ready_pattern": r"App is loaded\.",
+        "min_driver": "535.129",
+        "env": {},
+    },
+    "5.x": {
+        "default_tag": "5.1.0",
+        "uid": 1234,
+        "gid": 1234,
+        "entrypoint": "/isaac-sim/runheadless.sh",
+        "mounts": _ISAAC_USER_MOUNTS,
+        "ports": _STREAMING_PORTS_5X,
+        "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
+        "ready_pattern": r"App is loaded\.",
+        "min_driver": "570.169",
+        "env": {},
+    },
+    "6.x": {
+        "default_tag": "6.0.1",
+        "uid": 1234,
+        "gid": 1234,
+        "entrypoint": "/isaac-sim/runheadless.sh",
+        "mounts": _ISAAC_USER_MOUNTS,
+        "ports": {
+            "signal": ("tcp", 49100, ENV, "ISAACSIM_SIGNAL_PORT"),
+            "stream": ("udp", 47998, ENV, "ISAACSIM_STREAM_PORT"),
+            # served by the web viewer next to the instance; reserved in the block
+            "web_viewer": ("tcp", 8210, None, None),
+        },
+        "public_address": (ENV, "ISAACSIM_HOST"),
+        "ready_pattern": r"App is loaded\.",
+        "min_driver": "570.169",
+        "env": {},
+    },
+}
+
+DEFAULT_RELEASE = "6.x"
+NGC_REPOSITORY = "nvcr.io/nvidia/isaac-sim"
+
+
+def default_image(release: str) -> str:
+    return f"{NGC_REPOSITORY}:{RELEASES[release]['default_tag']}"
+
+
+def release_of_tag(tag: str) -> str | None:
+    """The release family a version-like image tag belongs to, else None."""
+    for name in RELEASES:
+        prefix = name[:-2] if name.endswith(".x") else name
+        if tag == prefix or tag.startswith(prefix + "."):
+            return name
+    return None

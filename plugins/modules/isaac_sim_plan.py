@@ -1,0 +1,227 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_plan
+short_description: Validate an Isaac Sim instance configuration against a host and plan each instance
+version_added: "0.1.0"
+description:
+  - Checks the configuration of the P(isaacsim.fleet.isaac_sim#role) role against the release it names
+    and against the host (memory, GPUs, ports already held), and computes each instance's port block,
+    GPU, directories, container arguments and environment.
+  - Reports every problem at once, each naming the variable to change and how.
+  - Read-only; never changes the host. Runs the same in check mode.
+author: isaacsim.fleet contributors
+options:
+  release:
+    description: Isaac Sim release family.
+    type: str
+    required: true
+    choices: ["2023.1", "4.x", "5.x", "6.x"]
+  image:
+    description: Image reference the instances run; NVIDIA's image of O(release) when empty.
+    type: str
+    default: ""
+  instance_count:
+    description: Number of instances, numbered 0 to N-1.
+    type: int
+    required: true
+  max_instances:
+    description: Upper bound on O(instance_count) for this host.
+    type: int
+    default: 8
+  port_bases:
+    description: Base port per port kind, overriding the release's defaults.
+    type: dict
+    default: {}
+  port_stride:
+    description: Distance between two instances' ports of the same kind.
+    type: int
+    default: 1
+  gpu_enabled:
+    description: Give each instance a GPU.
+    type: bool
+    default: true
+  gpu_map:
+    description: Instance number to GPU index; instances not in it are placed round-robin.
+    type: dict
+    default: {}
+  gpu_exclusive:
+    description: Require one GPU per instance.
+    type: bool
+    default: false
+  memory_limit:
+    description: Memory limit per container, in Docker's size format.
+    type: str
+    default: 8g
+  shm_size:
+    description: Shared memory size per container.
+    type: str
+    default: 2g
+  data_root:
+    description: Host directory holding each instance's caches, logs and data.
+    type: path
+    default: /var/lib/isaac-sim
+  public_address:
+    description: Address clients use to reach the streams.
+    type: str
+  ready_pattern:
+    description: Regular expression of the ready line; the release's own when empty.
+    type: str
+  accept_eula:
+    description: Whether the Isaac Sim license was accepted.
+    type: bool
+    default: false
+  privacy_consent:
+    description: Whether to consent to Isaac Sim's data collection.
+    type: bool
+    default: false
+  env:
+    description: Extra environment variables for the containers.
+    type: dict
+    default: {}
+  secret_env_names:
+    description: Names of secret variables passed to the containers (values are not given to this module).
+    type: list
+    elements: str
+    default: []
+  docker_args:
+    description: Extra C(docker run) arguments, one per item.
+    type: list
+    elements: str
+    default: []
+  app_args:
+    description: Extra arguments for the Isaac Sim launch script, one per item.
+    type: list
+    elements: str
+    default: []
+  check_host_ports:
+    description: Fail when a planned port is held by a process that is not one of our instances.
+    type: bool
+    default: true
+  config_dir:
+    description: Where the instances' env files live.
+    type: path
+    default: /etc/isaac-sim
+  systemd_dir:
+    description: Where the unit files live.
+    type: path
+    default: /etc/systemd/system
+"""
+
+EXAMPLES = r"""
+- name: Plan four 5.x instances on this host
+  isaacsim.fleet.isaac_sim_plan:
+    release: "5.x"
+    image: nvcr.io/nvidia/isaac-sim:5.1.0
+    instance_count: 4
+    accept_eula: true
+  register: plan
+"""
+
+RETURN = r"""
+plan:
+  description: The plan; C(instances) has one entry per instance.
+  returned: success
+  type: dict
+  sample:
+    release: "5.x"
+    image: nvcr.io/nvidia/isaac-sim:5.1.0
+    ids: [0, 1]
+    instances:
+      - id: 0
+        name: isaac-sim-0
+        ports: {signal: 49100, stream: 47998, http: 8011}
+        gpu: 0
+stale_ids:
+  description: Instances set up on this host earlier that the plan no longer has.
+  returned: success
+  type: list
+  elements: int
+  sample: [2, 3]
+host:
+  description: What was found on the host.
+  returned: success
+  type: dict
+  sample: {memory_bytes: 68719476736, gpu_count: 2, gpus: [], ports_held: []}
+"""
+
+import os
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils import hostprobe, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            release=dict(type="str", required=True, choices=list(RELEASES)),
+            image=dict(type="str", default=""),
+            instance_count=dict(type="int", required=True),
+            max_instances=dict(type="int", default=8),
+            port_bases=dict(type="dict", default={}),
+            port_stride=dict(type="int", default=1),
+            gpu_enabled=dict(type="bool", default=True),
+            gpu_map=dict(type="dict", default={}),
+            gpu_exclusive=dict(type="bool", default=False),
+            memory_limit=dict(type="str", default="8g"),
+            shm_size=dict(type="str", default="2g"),
+            data_root=dict(type="path", default="/var/lib/isaac-sim"),
+            public_address=dict(type="str"),
+            ready_pattern=dict(type="str"),
+            accept_eula=dict(type="bool", default=False),
+            privacy_consent=dict(type="bool", default=False),
+            env=dict(type="dict", default={}),
+            secret_env_names=dict(type="list", elements="str", default=[]),
+            docker_args=dict(type="list", elements="str", default=[]),
+            app_args=dict(type="list", elements="str", default=[]),
+            check_host_ports=dict(type="bool", default=True),
+            config_dir=dict(type="path", default="/etc/isaac-sim"),
+            systemd_dir=dict(type="path", default="/etc/systemd/system"),
+        ),
+        supports_check_mode=True,
+    )
+    p = module.params
+    cfg = {k: p[k] for k in p}
+
+    host = {"memory_bytes": hostprobe.memory_bytes(), "gpu_count": 0, "gpus": [], "ports_held": []}
+    if p["gpu_enabled"]:
+        rc, out, err = module.run_command(hostprobe.GPU_QUERY)
+        if rc == 0:
+            host["gpus"] = hostprobe.parse_gpu_list(out)
+            host["gpu_count"] = len(host["gpus"])
+
+    if p["check_host_ports"]:
+        profile = RELEASES[p["release"]]["ports"]
+        bases = {k: v for k, v in p["port_bases"].items() if k in profile}
+        blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), bases, max(p["port_stride"], 1))
+        wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
+
+        def our_ids():
+            rc, out, _ = module.run_command(
+                ["docker", "ps", "--no-trunc", "--filter", "name=^" + plan.CONTAINER_PREFIX, "--format", "{{.ID}}"]
+            )
+            return out.split() if rc == 0 else []
+
+        host["ports_held"] = hostprobe.ports_held(wanted, our_ids)
+
+    try:
+        result = plan.build(cfg, host)
+    except plan.PlanError as exc:
+        module.fail_json(
+            msg="Isaac Sim configuration rejected before any change:\n- " + "\n- ".join(exc.errors),
+            errors=exc.errors,
+        )
+
+    existing = hostprobe.existing_instances(
+        p["config_dir"], os.path.join(p["systemd_dir"], "isaac-sim.target.wants")
+    )
+    stale = [i for i in existing if i not in result["ids"]]
+    module.exit_json(changed=False, plan=result, stale_ids=stale, host=host)
+
+
+if __name__ == "__main__":
+    main()

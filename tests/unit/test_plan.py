@@ -1,0 +1,192 @@
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils import plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, release_of_tag
+
+GIB = 1024**3
+
+
+def cfg(**over):
+    base = {
+        "release": "6.x",
+        "image": "nvcr.io/nvidia/isaac-sim:6.0.1",
+        "instance_count": 4,
+        "max_instances": 8,
+        "port_bases": {},
+        "port_stride": 1,
+        "gpu_enabled": False,
+        "gpu_map": {},
+        "gpu_exclusive": False,
+        "memory_limit": "8g",
+        "shm_size": "2g",
+        "data_root": "/var/lib/isaac-sim",
+        "public_address": "10.0.0.5",
+        "accept_eula": True,
+        "privacy_consent": False,
+        "env": {},
+        "secret_env_names": [],
+        "docker_args": [],
+        "app_args": [],
+    }
+    base.update(over)
+    return base
+
+
+HOST = {"memory_bytes": 64 * GIB, "gpu_count": 0, "ports_held": []}
+
+
+def errors_of(c, host=HOST):
+    with pytest.raises(plan.PlanError) as exc:
+        plan.build(c, host)
+    return exc.value.errors
+
+
+def test_2023_1_reproduces_the_known_port_table():
+    result = plan.build(cfg(release="2023.1", image="nvcr.io/nvidia/isaac-sim:2023.1.1"), HOST)
+    assert [i["ports"] for i in result["instances"]] == [
+        {"http": 8211 + i, "webrtc": 8011 + i, "native": 8899 + i} for i in range(4)
+    ]
+    first = result["instances"][0]
+    assert "--/exts/omni.services.transport.server.http/port=8211" in first["app_args"]
+    assert "--user=0:0" in first["docker_args"]
+    assert "--entrypoint=/isaac-sim/runheadless.webrtc.sh" in first["docker_args"]
+
+
+def test_6x_ports_go_through_isaacsim_variables():
+    inst = plan.build(cfg(), HOST)["instances"][2]
+    assert inst["ports"] == {"signal": 49102, "stream": 48000, "web_viewer": 8212}
+    assert inst["container_env"]["ISAACSIM_SIGNAL_PORT"] == "49102"
+    assert inst["container_env"]["ISAACSIM_STREAM_PORT"] == "48000"
+    assert inst["container_env"]["ISAACSIM_HOST"] == "10.0.0.5"
+    assert "--env=ISAACSIM_SIGNAL_PORT" in inst["docker_args"]
+    assert "--user=1234:1234" in inst["docker_args"]
+    assert not any(a.startswith("--/app/livestream") for a in inst["app_args"])
+
+
+def test_5x_ports_go_through_kit_flags():
+    inst = plan.build(cfg(release="5.x", image="nvcr.io/nvidia/isaac-sim:5.1.0"), HOST)["instances"][1]
+    assert "--/app/livestream/port=49101" in inst["app_args"]
+    assert "--/app/livestream/fixedHostPort=47999" in inst["app_args"]
+    assert "--/exts/omni.services.transport.server.http/port=8012" in inst["app_args"]
+    assert "--/app/livestream/publicEndpointAddress=10.0.0.5" in inst["app_args"]
+
+
+def test_stride_and_bases():
+    result = plan.build(cfg(port_bases={"signal": 50000}, port_stride=10), HOST)
+    assert [i["ports"]["signal"] for i in result["instances"]] == [50000, 50010, 50020, 50030]
+
+
+def test_empty_image_means_the_release_image():
+    assert plan.build(cfg(image="", release="5.x"), HOST)["image"] == "nvcr.io/nvidia/isaac-sim:5.1.0"
+
+
+@pytest.mark.parametrize(
+    "over, needle",
+    [
+        ({"port_bases": {"signal": 47999}}, "overlaps instance"),
+        ({"port_bases": {"web_viewer": 65534}}, "outside 1024-65535"),
+        ({"port_bases": {"web_viewer": 80}}, "outside 1024-65535"),
+        ({"port_bases": {"http": 9000}}, "http is not a port of Isaac Sim 6.x"),
+        ({"instance_count": 9}, "above isaac_sim_max_instances"),
+        ({"image": "NVCR.io/Bad Image"}, "not a valid image reference"),
+        ({"image": "nvcr.io/nvidia/isaac-sim:5.1.0"}, "is an Isaac Sim 5.x image but isaac_sim_release is 6.x"),
+        ({"memory_limit": "eight gigs"}, "isaac_sim_memory_limit: 'eight gigs' is not a size"),
+        ({"shm_size": "2x"}, "isaac_sim_shm_size: '2x' is not a size"),
+        ({"memory_limit": "32g"}, "more than this host's 64.0 GiB"),
+        ({"accept_eula": False}, "isaac_sim_accept_eula"),
+        ({"port_stride": 0}, "isaac_sim_port_stride"),
+        ({"data_root": "relative/path"}, "isaac_sim_data_root"),
+        ({"env": {"ISAAC_SIM_IMAGE": "x"}}, "usable variable name"),
+        ({"docker_args": ["--cpus 8"]}, "contains whitespace"),
+        ({"gpu_map": {"0": 1}}, "isaac_sim_gpu_enabled is false"),
+    ],
+)
+def test_bad_input_names_the_variable(over, needle):
+    errors = errors_of(cfg(**over))
+    assert any(needle in e for e in errors), errors
+    assert all("Fix:" in e or "must be" in e for e in errors), errors
+
+
+def test_all_errors_are_reported_at_once():
+    errors = errors_of(cfg(memory_limit="x", shm_size="y", instance_count=20))
+    assert len(errors) >= 3
+
+
+def test_port_held_by_a_foreign_process_is_refused_but_ours_is_not():
+    foreign = {"proto": "tcp", "port": 49101, "process": "nginx (pid 77)", "ours": False}
+    errors = errors_of(cfg(), dict(HOST, ports_held=[foreign]))
+    assert "49101/tcp is already held on this host by nginx (pid 77)" in errors[0]
+    ours = dict(foreign, ours=True)
+    plan.build(cfg(), dict(HOST, ports_held=[ours]))
+    # a UDP socket does not block a TCP port of the same number
+    plan.build(cfg(), dict(HOST, ports_held=[dict(foreign, proto="udp")]))
+
+
+def test_gpus_round_robin_and_map():
+    host = dict(HOST, gpu_count=2)
+    result = plan.build(cfg(gpu_enabled=True), host)
+    assert [i["gpu"] for i in result["instances"]] == [0, 1, 0, 1]
+    assert "--gpus=device=1" in result["instances"][1]["docker_args"]
+    assert "--runtime=nvidia" in result["instances"][1]["docker_args"]
+    mapped = plan.build(cfg(gpu_enabled=True, gpu_map={"0": 1, "1": 1}), host)
+    assert [i["gpu"] for i in mapped["instances"]] == [1, 1, 0, 1]
+
+
+@pytest.mark.parametrize(
+    "over, gpu_count, needle",
+    [
+        ({"gpu_exclusive": True}, 2, "need 4 GPUs, this host has 2"),
+        ({}, 0, "shows no NVIDIA GPU"),
+        ({"gpu_map": {"1": 5}}, 2, "mapped to GPU 5"),
+        ({"gpu_map": {"7": 0}}, 2, "instance 7 does not exist"),
+        ({"gpu_exclusive": True, "instance_count": 2, "gpu_map": {"1": 0}}, 2, "share GPU 0"),
+    ],
+)
+def test_gpu_errors(over, gpu_count, needle):
+    errors = errors_of(cfg(gpu_enabled=True, **over), dict(HOST, gpu_count=gpu_count))
+    assert any(needle in e for e in errors), errors
+
+
+def test_no_gpu_arguments_without_gpus():
+    inst = plan.build(cfg(), HOST)["instances"][0]
+    assert inst["gpu"] is None
+    assert not any(a.startswith("--gpus") or a.startswith("--runtime") for a in inst["docker_args"])
+
+
+def test_instances_keep_their_own_directories():
+    result = plan.build(cfg(), HOST)
+    roots = [i["root"] for i in result["instances"]]
+    assert roots == [f"/var/lib/isaac-sim/instance-{i}" for i in range(4)]
+    assert "--volume=/var/lib/isaac-sim/instance-3/cache/main:/isaac-sim/.cache:rw" in result["instances"][3]["docker_args"]
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("8g", 8 * GIB), ("512m", 512 * 1024**2), ("2GiB", 2 * GIB), ("1.5g", int(1.5 * GIB)), ("100", 100), ("x", None)],
+)
+def test_parse_size(text, expected):
+    assert plan.parse_size(text) == expected
+
+
+@pytest.mark.parametrize(
+    "ref, ok",
+    [
+        ("nvcr.io/nvidia/isaac-sim:5.1.0", True),
+        ("localhost:5000/isaac-sim@sha256:" + "a" * 64, True),
+        ("172.17.0.1:5555/fixtures/isaac-sim-standin:6.0.1", True),
+        ("isaac-sim", True),
+        ("nvcr.io/nvidia/Isaac-Sim:5.1.0", False),
+        ("nvcr.io/nvidia/isaac-sim:", False),
+        ("nvcr.io/nvidia/isaac-sim:5.1.0@sha256:short", False),
+        ("", False),
+    ],
+)
+def test_parse_image(ref, ok):
+    assert (plan.parse_image(ref) is not None) == ok
+
+
+def test_release_of_tag():
+    assert release_of_tag("6.0.1") == "6.x"
+    assert release_of_tag("2023.1.1") == "2023.1"
+    assert release_of_tag("4.5.0") == "4.x"
+    assert release_of_tag("latest") is None
+    assert set(RELEASES) == {"2023.1", "4.x", "5.x", "6.x"}
