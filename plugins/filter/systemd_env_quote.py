@@ -9,8 +9,8 @@ name: systemd_env_quote
 short_description: Quote a value for a systemd EnvironmentFile
 version_added: "0.1.0"
 description:
-  - Wraps the value in double quotes and escapes backslashes, double quotes, dollar signs and backquotes (a newline stays inside the quotes),
-    so systemd reads back exactly the value given.
+  - Wraps the value in double quotes and escapes backslashes, double quotes, dollar signs and
+    backquotes (a newline stays inside the quotes), so systemd reads back exactly the value given.
 positional: _input
 options:
   _input:

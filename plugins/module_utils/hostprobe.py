@@ -107,12 +107,14 @@ def parse_gpu_list(text):
         parts = [p.strip() for p in line.split(",")]
         if len(parts) >= 4 and parts[0].isdigit():
             mem = re.match(r"(\d+)", parts[2])
-            gpus.append({
-                "index": int(parts[0]),
-                "name": parts[1],
-                "memory_total_mib": int(mem.group(1)) if mem else None,
-                "driver": parts[3],
-            })
+            gpus.append(
+                {
+                    "index": int(parts[0]),
+                    "name": parts[1],
+                    "memory_total_mib": int(mem.group(1)) if mem else None,
+                    "driver": parts[3],
+                }
+            )
     return gpus
 
 

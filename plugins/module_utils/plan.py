@@ -202,10 +202,13 @@ def build(cfg: dict, host: dict) -> dict:
     shm = parse_size(cfg["shm_size"])
     if memory is None:
         errors.append(
-            f"isaac_sim_memory_limit: {cfg['memory_limit']!r} is not a size. Fix: write it as Docker does, e.g. 8g or 16384m."
+            f"isaac_sim_memory_limit: {cfg['memory_limit']!r} is not a size. "
+            "Fix: write it as Docker does, e.g. 8g or 16384m."
         )
     if shm is None:
-        errors.append(f"isaac_sim_shm_size: {cfg['shm_size']!r} is not a size. Fix: write it as Docker does, e.g. 2g or 512m.")
+        errors.append(
+            f"isaac_sim_shm_size: {cfg['shm_size']!r} is not a size. Fix: write it as Docker does, e.g. 2g or 512m."
+        )
     if memory is not None and memory < 6 * 1024**2:
         errors.append("isaac_sim_memory_limit: Docker needs at least 6m. Fix: raise isaac_sim_memory_limit.")
     if memory is not None and host.get("memory_bytes") and memory * count > host["memory_bytes"]:

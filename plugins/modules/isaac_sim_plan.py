@@ -216,9 +216,7 @@ def main():
             errors=exc.errors,
         )
 
-    existing = hostprobe.existing_instances(
-        p["config_dir"], os.path.join(p["systemd_dir"], "isaac-sim.target.wants")
-    )
+    existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], "isaac-sim.target.wants"))
     stale = [i for i in existing if i not in result["ids"]]
     module.exit_json(changed=False, plan=result, stale_ids=stale, host=host)
 

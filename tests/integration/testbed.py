@@ -1,4 +1,8 @@
-"""Helpers for tests on the molecule test hosts (systemd + Docker inside a container)."""
+"""Helpers for tests on the molecule test hosts (systemd + Docker inside a container).
+
+Commands inside a host go through pytest-testinfra's ``host``; what happens
+to the host container itself (a reboot) goes through the Docker SDK.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +14,7 @@ import time
 from pathlib import Path
 
 import docker
+import testinfra
 
 ROOT = Path(__file__).resolve().parents[2]
 CONVERGE = ROOT / "molecule" / "resources" / "converge.yml"
@@ -20,18 +25,20 @@ def client():
     return docker.from_env()
 
 
-def sh(host_name: str, command: str, check=True) -> subprocess.CompletedProcess:
-    """Run a shell command inside a test host."""
-    proc = subprocess.run(
-        ["docker", "exec", host_name, "sh", "-c", command], capture_output=True, text=True, timeout=300
-    )
-    if check and proc.returncode != 0:
-        raise AssertionError(f"{command!r} on {host_name} failed ({proc.returncode}): {proc.stdout}{proc.stderr}")
-    return proc
+def sh(host, command: str, check=True):
+    """Run a shell command inside a test host (a testinfra host)."""
+    result = host.run(command)
+    if check and result.rc != 0:
+        raise AssertionError(f"{command!r} on {name(host)} failed ({result.rc}): {result.stdout}{result.stderr}")
+    return result
 
 
-def host_ip(host_name: str) -> str:
-    return client().containers.get(host_name).attrs["NetworkSettings"]["IPAddress"]
+def name(host) -> str:
+    return host.backend.get_hostname()
+
+
+def host_ip(host) -> str:
+    return client().containers.get(name(host)).attrs["NetworkSettings"]["IPAddress"]
 
 
 def inventory() -> str:
@@ -41,8 +48,8 @@ def inventory() -> str:
     return inv
 
 
-def run_playbook(host_name: str, extra_vars: dict | None = None, check=False) -> subprocess.CompletedProcess:
-    cmd = ["ansible-playbook", "-i", inventory(), "--limit", host_name, str(CONVERGE)]
+def run_playbook(host, extra_vars: dict | None = None, check=False) -> subprocess.CompletedProcess:
+    cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), str(CONVERGE)]
     if extra_vars:
         cmd += ["-e", json.dumps(extra_vars)]
     if check:
@@ -51,13 +58,13 @@ def run_playbook(host_name: str, extra_vars: dict | None = None, check=False) ->
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT)
 
 
-def unit_show(host_name: str, unit: str) -> dict:
-    out = sh(host_name, f"systemctl show {shlex.quote(unit)} -p ActiveState,SubState,NRestarts,UnitFileState").stdout
+def unit_show(host, unit: str) -> dict:
+    out = sh(host, f"systemctl show {shlex.quote(unit)} -p ActiveState,SubState,NRestarts,UnitFileState").stdout
     return dict(line.split("=", 1) for line in out.strip().splitlines())
 
 
-def container_id(host_name: str, name: str) -> str:
-    return sh(host_name, f"docker ps -q --no-trunc --filter name=^{name}$").stdout.strip()
+def container_id(host, container: str) -> str:
+    return sh(host, f"docker ps -q --no-trunc --filter name=^{container}$").stdout.strip()
 
 
 def wait_for(predicate, timeout=120, interval=1.0, what="condition"):
@@ -68,27 +75,27 @@ def wait_for(predicate, timeout=120, interval=1.0, what="condition"):
             last = predicate()
             if last:
                 return last
-        except Exception as exc:  # noqa: BLE001 - keep polling through restarts
-            last = exc
+        except (AssertionError, OSError, KeyError, ValueError, docker.errors.DockerException) as exc:
+            last = exc  # keep polling through restarts
         time.sleep(interval)
     raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
 
 
-def instance_ready(host_name: str, i: int) -> bool:
-    show = unit_show(host_name, f"isaac-sim@{i}.service")
-    marker = sh(host_name, f"test -f /run/isaac-sim/instance-{i}.ready", check=False).returncode == 0
+def instance_ready(host, i: int) -> bool:
+    show = unit_show(host, f"isaac-sim@{i}.service")
+    marker = sh(host, f"test -f /run/isaac-sim/instance-{i}.ready", check=False).rc == 0
     return show["ActiveState"] == "active" and marker
 
 
-def all_ready(host_name: str, ids=range(INSTANCES), timeout=180):
-    for i in ids:
-        wait_for(lambda i=i: instance_ready(host_name, i), timeout=timeout, what=f"isaac-sim@{i} ready")
+def all_ready(host, ids=None, timeout=180):
+    for i in range(INSTANCES) if ids is None else ids:
+        wait_for(lambda i=i: instance_ready(host, i), timeout=timeout, what=f"isaac-sim@{i} ready")
 
 
-def snapshot(host_name: str) -> str:
+def snapshot(host) -> str:
     """Everything our code could change on a host, as one text to compare."""
     return sh(
-        host_name,
+        host,
         "sha256sum /etc/isaac-sim/* /etc/systemd/system/isaac-sim* /etc/docker/daemon.json "
         "/usr/local/libexec/isaac-sim/* 2>/dev/null; "
         "ls -lnR /var/lib/isaac-sim 2>/dev/null | grep -v standin-shader-cache; "

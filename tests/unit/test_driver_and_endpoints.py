@@ -37,7 +37,13 @@ def test_endpoints_6x():
 
 @pytest.mark.parametrize(
     "value, quoted",
-    [("plain", '"plain"'), ('a"b', '"a\\"b"'), ("back\\slash", '"back\\\\slash"'), ("App is loaded\\.", '"App is loaded\\\\."'), ("pa$s`x", '"pa\\$s\\`x"')],
+    [
+        ("plain", '"plain"'),
+        ('a"b', '"a\\"b"'),
+        ("back\\slash", '"back\\\\slash"'),
+        ("App is loaded\\.", '"App is loaded\\\\."'),
+        ("pa$s`x", '"pa\\$s\\`x"'),
+    ],
 )
 def test_systemd_env_quote(value, quoted):
     assert systemd_env_quote(value) == quoted

@@ -45,7 +45,9 @@ def test_ports_held_tells_ours_from_foreign(tmp_path):
         calls.append(1)
         return [CONTAINER]
 
-    held = hostprobe.ports_held({("tcp", 49100), ("tcp", 49101), ("udp", 47998), ("tcp", 8210)}, ids, fake_proc(tmp_path))
+    held = hostprobe.ports_held(
+        {("tcp", 49100), ("tcp", 49101), ("udp", 47998), ("tcp", 8210)}, ids, fake_proc(tmp_path)
+    )
     by_port = {h["port"]: h for h in held}
     assert by_port[49100]["ours"] and by_port[47998]["ours"]
     assert not by_port[49101]["ours"]

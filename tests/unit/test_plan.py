@@ -156,7 +156,8 @@ def test_instances_keep_their_own_directories():
     result = plan.build(cfg(), HOST)
     roots = [i["root"] for i in result["instances"]]
     assert roots == [f"/var/lib/isaac-sim/instance-{i}" for i in range(4)]
-    assert "--volume=/var/lib/isaac-sim/instance-3/cache/main:/isaac-sim/.cache:rw" in result["instances"][3]["docker_args"]
+    volume = "--volume=/var/lib/isaac-sim/instance-3/cache/main:/isaac-sim/.cache:rw"
+    assert volume in result["instances"][3]["docker_args"]
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,141 @@
+"""The deployed host behaves as an SRE expects: units, ports, restarts, reboots.
+
+Runs in molecule's verify step on the hosts of molecule/default, after
+converge and idempotence. Tests run in file order; each leaves every
+instance ready again.
+"""
+
+import socket
+
+import pytest
+import testbed
+from testbed import INSTANCES, all_ready, container_id, sh, unit_show, wait_for
+
+SIGNAL_BASE, STREAM_BASE, VIEWER_BASE = 49100, 47998, 8210
+
+
+def tcp_answers(ip, port):
+    with socket.create_connection((ip, port), timeout=2) as conn:
+        return conn.recv(64).startswith(b"isaac-sim-standin")
+
+
+@pytest.fixture()
+def ip(host):
+    return testbed.host_ip(host)
+
+
+def test_units_pass_systemd_analyze_verify(host):
+    out = sh(
+        host,
+        "systemd-analyze verify /etc/systemd/system/isaac-sim@.service "
+        "/etc/systemd/system/isaac-sim.target isaac-sim@0.service 2>&1",
+        check=False,
+    )
+    assert out.rc == 0, out.stdout
+    assert "isaac-sim" not in out.stdout, out.stdout
+
+
+def test_units_are_stamped_and_wired_to_docker(host):
+    unit = sh(host, "cat /etc/systemd/system/isaac-sim@.service").stdout
+    assert unit.startswith("# Ansible managed")
+    for line in ("Requires=docker.service", "Restart=on-failure", "ExecStopPost=-/usr/bin/docker rm -f isaac-sim-%i"):
+        assert line in unit
+    assert "--pull" not in sh(host, "grep ^ExecStart= /etc/systemd/system/isaac-sim@.service").stdout
+    assert sh(host, "systemctl is-enabled isaac-sim.target").stdout.strip() == "enabled"
+
+
+@pytest.mark.parametrize("i", range(INSTANCES))
+def test_env_file_carries_the_port_block(host, i):
+    env = sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout
+    assert env.startswith("# Ansible managed")
+    assert f"ISAAC_SIM_PORT_SIGNAL={SIGNAL_BASE + i}\n" in env
+    assert f"ISAAC_SIM_PORT_STREAM={STREAM_BASE + i}\n" in env
+    assert f"ISAAC_SIM_PORT_WEB_VIEWER={VIEWER_BASE + i}\n" in env
+    assert f'ISAACSIM_SIGNAL_PORT="{SIGNAL_BASE + i}"' in env
+    assert "--pull=never" in env
+    # no secret is given in this scenario: readable, and the registry key is not in it
+    assert sh(host, f"stat -c %a /etc/isaac-sim/instance-{i}.env").stdout.strip() == "644"
+    assert "standin-ngc-api-key" not in env
+
+
+@pytest.mark.parametrize("i", range(INSTANCES))
+def test_every_instance_is_enabled_ready_and_answers(host, ip, i):
+    show = unit_show(host, f"isaac-sim@{i}.service")
+    assert (show["ActiveState"], show["SubState"], show["UnitFileState"]) == ("active", "running", "enabled")
+    assert testbed.instance_ready(host, i)
+    assert tcp_answers(ip, SIGNAL_BASE + i)
+    assert sh(host, f"ss -Hlun 'sport = :{STREAM_BASE + i}'").stdout.strip(), "stream port (udp) not bound"
+
+
+def test_container_runs_as_the_release_user_with_limits(host):
+    inspect = sh(
+        host,
+        "docker inspect -f '{{.Config.User}} {{.HostConfig.Memory}} {{.HostConfig.ShmSize}} "
+        "{{.HostConfig.NetworkMode}} {{.HostConfig.AutoRemove}}' isaac-sim-0",
+    ).stdout.split()
+    assert inspect == ["1234:1234", str(1024**3), str(256 * 1024**2), "host", "true"]
+    assert sh(host, "stat -c %u:%g /var/lib/isaac-sim/instance-0/cache/main").stdout.strip() == "1234:1234"
+
+
+def test_stop_and_start_the_third_instance(host, ip):
+    sh(host, "systemctl stop isaac-sim@2")
+    assert container_id(host, "isaac-sim-2") == ""
+    assert sh(host, "docker ps -a -q --filter name=^isaac-sim-2$").stdout.strip() == ""
+    with pytest.raises(OSError):
+        tcp_answers(ip, SIGNAL_BASE + 2)
+    assert container_id(host, "isaac-sim-1"), "stopping one instance touched another"
+    sh(host, "systemctl start isaac-sim@2")  # returns once the readiness gate passed
+    assert testbed.instance_ready(host, 2)
+    assert tcp_answers(ip, SIGNAL_BASE + 2)
+
+
+def test_a_killed_container_is_restarted_by_systemd(host, ip):
+    before = int(unit_show(host, "isaac-sim@1.service")["NRestarts"])
+    old = container_id(host, "isaac-sim-1")
+    sh(host, "docker kill isaac-sim-1")
+    wait_for(
+        lambda: int(unit_show(host, "isaac-sim@1.service")["NRestarts"]) > before, timeout=60, what="NRestarts to grow"
+    )
+    all_ready(host, [1])
+    new = container_id(host, "isaac-sim-1")
+    assert new and new != old
+    assert tcp_answers(ip, SIGNAL_BASE + 1)
+
+
+def test_instances_come_back_after_dockerd_restarts(host, ip):
+    old = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+    sh(host, "systemctl restart docker")
+    all_ready(host)
+    for i in range(INSTANCES):
+        new = container_id(host, f"isaac-sim-{i}")
+        assert new and new != old[i]
+        assert tcp_answers(ip, SIGNAL_BASE + i)
+
+
+def test_instances_come_back_after_a_reboot(host, ip):
+    testbed.client().containers.get(testbed.name(host)).restart(timeout=30)
+    wait_for(
+        lambda: sh(host, "systemctl is-system-running --wait", check=False).stdout.strip() in ("running", "degraded"),
+        timeout=120,
+        what="systemd to boot",
+    )
+    all_ready(host)
+    ip = testbed.host_ip(host)
+    for i in range(INSTANCES):
+        assert tcp_answers(ip, SIGNAL_BASE + i)
+    # warm start: the shader cache written before the reboot was found
+    log = sh(host, "journalctl -b -u isaac-sim@0 --no-pager").stdout
+    assert "shader cache warm" in log
+
+
+def test_stopping_the_target_stops_every_instance(host):
+    sh(host, "systemctl stop isaac-sim.target")
+    for i in range(INSTANCES):
+        wait_for(
+            lambda i=i: unit_show(host, f"isaac-sim@{i}.service")["ActiveState"] == "inactive",
+            timeout=90,
+            what=f"isaac-sim@{i} to stop",
+        )
+    assert sh(host, "docker ps -q --filter name=^isaac-sim-").stdout.strip() == ""
+    sh(host, "systemctl start isaac-sim.target")
+    all_ready(host)

@@ -1,0 +1,104 @@
+"""Bad input fails with a message naming the variable and the fix, and the host is left exactly as it was.
+
+Also: --check on a fresh host reports changes and changes nothing.
+"""
+
+import re
+
+import pytest
+import testbed
+from testbed import ROOT, sh
+
+NVIDIA_SMI = ROOT / "tests" / "fixtures" / "nvidia-smi" / "nvidia-smi"
+
+
+def assert_rejected(host, extra_vars, *needles):
+    before = testbed.snapshot(host)
+    result = testbed.run_playbook(host, extra_vars)
+    out = result.stdout + result.stderr
+    assert result.returncode != 0, out[-3000:]
+    for needle in needles:
+        assert needle in out, f"{needle!r} not in output:\n{out[-3000:]}"
+    assert testbed.snapshot(host) == before, "a rejected run changed the host"
+
+
+@pytest.mark.parametrize(
+    "extra_vars, needles",
+    [
+        ({"isaac_sim_port_bases": {"signal": 47999}}, ["isaac_sim_port_bases", "overlaps instance", "Fix:"]),
+        ({"isaac_sim_port_bases": {"web_viewer": 65534}}, ["isaac_sim_port_bases", "outside 1024-65535", "Fix:"]),
+        ({"isaac_sim_instance_count": 9}, ["isaac_sim_instance_count: 9 is above isaac_sim_max_instances (8)"]),
+        ({"isaac_sim_image": "nvcr.io/nvidia/Isaac Sim:5"}, ["isaac_sim_image", "not a valid image reference"]),
+        ({"isaac_sim_memory_limit": "lots"}, ["isaac_sim_memory_limit: 'lots' is not a size", "Fix:"]),
+        ({"isaac_sim_shm_size": "2 gigs"}, ["isaac_sim_shm_size: '2 gigs' is not a size"]),
+        ({"isaac_sim_memory_limit": "4096g"}, ["isaac_sim_memory_limit: 4 instances x 4096g", "more than this host's"]),
+        ({"isaac_sim_release": "7.x"}, ["isaac_sim_release", "7.x"]),
+        ({"isaac_sim_instance_count": "many"}, ["isaac_sim_instance_count"]),
+    ],
+    ids=["overlap", "port-range", "max-instances", "image", "memory", "shm", "memory-sum", "release", "count-type"],
+)
+def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
+    assert_rejected(host, extra_vars, *needles)
+
+
+def test_more_instances_than_gpus(host):
+    host_name = testbed.name(host)
+    testbed.subprocess.run(["docker", "cp", str(NVIDIA_SMI), f"{host_name}:/usr/local/bin/nvidia-smi"], check=True)
+    try:
+        assert_rejected(
+            host,
+            {"isaac_sim_gpu_enabled": True, "isaac_sim_gpu_exclusive": True},
+            "isaac_sim_instance_count: 4 instances with isaac_sim_gpu_exclusive: true need 4 GPUs, this host has 2",
+        )
+    finally:
+        sh(host, "rm -f /usr/local/bin/nvidia-smi")
+
+
+def test_a_port_held_by_another_process(host):
+    sh(host, "systemd-run --unit=port-squatter python3 -m http.server 8213")
+    testbed.wait_for(lambda: sh(host, "ss -Hltn 'sport = :8213'").stdout.strip(), timeout=20, what="squatter")
+    try:
+        assert_rejected(host, {}, "port 8213/tcp is already held on this host by python3", "isaac_sim_port_bases")
+    finally:
+        sh(host, "systemctl stop port-squatter", check=False)
+
+
+def test_check_mode_on_a_fresh_host_reports_changes_and_changes_nothing(tmp_path):
+    fresh = "isaacsim-test-fresh"
+    create = ROOT / "molecule" / "resources" / "create.yml"
+    destroy = ROOT / "molecule" / "resources" / "destroy.yml"
+    hosts = f'{{"testbed_hosts": ["{fresh}"]}}'
+    run = testbed.subprocess.run
+    run(["ansible-playbook", str(create), "-e", hosts], check=True, capture_output=True, cwd=ROOT)
+    try:
+        fresh_host = testbed.testinfra.get_host(f"docker://{fresh}")
+        state = "dpkg-query -W -f '${Package} ${Status}\\n' | sort; ls -la /etc /etc/systemd/system /var/lib"
+        before = sh(fresh_host, state).stdout
+        inventory = tmp_path / "fresh.yml"
+        inventory.write_text(
+            f"all:\n  children:\n    isaac_sim_hosts:\n      hosts:\n        {fresh}:\n"
+            "      vars:\n        ansible_connection: docker\n"
+        )
+        result = run(
+            [
+                "ansible-playbook",
+                "-i",
+                testbed.inventory(),
+                "-i",
+                str(inventory),
+                "--limit",
+                fresh,
+                "--check",
+                str(testbed.CONVERGE),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+        changed = int(re.search(rf"{fresh}\s*:.*changed=(\d+)", result.stdout).group(1))
+        assert changed > 0
+        assert sh(fresh_host, state).stdout == before
+        assert sh(fresh_host, "test -e /etc/isaac-sim", check=False).rc != 0
+    finally:
+        run(["ansible-playbook", str(destroy), "-e", hosts], capture_output=True, cwd=ROOT)
