@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import subprocess
 import time
 from pathlib import Path
 
 import docker
-import testinfra
 
 ROOT = Path(__file__).resolve().parents[2]
 CONVERGE = ROOT / "molecule" / "resources" / "converge.yml"
@@ -42,20 +42,40 @@ def host_ip(host) -> str:
 
 
 def inventory() -> str:
+    """Molecule's inventory directory: the scenario's hosts and group_vars, linked."""
     inv = os.environ.get("MOLECULE_INVENTORY_FILE")
     if not inv:
         raise RuntimeError("run these tests through molecule (molecule verify), which provides the inventory")
-    return inv
+    return os.path.dirname(inv)
 
 
-def run_playbook(host, extra_vars: dict | None = None, check=False) -> subprocess.CompletedProcess:
-    cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), str(CONVERGE)]
+def converge_playbook() -> str:
+    """The scenario's converge playbook (molecule exports the scenario's directory)."""
+    own = Path(os.environ.get("MOLECULE_SCENARIO_DIRECTORY", "/nonexistent")) / "converge.yml"
+    return str(own if own.exists() else CONVERGE)
+
+
+def changed_count(result, host) -> int:
+    match = re.search(rf"{re.escape(name(host))}\s*:.*changed=(\d+)", result.stdout)
+    assert match, result.stdout[-2000:]
+    return int(match.group(1))
+
+
+def run_playbook(
+    host, extra_vars: dict | None = None, check=False, extra_inventory=None
+) -> subprocess.CompletedProcess:
+    cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), converge_playbook()]
+    if extra_inventory:
+        cmd += ["-i", str(extra_inventory)]
     if extra_vars:
         cmd += ["-e", json.dumps(extra_vars)]
     if check:
         cmd.append("--check")
     env = dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT)
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT)
+    if f"{name(host)} " not in result.stdout.split("PLAY RECAP", 1)[-1]:
+        raise AssertionError(f"the playbook did not run on {name(host)}:\n{result.stdout[-2000:]}{result.stderr}")
+    return result
 
 
 def unit_show(host, unit: str) -> dict:
@@ -97,7 +117,8 @@ def snapshot(host) -> str:
     return sh(
         host,
         "sha256sum /etc/isaac-sim/* /etc/systemd/system/isaac-sim* /etc/docker/daemon.json "
-        "/usr/local/libexec/isaac-sim/* 2>/dev/null; "
+        "/usr/local/libexec/isaac-sim/* /etc/apt/sources.list.d/* /etc/udev/rules.d/* 2>/dev/null; "
+        "dpkg-query -W -f '${Package} ${Version}\\n' 2>/dev/null; "
         "ls -lnR /var/lib/isaac-sim 2>/dev/null | grep -v standin-shader-cache; "
         "docker ps -a --no-trunc --format '{{.ID}} {{.Names}} {{.Status}}' | sed 's/Up .*/Up/'; "
         "systemctl list-units --all --no-legend 'isaac-sim*' | awk '{print $1, $3, $4}'",

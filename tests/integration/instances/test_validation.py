@@ -3,10 +3,11 @@
 Also: --check on a fresh host reports changes and changes nothing.
 """
 
-import re
+import subprocess
 
 import pytest
 import testbed
+import testinfra
 from testbed import ROOT, sh
 
 NVIDIA_SMI = ROOT / "tests" / "fixtures" / "nvidia-smi" / "nvidia-smi"
@@ -43,7 +44,7 @@ def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
 
 def test_more_instances_than_gpus(host):
     host_name = testbed.name(host)
-    testbed.subprocess.run(["docker", "cp", str(NVIDIA_SMI), f"{host_name}:/usr/local/bin/nvidia-smi"], check=True)
+    subprocess.run(["docker", "cp", str(NVIDIA_SMI), f"{host_name}:/usr/local/bin/nvidia-smi"], check=True)
     try:
         assert_rejected(
             host,
@@ -68,10 +69,9 @@ def test_check_mode_on_a_fresh_host_reports_changes_and_changes_nothing(tmp_path
     create = ROOT / "molecule" / "resources" / "create.yml"
     destroy = ROOT / "molecule" / "resources" / "destroy.yml"
     hosts = f'{{"testbed_hosts": ["{fresh}"]}}'
-    run = testbed.subprocess.run
-    run(["ansible-playbook", str(create), "-e", hosts], check=True, capture_output=True, cwd=ROOT)
+    subprocess.run(["ansible-playbook", str(create), "-e", hosts], check=True, capture_output=True, cwd=ROOT)
     try:
-        fresh_host = testbed.testinfra.get_host(f"docker://{fresh}")
+        fresh_host = testinfra.get_host(f"docker://{fresh}")
         state = "dpkg-query -W -f '${Package} ${Status}\\n' | sort; ls -la /etc /etc/systemd/system /var/lib"
         before = sh(fresh_host, state).stdout
         inventory = tmp_path / "fresh.yml"
@@ -79,26 +79,10 @@ def test_check_mode_on_a_fresh_host_reports_changes_and_changes_nothing(tmp_path
             f"all:\n  children:\n    isaac_sim_hosts:\n      hosts:\n        {fresh}:\n"
             "      vars:\n        ansible_connection: docker\n"
         )
-        result = run(
-            [
-                "ansible-playbook",
-                "-i",
-                testbed.inventory(),
-                "-i",
-                str(inventory),
-                "--limit",
-                fresh,
-                "--check",
-                str(testbed.CONVERGE),
-            ],
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-        )
+        result = testbed.run_playbook(fresh_host, check=True, extra_inventory=inventory)
         assert result.returncode == 0, result.stdout[-3000:] + result.stderr
-        changed = int(re.search(rf"{fresh}\s*:.*changed=(\d+)", result.stdout).group(1))
-        assert changed > 0
+        assert testbed.changed_count(result, fresh_host) > 0
         assert sh(fresh_host, state).stdout == before
         assert sh(fresh_host, "test -e /etc/isaac-sim", check=False).rc != 0
     finally:
-        run(["ansible-playbook", str(destroy), "-e", hosts], capture_output=True, cwd=ROOT)
+        subprocess.run(["ansible-playbook", str(destroy), "-e", hosts], capture_output=True, cwd=ROOT)
