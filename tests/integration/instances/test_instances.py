@@ -6,6 +6,7 @@ instance ready again.
 """
 
 import socket
+import time
 
 import pytest
 import testbed
@@ -138,4 +139,42 @@ def test_stopping_the_target_stops_every_instance(host):
         )
     assert sh(host, "docker ps -q --filter name=^isaac-sim-").stdout.strip() == ""
     sh(host, "systemctl start isaac-sim.target")
+    all_ready(host)
+
+
+def test_a_crash_loop_hits_the_start_limit_and_a_deploy_recovers_it(host):
+    # make instance 3 crash 4 s after every start, behind the role's back
+    sh(
+        host,
+        "sed -i 's/^ISAAC_SIM_DOCKER_ARGS=\"/ISAAC_SIM_DOCKER_ARGS=\"--env=STANDIN_CRASH_AFTER=4 /' "
+        "/etc/isaac-sim/instance-3.env",
+    )
+    since = sh(host, "date +%s").stdout.strip()
+    # the start itself may already fail, if the crash comes before the gate saw the ready line
+    sh(host, "systemctl reset-failed isaac-sim@3; systemctl restart isaac-sim@3", check=False)
+
+    def journal():
+        return sh(host, f"journalctl -u isaac-sim@3 --since @{since} --no-pager").stdout
+
+    # between a crash and its restart the unit reads "failed" too: wait for systemd giving up
+    wait_for(lambda: "Start request repeated too quickly" in journal(), timeout=120, what="isaac-sim@3 to give up")
+    assert unit_show(host, "isaac-sim@3.service")["ActiveState"] == "failed"
+    # burst 3: the start and two restarts run, the third restart is refused
+    assert journal().count("Scheduled restart job") == 3
+    time.sleep(5)
+    assert unit_show(host, "isaac-sim@3.service")["ActiveState"] == "failed"
+    assert container_id(host, "isaac-sim-3") == ""
+    others = {i: container_id(host, f"isaac-sim-{i}") for i in range(3)}
+    # the next deploy rewrites the env file, clears the failed state and restarts only instance 3
+    run = testbed.run_playbook(host)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr
+    all_ready(host)
+    assert {i: container_id(host, f"isaac-sim-{i}") for i in range(3)} == others
+
+
+def test_deliberate_restarts_do_not_count_against_the_start_limit(host):
+    # more deploys that restart an instance than the start limit allows in its interval
+    for n in range(4):
+        result = testbed.run_playbook(host, {"isaac_sim_env": {"DEPLOY_ROUND": str(n)}})
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr
     all_ready(host)

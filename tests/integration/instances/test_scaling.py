@@ -22,13 +22,30 @@ def test_scale_4_to_2_removes_two_instances_and_keeps_their_caches(host):
         assert container_id(host, f"isaac-sim-{i}") == cid, f"instance {i} was restarted by a scale-down"
 
 
-def test_scale_back_to_4_starts_warm_from_the_kept_cache(host):
+def test_scale_back_to_4_starts_warm_and_leaves_the_others_running(host):
+    kept = {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1)}
     result = testbed.run_playbook(host, {"isaac_sim_instance_count": INSTANCES})
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr
     testbed.all_ready(host)
+    # their configuration did not change, so they were not restarted
+    assert {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1)} == kept
     starts = [
         line
         for line in sh(host, "journalctl -u isaac-sim@3 --no-pager").stdout.splitlines()
         if "starting as uid" in line
     ]
     assert "shader cache warm" in starts[-1]
+
+
+def test_a_changed_setting_restarts_each_instance_once_and_ends_ready(host):
+    old = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+    result = testbed.run_playbook(host, {"isaac_sim_env": {"SCENE": "warehouse"}})
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    for i in range(INSTANCES):
+        assert testbed.instance_ready(host, i)
+        cid = container_id(host, f"isaac-sim-{i}")
+        assert cid and cid != old[i]
+        assert "SCENE=warehouse" in sh(host, f"docker inspect -f '{{{{.Config.Env}}}}' isaac-sim-{i}").stdout
+    restored = testbed.run_playbook(host)
+    assert restored.returncode == 0
+    testbed.all_ready(host)

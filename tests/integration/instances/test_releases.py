@@ -1,0 +1,56 @@
+"""Each release profile reaches the container the way that release expects.
+
+The stand-in image (a test fixture) opens exactly the ports its launch
+script's kit flags or ISAACSIM_* variables ask for, so a port that answers
+proves the settings were passed the release's way.
+"""
+
+import socket
+import urllib.request
+
+import pytest
+import testbed
+from testbed import INSTANCES, sh
+
+
+def registry_image(host, tag):
+    env = sh(host, "cat /etc/isaac-sim/instance-0.env").stdout
+    current = next(line for line in env.splitlines() if line.startswith("ISAAC_SIM_IMAGE="))
+    return current.split("=", 1)[1].strip('"').rsplit(":", 1)[0] + f":{tag}"
+
+
+@pytest.fixture()
+def restore_default(host):
+    yield
+    result = testbed.run_playbook(host)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    testbed.all_ready(host)
+
+
+def test_2023_1_serves_the_webrtc_client_page_per_instance(host, restore_default):
+    result = testbed.run_playbook(
+        host, {"isaac_sim_release": "2023.1", "isaac_sim_image": registry_image(host, "2023.1.1")}
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    ip = testbed.host_ip(host)
+    for i in range(INSTANCES):
+        assert testbed.instance_ready(host, i)
+        url = f"http://{ip}:{8211 + i}/streaming/webrtc-client?server={ip}"
+        assert url in result.stdout, "the deploy did not print the instance's address"
+        with urllib.request.urlopen(url, timeout=5) as page:
+            assert f"server={ip}" in page.read().decode()
+        assert sh(host, f"docker inspect -f '{{{{.Config.User}}}}' isaac-sim-{i}").stdout.strip() == "0:0"
+        socket.create_connection((ip, 8899 + i), timeout=2).close()
+
+
+def test_5x_takes_its_ports_as_kit_flags(host, restore_default):
+    result = testbed.run_playbook(host, {"isaac_sim_release": "5.x", "isaac_sim_image": registry_image(host, "5.1.0")})
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    ip = testbed.host_ip(host)
+    for i in range(INSTANCES):
+        cmd = sh(host, f"docker inspect -f '{{{{json .Args}}}}' isaac-sim-{i}").stdout
+        assert f"--/app/livestream/port={49100 + i}" in cmd
+        assert f"--/app/livestream/fixedHostPort={47998 + i}" in cmd
+        socket.create_connection((ip, 49100 + i), timeout=2).close()
+        with urllib.request.urlopen(f"http://{ip}:{8011 + i}/health", timeout=5) as page:
+            assert page.status == 200
