@@ -36,6 +36,11 @@ NOOP_PLAY = """- name: No-op play (the baseline)
 """
 
 
+# the group_vars find the key relative to playbooks/; this playbook lives elsewhere
+KEY = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+KEY_VAR = ["-e", json.dumps({"isaac_sim_registry_password": KEY})]
+
+
 def run(cmd, **kw):
     return subprocess.run(cmd, cwd=ROOT, env=ENV, text=True, capture_output=True, **kw)
 
@@ -71,7 +76,7 @@ def main():
         try:
             # the host gets Docker and the image first: "image already loaded"
             prep = ROOT / "tests" / "benchmarks" / "prepare_host.yml"
-            proc = run(["ansible-playbook", "-i", str(inv), str(prep)])
+            proc = run(["ansible-playbook", "-i", str(inv), *KEY_VAR, str(prep)])
             if proc.returncode != 0:
                 sys.exit(f"preparing the host failed:\n{proc.stdout[-3000:]}{proc.stderr}")
 

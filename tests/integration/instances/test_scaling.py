@@ -49,3 +49,22 @@ def test_a_changed_setting_restarts_each_instance_once_and_ends_ready(host):
     restored = testbed.run_playbook(host)
     assert restored.returncode == 0
     testbed.all_ready(host)
+
+
+def test_secrets_reach_the_container_exactly_and_nowhere_else(host):
+    secret = 'nvapi-$ecret"with`quotes\\and$HOME'
+    result = testbed.run_playbook(host, {"isaac_sim_secret_env": {"OMNI_PASS": secret}})
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    try:
+        assert secret not in result.stdout + result.stderr
+        for i in range(INSTANCES):
+            assert sh(host, f"stat -c %a /etc/isaac-sim/instance-{i}.env").stdout.strip() == "600"
+            env = sh(host, f"docker exec isaac-sim-{i} env").stdout.splitlines()
+            assert f"OMNI_PASS={secret}" in env
+            # passed by name: the value is not on any command line
+            assert secret not in sh(host, "ps -eo args").stdout
+    finally:
+        restored = testbed.run_playbook(host)
+        assert restored.returncode == 0
+    for i in range(INSTANCES):
+        assert sh(host, f"stat -c %a /etc/isaac-sim/instance-{i}.env").stdout.strip() == "644"
