@@ -76,10 +76,28 @@ def test_no_gpu_host_skips_the_role(host):
     sh(host, "echo STANDIN_GPUS=0 > /etc/standin-nvidia-smi.conf")
     try:
         result = testbed.run_playbook(
-            host, {"isaac_sim_gpu_enabled": False, "nvidia_container_toolkit_version": "1.18.0-1"}
+            host,
+            {
+                "isaac_sim_gpu_enabled": False,
+                "nvidia_container_toolkit_version": "1.18.0-1",
+                "toolkit_scenario_instances": False,
+            },
         )
         assert result.returncode == 0, result.stdout[-3000:]
         assert testbed.changed_count(result, host) == 0
         assert "Check the NVIDIA driver" not in result.stdout
     finally:
         sh(host, "rm -f /etc/standin-nvidia-smi.conf")
+
+
+def test_instances_get_their_gpu_through_dockers_device_requests(host):
+    # 2 stand-in GPUs, 2 instances: round-robin puts instance i on GPU i
+    for i in range(2):
+        assert testbed.instance_ready(host, i)
+        inspect = json.loads(sh(host, f"docker inspect isaac-sim-{i}").stdout)[0]
+        assert inspect["HostConfig"]["Runtime"] == "nvidia"
+        assert [r["DeviceIDs"] for r in inspect["HostConfig"]["DeviceRequests"]] == [[str(i)]]
+        # set by Docker's nvidia device driver, which also ran the (stand-in) prestart hook
+        init_env = sh(host, f"docker exec isaac-sim-{i} cat /proc/1/environ").stdout.split("\0")
+        assert f"NVIDIA_VISIBLE_DEVICES={i}" in init_env
+        assert f"ISAAC_SIM_GPU={i}\n" in sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout
