@@ -1,0 +1,431 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Status of every Isaac Sim instance on one host, at a fixed cost.
+
+Whatever the number of instances, one status costs:
+  - one `systemctl show` for all units,
+  - two Docker API calls (containers, images),
+  - one GPU query (NVML in-process, or one nvidia-smi),
+  - one `journalctl`, only when log lines are asked for.
+Everything else is read from files: the env files the role writes
+(/etc/isaac-sim/instance-N.env), the ready markers of the readiness gate
+(/run/isaac-sim/instance-N.ready) and /proc.
+
+The parsers are pure functions over recorded output; gather() does the I/O.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+import re
+import socket
+import time
+
+try:
+    from ansible_collections.isaacsim.fleet.plugins.module_utils import gpu_usage
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.endpoints import endpoints
+except ImportError:  # copied next to the metrics script on a host (roles/isaac_sim/tasks/metrics.yml)
+    import gpu_usage
+    from docker_socket import DockerError
+    from endpoints import endpoints
+
+UNIT_PROPERTIES = (
+    "Id",
+    "LoadState",
+    "ActiveState",
+    "SubState",
+    "UnitFileState",
+    "Result",
+    "NRestarts",
+    "MainPID",
+    "ActiveEnterTimestampMonotonic",
+)
+UNIT_GLOB = "isaac-sim@*.service"
+_UNIT_ID = re.compile(r"^isaac-sim@(\d+)\.service$")
+_CONTAINER_NAME = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
+_ENV_FILE = re.compile(r"instance-(\d+)\.env$")
+
+
+def unit_name(i: int) -> str:
+    return f"isaac-sim@{i}.service"
+
+
+def systemctl_show_argv(ids) -> list:
+    """One call: the configured units by name (loaded or not) and every loaded instance."""
+    return (
+        ["systemctl", "show", "--no-pager", "-p", ",".join(UNIT_PROPERTIES)] + [unit_name(i) for i in ids] + [UNIT_GLOB]
+    )
+
+
+def parse_systemctl_show(text: str) -> dict:
+    """{instance id: {property: value}} from `systemctl show` (blank-line separated blocks)."""
+    units = {}
+    for block in re.split(r"\n\s*\n", text.strip()):
+        props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+        match = _UNIT_ID.match(props.get("Id", ""))
+        if match:
+            units[int(match.group(1))] = props
+    return units
+
+
+def parse_env_file(text: str) -> dict:
+    """KEY=VALUE lines as systemd reads them (double quotes with backslash escapes)."""
+    env = {}
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith(("#", ";")) or "=" not in line:
+            continue
+        key, value = line.split("=", 1)
+        value = value.strip()
+        if len(value) >= 2 and value[0] == value[-1] == '"':
+            value = re.sub(r"\\(.)", r"\1", value[1:-1], flags=re.S)
+        elif len(value) >= 2 and value[0] == value[-1] == "'":
+            value = value[1:-1]
+        env[key.strip()] = value
+    return env
+
+
+def read_env_files(config_dir: str) -> tuple:
+    """({id: env}, [errors]) for every instance-N.env the role wrote."""
+    found, errors = {}, []
+    for path in glob.glob(os.path.join(config_dir, "instance-*.env")):
+        match = _ENV_FILE.search(path)
+        if not match:
+            continue
+        try:
+            with open(path) as fh:
+                found[int(match.group(1))] = parse_env_file(fh.read())
+        except OSError as exc:
+            errors.append(f"cannot read {path}: {exc.strerror} (the module needs root: become: true)")
+    return found, errors
+
+
+def read_ready_markers(run_dir: str) -> dict:
+    """{id: epoch seconds} of the gate's markers: the instance printed its ready line then."""
+    markers = {}
+    for path in glob.glob(os.path.join(run_dir, "instance-*.ready")):
+        match = re.search(r"instance-(\d+)\.ready$", path)
+        if not match:
+            continue
+        try:
+            with open(path) as fh:
+                text = fh.read().strip()
+            markers[int(match.group(1))] = int(text) if text.isdigit() else int(os.path.getmtime(path))
+        except OSError:
+            continue
+    return markers
+
+
+def health_of(status: str) -> str:
+    """Docker's health from the list API's status text; "none" without a healthcheck."""
+    for word, health in (("(healthy)", "healthy"), ("(unhealthy)", "unhealthy"), ("(health: starting)", "starting")):
+        if word in (status or ""):
+            return health
+    return "none"
+
+
+def parse_containers(containers: list, images: list, now: float) -> dict:
+    """{name: container record} for the isaac-sim-* containers of the list API."""
+    digests = {}
+    for image in images or []:
+        repo_digests = image.get("RepoDigests") or []
+        digests[image.get("Id")] = repo_digests[0].split("@", 1)[1] if repo_digests else None
+    out = {}
+    for c in containers or []:
+        names = [n for n in c.get("Names") or [] if _CONTAINER_NAME.match(n)]
+        if not names:
+            continue
+        name = _CONTAINER_NAME.match(names[0]).group(1)
+        label = (c.get("Labels") or {}).get("org.isaacsim.fleet.instance")
+        created = c.get("Created")
+        running = c.get("State") == "running"
+        out[name] = {
+            "id": c.get("Id"),
+            "short_id": (c.get("Id") or "")[:12],
+            "state": c.get("State"),
+            "status": c.get("Status"),
+            "health": health_of(c.get("Status")),
+            # systemd creates a new container on every start (docker run --rm), so creation is the start
+            "started_at": created,
+            "uptime_s": int(now - created) if running and created else None,
+            "image": c.get("Image"),
+            "image_id": c.get("ImageID"),
+            "digest": digests.get(c.get("ImageID")),
+            "labelled_instance": int(label) if label and label.isdigit() else None,
+        }
+    return out
+
+
+def parse_limits(docker_args: str) -> dict:
+    limits = {}
+    for flag, key in (("--memory", "memory"), ("--shm-size", "shm_size"), ("--gpus", "gpus"), ("--cpus", "cpus")):
+        match = re.search(rf"(?:^|\s){flag}[= ](\S+)", docker_args or "")
+        if match:
+            limits[key] = match.group(1).strip("'\"")
+    return limits
+
+
+def ports_of(env: dict) -> dict:
+    return {
+        key[len("ISAAC_SIM_PORT_") :].lower(): int(value)
+        for key, value in env.items()
+        if key.startswith("ISAAC_SIM_PORT_") and value.isdigit()
+    }
+
+
+def state_of(unit: dict | None, container: dict | None, ready: bool) -> str:
+    """One word for a person: ready, starting, running, restarting, failed, stopped, stray-container."""
+    active = (unit or {}).get("ActiveState", "")
+    sub = (unit or {}).get("SubState", "")
+    if active == "active":
+        return "ready" if ready else "running"
+    if active == "activating":
+        return "restarting" if sub == "auto-restart" else "starting"
+    if active == "deactivating":
+        return "stopping"
+    if active == "failed":
+        return "failed"
+    if container and container.get("state") == "running":
+        return "running"
+    return "stopped"
+
+
+def _int(value, default=0):
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        return default
+
+
+def build(
+    envs: dict,
+    units: dict,
+    containers: dict,
+    markers: dict,
+    gpu: dict | None,
+    pid_containers: dict,
+    default_address: str,
+    address_override: str = "",
+    now: float | None = None,
+    monotonic_now: float | None = None,
+    only: list | None = None,
+) -> list:
+    """Instance records, configured first, then strays, sorted by instance number.
+
+    pid_containers maps a GPU process's pid to its container id (or None).
+    """
+    now = time.time() if now is None else now
+    monotonic_now = time.monotonic() if monotonic_now is None else monotonic_now
+    configured = set(envs)
+    by_id = {}
+    for name, c in containers.items():
+        suffix = name[len("isaac-sim-") :]
+        key = int(suffix) if suffix.isdigit() else name
+        by_id[key] = c
+    stray_units = {
+        i
+        for i, u in units.items()
+        if i not in configured and (u.get("ActiveState") not in ("inactive", "") or u.get("UnitFileState") == "enabled")
+    }
+    keys = sorted(configured | stray_units | {k for k in by_id if isinstance(k, int)}) + sorted(
+        k for k in by_id if not isinstance(k, int)
+    )
+    gpu_by_container = {}
+    for proc in (gpu or {}).get("processes", []):
+        cid = pid_containers.get(proc["pid"])
+        if cid:
+            gpu_by_container.setdefault(cid, []).append(proc)
+
+    records = []
+    for key in keys:
+        if only is not None and key not in only:
+            continue
+        env = envs.get(key, {})
+        unit = units.get(key) if isinstance(key, int) else None
+        container = by_id.get(key)
+        has_unit = unit is not None and unit.get("LoadState") == "loaded"
+        is_configured = key in configured
+        ready = bool(
+            is_configured
+            and key in markers
+            and (unit or {}).get("ActiveState") == "active"
+            and container is not None
+            and container.get("state") == "running"
+        )
+        ports = ports_of(env)
+        release = env.get("ISAAC_SIM_RELEASE")
+        address = address_override or env.get("ISAAC_SIM_PUBLIC_ADDRESS") or default_address
+        urls = endpoints(release, ports, address) if release and ports else {}
+        procs = gpu_by_container.get((container or {}).get("id"), [])
+        gpu_index = env.get("ISAAC_SIM_GPU", "")
+        active_enter = _int((unit or {}).get("ActiveEnterTimestampMonotonic"))
+        active = (unit or {}).get("ActiveState") == "active"
+        records.append(
+            {
+                "id": key if isinstance(key, int) else None,
+                "name": f"isaac-sim-{key}" if isinstance(key, int) else key,
+                "unit": unit_name(key) if isinstance(key, int) else None,
+                "configured": is_configured,
+                "stray": not is_configured,
+                "state": state_of(unit if has_unit else None, container, ready)
+                if is_configured or has_unit
+                else "stray-container",
+                "ready": ready,
+                "ready_since": markers.get(key) if ready else None,
+                "active_state": (unit or {}).get("ActiveState"),
+                "sub_state": (unit or {}).get("SubState"),
+                "enabled": (unit or {}).get("UnitFileState") == "enabled",
+                "unit_file_state": (unit or {}).get("UnitFileState"),
+                "restarts": _int((unit or {}).get("NRestarts")),
+                "active_since": int(now - (monotonic_now - active_enter / 1e6)) if active and active_enter else None,
+                "container": container,
+                "uptime_s": (container or {}).get("uptime_s"),
+                "release": release,
+                "image": env.get("ISAAC_SIM_IMAGE") or (container or {}).get("image"),
+                "image_id": (container or {}).get("image_id") or env.get("ISAAC_SIM_IMAGE_ID"),
+                "digest": (container or {}).get("digest"),
+                "ports": ports,
+                "public_address": address,
+                "urls": urls,
+                "gpu": int(gpu_index) if gpu_index.isdigit() else None,
+                "gpu_memory_used_mib": sum(p["used_mib"] or 0 for p in procs) if procs else (0 if gpu else None),
+                "gpu_processes": procs,
+                "limits": parse_limits(env.get("ISAAC_SIM_DOCKER_ARGS", "")),
+            }
+        )
+    return records
+
+
+def summarize(records: list) -> dict:
+    configured = [r for r in records if r["configured"]]
+    return {
+        "configured": len(configured),
+        "running": sum(1 for r in records if (r["container"] or {}).get("state") == "running"),
+        "ready": sum(1 for r in records if r["ready"]),
+        "failed": sum(1 for r in records if r["state"] == "failed"),
+        "stopped": sum(1 for r in configured if r["state"] == "stopped"),
+        "stray": sum(1 for r in records if r["stray"]),
+    }
+
+
+def journal_argv(ids) -> list:
+    """One reverse read of the journal for all asked units, newest first, as JSON lines."""
+    argv = ["journalctl", "--no-pager", "--reverse", "--output=json"]
+    for i in ids:
+        argv += ["-u", unit_name(i)]
+    return argv
+
+
+def take_journal_tail(lines, ids, count: int) -> dict:
+    """{id: [messages, oldest first]} with the last `count` per unit, from reverse JSON lines.
+
+    Stops reading as soon as every unit has its lines (the caller then ends journalctl).
+    """
+    wanted = {unit_name(i): i for i in ids}
+    tails = {i: [] for i in ids}
+    pending = set(ids)
+    for line in lines:
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        unit = entry.get("_SYSTEMD_UNIT") if entry.get("_SYSTEMD_UNIT") in wanted else entry.get("UNIT")
+        i = wanted.get(unit)
+        if i is None or i not in pending:
+            continue
+        message = entry.get("MESSAGE")
+        if isinstance(message, list):  # journald sends non-UTF-8 messages as byte lists
+            message = bytes(message).decode("utf-8", "replace")
+        tails[i].append(message if message is not None else "")
+        if len(tails[i]) >= count:
+            pending.discard(i)
+            if not pending:
+                break
+    return {i: list(reversed(t)) for i, t in tails.items()}
+
+
+def default_ipv4() -> str:
+    """The source address of the default route (no packet is sent), else 127.0.0.1."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.connect(("192.0.2.1", 9))  # TEST-NET-1: never routed anywhere real
+        return sock.getsockname()[0]
+    except OSError:
+        return "127.0.0.1"
+    finally:
+        sock.close()
+
+
+def gather(
+    run,
+    stream,
+    docker,
+    import_nvml,
+    config_dir="/etc/isaac-sim",
+    run_dir="/run/isaac-sim",
+    unit_path="/etc/systemd/system/isaac-sim@.service",
+    proc="/proc",
+    public_address="",
+    gpu_source="auto",
+    log_lines=0,
+    only=None,
+) -> dict:
+    """The whole status of this host. run(argv) -> (rc, out, err); stream(argv, consume) feeds lines.
+
+    docker is a DockerSocket (or anything with containers(prefix) and images()).
+    """
+    errors = []
+    envs, env_errors = read_env_files(config_dir)
+    errors += env_errors
+    deployed = bool(envs) or os.path.exists(unit_path)
+
+    rc, out, err = run(systemctl_show_argv(sorted(envs)))
+    units = parse_systemctl_show(out) if rc == 0 else {}
+    if rc != 0:
+        errors.append(f"systemctl show failed: {err.strip()}")
+
+    containers, docker_ok = {}, True
+    try:
+        now = time.time()
+        containers = parse_containers(docker.containers("isaac-sim-"), docker.images(), now)
+    except DockerError as exc:
+        docker_ok = False
+        errors.append(str(exc))
+
+    usage, gpu_error = gpu_usage.read(gpu_source, run, import_nvml)
+    pid_containers = {p["pid"]: gpu_usage.container_of_pid(p["pid"], proc) for p in (usage or {}).get("processes", [])}
+
+    address = public_address or default_ipv4()
+    records = build(
+        envs,
+        units,
+        containers,
+        read_ready_markers(run_dir),
+        usage,
+        pid_containers,
+        default_address=address,
+        address_override=public_address,
+        only=only,
+    )
+    with_units = [r["id"] for r in records if r["unit"]]
+    if log_lines and with_units:
+        tails = stream(journal_argv(with_units), lambda lines: take_journal_tail(lines, with_units, log_lines))
+        for r in records:
+            r["logs"] = tails.get(r["id"], [])
+    return {
+        "deployed": deployed,
+        "instances": records,
+        "summary": summarize(records),
+        "public_address": address,
+        "docker_available": docker_ok,
+        "gpu": {
+            "source": (usage or {}).get("source", "none"),
+            "driver": (usage or {}).get("driver"),
+            "gpus": (usage or {}).get("gpus", []),
+            "error": gpu_error,
+        },
+        "errors": errors,
+    }

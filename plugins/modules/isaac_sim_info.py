@@ -1,0 +1,314 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_info
+short_description: Status and stream URLs of every Isaac Sim instance on a host, in one call
+version_added: "0.2.0"
+description:
+  - Reports every instance configured by the M(isaacsim.fleet.isaac_sim) role (its env file in
+    C(/etc/isaac-sim)), and every stray C(isaac-sim-*) container or C(isaac-sim@N) unit that is not
+    configured: unit state, enablement and restart count, container, image digest, readiness, port
+    block, stream URLs, GPU and GPU memory, and optionally the last log lines.
+  - "Fixed cost per host, whatever the number of instances: one C(systemctl show), two Docker Engine
+    API calls over the daemon's socket (containers, images), one GPU query (NVML in-process through
+    nvidia-ml-py, else one C(nvidia-smi -q -x)), and one C(journalctl) when O(log_lines) is set.
+    RV(cost) reports what a call spent."
+  - Read-only; supports check mode and always returns C(changed=false).
+  - Needs root (C(become)) to read env files that hold secrets.
+author: isaacsim.fleet contributors
+attributes:
+  check_mode:
+    support: full
+    description: Reads only; the same in check mode.
+  diff_mode:
+    support: none
+    description: Nothing changes, so there is no diff.
+options:
+  public_address:
+    description:
+      - Host name or address put into the stream URLs.
+      - Default is the address each instance was deployed with (C(isaac_sim_public_address)),
+        else the host's default IPv4 address.
+    type: str
+    default: ""
+  log_lines:
+    description: Return the last this many journal lines of each instance's unit (0 returns none).
+    type: int
+    default: 0
+  instances:
+    description: Report only these instance numbers. Default is all, strays included.
+    type: list
+    elements: int
+  gpu_source:
+    description:
+      - Where GPU memory per process is read. V(auto) tries NVML (the nvidia-ml-py bindings) and
+        falls back to C(nvidia-smi); V(none) skips the GPU query.
+    type: str
+    default: auto
+    choices: [auto, nvml, nvidia-smi, none]
+  docker_host:
+    description: The Docker daemon's socket.
+    type: str
+    default: unix:///var/run/docker.sock
+  config_dir:
+    description: Where the role writes the instances' env files.
+    type: path
+    default: /etc/isaac-sim
+  run_dir:
+    description: Where the readiness gate writes its ready markers.
+    type: path
+    default: /run/isaac-sim
+notes:
+  - A container's start time is its creation time; the units create a new container on every start
+    (C(docker run --rm)), so the two are the same for configured instances.
+seealso:
+  - module: isaacsim.fleet.isaac_sim_plan
+"""
+
+EXAMPLES = r"""
+- name: Read the status of every instance
+  isaacsim.fleet.isaac_sim_info:
+  become: true
+  register: isaac_sim_status
+
+- name: The last 20 log lines of instances 0 and 2, URLs with the host's DNS name
+  isaacsim.fleet.isaac_sim_info:
+    instances: [0, 2]
+    log_lines: 20
+    public_address: "{{ inventory_hostname }}"
+  become: true
+  register: isaac_sim_logs
+"""
+
+RETURN = r"""
+deployed:
+  description: Whether the collection deployed Isaac Sim on this host (env files or the unit template exist).
+  returned: always
+  type: bool
+public_address:
+  description: The address used in the URLs when an instance has none of its own.
+  returned: always
+  type: str
+  sample: 10.0.0.12
+summary:
+  description: Counts over the instances reported.
+  returned: always
+  type: dict
+  sample: {"configured": 4, "running": 4, "ready": 3, "failed": 0, "stopped": 0, "stray": 1}
+instances:
+  description: One entry per instance, configured ones first, by number.
+  returned: always
+  type: list
+  elements: dict
+  contains:
+    id:
+      description: Instance number (null for a stray container whose name has no number).
+      type: int
+    name:
+      description: Container name, C(isaac-sim-N).
+      type: str
+    unit:
+      description: Unit name, C(isaac-sim@N.service).
+      type: str
+    configured:
+      description: Whether an env file configures it.
+      type: bool
+    stray:
+      description: Found on the host but not configured (a hand-made container or a leftover unit).
+      type: bool
+    state:
+      description: One word - ready, running, starting, restarting, stopping, failed, stopped or stray-container.
+      type: str
+    ready:
+      description: Whether the readiness gate saw the release's ready line since the container started.
+      type: bool
+    ready_since:
+      description: When it became ready (epoch seconds).
+      type: int
+    active_state:
+      description: systemd's ActiveState of the unit.
+      type: str
+    sub_state:
+      description: systemd's SubState of the unit.
+      type: str
+    enabled:
+      description: Whether the unit starts at boot.
+      type: bool
+    unit_file_state:
+      description: systemd's UnitFileState.
+      type: str
+    restarts:
+      description: systemd's NRestarts - automatic restarts since the unit's counter was last reset.
+      type: int
+    active_since:
+      description: When the unit became active (epoch seconds).
+      type: int
+    container:
+      description: The container, or null when there is none.
+      type: dict
+      contains:
+        id:
+          description: Full container id.
+          type: str
+        state:
+          description: Docker's state (running, exited, ...).
+          type: str
+        health:
+          description: Docker's health (none, starting, healthy, unhealthy).
+          type: str
+        started_at:
+          description: Start time (epoch seconds).
+          type: int
+        uptime_s:
+          description: Seconds since it started, while running.
+          type: int
+        image:
+          description: Image reference the container was run from.
+          type: str
+        image_id:
+          description: Local image id.
+          type: str
+        digest:
+          description: Registry digest of the image (null for an image that was never pulled).
+          type: str
+    uptime_s:
+      description: Seconds the container has been running.
+      type: int
+    release:
+      description: Isaac Sim release family.
+      type: str
+    image:
+      description: Configured image.
+      type: str
+    image_id:
+      description: Image id of the running container, else the configured one.
+      type: str
+    digest:
+      description: Registry digest of the running image.
+      type: str
+      sample: sha256:7ea27426fd569cff89afbef669e8d74092ec644c13e2c8c73cf5a0187506ebdd
+    ports:
+      description: The instance's port block, by kind.
+      type: dict
+      sample: {"signal": 49102, "stream": 48000, "web_viewer": 8212}
+    public_address:
+      description: Address in the URLs.
+      type: str
+    urls:
+      description:
+        - Where to point a client. 2023.1 - C(webrtc_client), the browser client URL, and C(native).
+          4.x/5.x/6.x - C(signal), the address the Isaac Sim WebRTC Streaming Client asks for,
+          C(stream) (UDP), and C(web_viewer) or C(api) where the release has that port.
+      type: dict
+      sample: {"signal": "10.0.0.12:49102", "stream": "10.0.0.12:48000/udp", "web_viewer": "http://10.0.0.12:8212/"}
+    gpu:
+      description: GPU index the instance is pinned to (null without a GPU).
+      type: int
+    gpu_memory_used_mib:
+      description: GPU memory held by the container's processes (null when no GPU could be read).
+      type: int
+    gpu_processes:
+      description: The container's GPU processes (gpu, pid, type, used_mib).
+      type: list
+      elements: dict
+    limits:
+      description: Memory, shm and GPU limits from its docker arguments.
+      type: dict
+      sample: {"memory": "8g", "shm_size": "2g", "gpus": "device=0"}
+    logs:
+      description: The last O(log_lines) journal lines, oldest first.
+      returned: when O(log_lines) > 0
+      type: list
+      elements: str
+gpu:
+  description: The host's GPUs and how they were read.
+  returned: always
+  type: dict
+  sample: {"source": "nvml", "driver": "570.172.08", "gpus": [{"index": 0, "name": "NVIDIA L40S",
+           "uuid": "GPU-...", "memory_total_mib": 46068, "memory_used_mib": 9120}], "error": null}
+docker_available:
+  description: Whether the Docker daemon answered.
+  returned: always
+  type: bool
+errors:
+  description: What could not be read (the rest is still reported).
+  returned: always
+  type: list
+  elements: str
+cost:
+  description: What this call spent - processes spawned and Docker API calls. Does not grow with the instances.
+  returned: always
+  type: dict
+  sample: {"spawns": 2, "docker_api_calls": 2}
+"""
+
+import subprocess
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status
+from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerSocket
+
+
+def _import_nvml():
+    import pynvml  # nvidia-ml-py
+
+    return pynvml
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            public_address=dict(type="str", default=""),
+            log_lines=dict(type="int", default=0),
+            instances=dict(type="list", elements="int"),
+            gpu_source=dict(type="str", default="auto", choices=["auto", "nvml", "nvidia-smi", "none"]),
+            docker_host=dict(type="str", default="unix:///var/run/docker.sock"),
+            config_dir=dict(type="path", default="/etc/isaac-sim"),
+            run_dir=dict(type="path", default="/run/isaac-sim"),
+        ),
+        supports_check_mode=True,
+    )
+    p = module.params
+    if p["log_lines"] < 0:
+        module.fail_json(msg="log_lines: must be 0 or more. Fix: pass a count such as log_lines: 50.")
+    spawns = [0]
+
+    def run(argv):
+        path = module.get_bin_path(argv[0])
+        if not path:
+            return 127, "", f"{argv[0]} is not installed"
+        spawns[0] += 1
+        return module.run_command([path] + argv[1:])
+
+    def stream(argv, consume):
+        path = module.get_bin_path(argv[0], required=True)
+        spawns[0] += 1
+        proc = subprocess.Popen([path] + argv[1:], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        try:
+            return consume(proc.stdout)
+        finally:
+            proc.kill()  # stop reading the journal once every unit has its lines
+            proc.wait()
+
+    docker = DockerSocket(p["docker_host"])
+    result = fleet_status.gather(
+        run,
+        stream,
+        docker,
+        _import_nvml,
+        config_dir=p["config_dir"],
+        run_dir=p["run_dir"],
+        public_address=p["public_address"],
+        gpu_source=p["gpu_source"],
+        log_lines=p["log_lines"],
+        only=p["instances"],
+    )
+    result["cost"] = {"spawns": spawns[0], "docker_api_calls": docker.calls}
+    module.exit_json(changed=False, **result)
+
+
+if __name__ == "__main__":
+    main()
