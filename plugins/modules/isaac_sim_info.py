@@ -8,10 +8,10 @@ module: isaac_sim_info
 short_description: Status and stream URLs of every Isaac Sim instance on a host, in one call
 version_added: "0.2.0"
 description:
-  - Reports every instance configured by the M(isaacsim.fleet.isaac_sim) role (its env file in
+  - "Reports every instance configured by the C(isaacsim.fleet.isaac_sim) role (its env file in
     C(/etc/isaac-sim)), and every stray C(isaac-sim-*) container or C(isaac-sim@N) unit that is not
     configured: unit state, enablement and restart count, container, image digest, readiness, port
-    block, stream URLs, GPU and GPU memory, and optionally the last log lines.
+    block, stream URLs, GPU and GPU memory, and optionally the last log lines."
   - "Fixed cost per host, whatever the number of instances: one C(systemctl show), two Docker Engine
     API calls over the daemon's socket (containers, images), one GPU query (NVML in-process through
     nvidia-ml-py, else one C(nvidia-smi -q -x)), and one C(journalctl) when O(log_lines) is set.

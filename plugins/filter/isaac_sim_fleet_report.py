@@ -1,0 +1,48 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The fleet report behind playbooks/status.yml."""
+
+from __future__ import annotations
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.fleet_report import build
+
+DOCUMENTATION = r"""
+name: isaac_sim_fleet_report
+short_description: Fold the isaac_sim_info results of many hosts into one fleet report
+version_added: "0.2.0"
+description:
+  - Takes C({host: result}) of M(isaacsim.fleet.isaac_sim_info) and the hosts that were asked, and returns
+    a fleet summary (hosts, instances, running, ready, failed, stray) and the hosts with their instances,
+    each with display fields (uptime, GPU text, primary URL, the URL to embed).
+  - A host without a result, or with a failed one, is reported unreachable with the reason.
+positional: _input, targets, generated_at
+options:
+  _input:
+    description: "C({host: isaac_sim_info result})."
+    type: dict
+    required: true
+  targets:
+    description: Every host the status was asked of, in display order.
+    type: list
+    elements: str
+    required: true
+  generated_at:
+    description: Time stamp shown in the report.
+    type: str
+    default: ""
+"""
+
+EXAMPLES = r"""
+report: "{{ results | isaacsim.fleet.isaac_sim_fleet_report(ansible_play_hosts_all, now(utc=true).isoformat()) }}"
+"""
+
+RETURN = r"""
+_value:
+  description: The report (C(generated_at), C(summary), C(hosts)).
+  type: dict
+"""
+
+
+class FilterModule:
+    def filters(self):
+        return {"isaac_sim_fleet_report": build}

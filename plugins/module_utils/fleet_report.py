@@ -1,0 +1,170 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The fleet view of isaac_sim_info results: one report, a text table, Prometheus text.
+
+Pure functions, used by the status playbook's filters (on the controller)
+and by the metrics timer (on each host).
+"""
+
+from __future__ import annotations
+
+import re
+
+TABLE_COLUMNS = ("HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL")
+
+
+def duration(seconds) -> str:
+    """3d4h, 2h05m, 7m03s, 42s; "-" for none."""
+    if seconds is None:
+        return "-"
+    s = max(0, int(seconds))
+    days, rest = divmod(s, 86400)
+    hours, rest = divmod(rest, 3600)
+    minutes, secs = divmod(rest, 60)
+    if days:
+        return f"{days}d{hours}h"
+    if hours:
+        return f"{hours}h{minutes:02d}m"
+    if minutes:
+        return f"{minutes}m{secs:02d}s"
+    return f"{secs}s"
+
+
+def primary_url(inst: dict) -> str:
+    """What a person points a client at: the browser client where the release serves one, else the signal address."""
+    urls = inst.get("urls") or {}
+    for key in ("webrtc_client", "signal", "web_viewer"):
+        if urls.get(key):
+            return urls[key]
+    return "-"
+
+
+def gpu_text(inst: dict) -> str:
+    if inst.get("gpu") is None:
+        return "-"
+    mem = inst.get("gpu_memory_used_mib")
+    return f"{inst['gpu']}" if mem is None else f"{inst['gpu']} ({mem} MiB)"
+
+
+def build(results: dict, targets: list, generated_at: str = "") -> dict:
+    """One report over the hosts asked for; a host without a result is unreachable or failed.
+
+    results: {host: isaac_sim_info result, or {"failed": True, "msg": ...}}
+    """
+    hosts, totals = [], {"hosts": 0, "reachable": 0, "instances": 0, "running": 0, "ready": 0, "failed": 0, "stray": 0}
+    for host in targets:
+        res = results.get(host)
+        totals["hosts"] += 1
+        if not res or res.get("failed") or res.get("unreachable") or "instances" not in res:
+            detail = (res or {}).get("msg") or "no answer (unreachable, or the status task failed)"
+            short = detail.strip().splitlines()[0] if detail.strip() else detail
+            short = short if len(short) <= 160 else short[:157] + "..."
+            hosts.append(
+                {"host": host, "reachable": False, "error": short, "error_detail": detail, "instances": [], "summary": {}}
+            )
+            continue
+        totals["reachable"] += 1
+        instances = []
+        for inst in res["instances"]:
+            view = dict(inst)
+            view["uptime"] = duration(inst.get("uptime_s"))
+            view["gpu_text"] = gpu_text(inst)
+            view["primary_url"] = primary_url(inst)
+            view["digest_short"] = (inst.get("digest") or inst.get("image_id") or "")[7:19] or "-"
+            # what the dashboard can show inline: a page served by the instance itself
+            view["embed_url"] = (inst.get("urls") or {}).get("webrtc_client") if inst.get("ready") else None
+            instances.append(view)
+        summary = res.get("summary", {})
+        totals["instances"] += len(instances)
+        for key in ("running", "ready", "failed", "stray"):
+            totals[key] += summary.get(key, 0)
+        hosts.append(
+            {
+                "host": host,
+                "reachable": True,
+                "deployed": res.get("deployed", False),
+                "error": "; ".join(res.get("errors") or []) or None,
+                "public_address": res.get("public_address"),
+                "gpu": res.get("gpu", {}),
+                "instances": instances,
+                "summary": summary,
+            }
+        )
+    return {"generated_at": generated_at, "summary": totals, "hosts": hosts}
+
+
+def table(report: dict) -> list:
+    """The compact table, as lines (aligned columns)."""
+    rows = [TABLE_COLUMNS]
+    for h in report["hosts"]:
+        if not h["reachable"]:
+            rows.append((h["host"], "-", "UNREACHABLE", "-", "-", "-", "-", h["error"]))
+            continue
+        if not h["instances"]:
+            rows.append((h["host"], "-", "no instances" if h.get("deployed") else "not deployed", "-", "-", "-", "-", "-"))
+        for i in h["instances"]:
+            rows.append(
+                (
+                    h["host"],
+                    str(i["id"]) if i["id"] is not None else i["name"],
+                    i["state"] + (" (stray)" if i.get("stray") else ""),
+                    "yes" if i["ready"] else "no",
+                    i["uptime"],
+                    str(i["restarts"]),
+                    i["gpu_text"],
+                    i["primary_url"],
+                )
+            )
+    widths = [max(len(r[c]) for r in rows) for c in range(len(TABLE_COLUMNS) - 1)]
+    lines = ["  ".join(cell.ljust(widths[c]) for c, cell in enumerate(r[:-1])) + "  " + r[-1] for r in rows]
+    s = report["summary"]
+    lines.append(
+        f"{s['hosts']} hosts ({s['reachable']} answered), {s['instances']} instances: "
+        f"{s['running']} running, {s['ready']} ready, {s['failed']} failed, {s['stray']} stray"
+    )
+    return lines
+
+
+_METRICS = (
+    ("isaac_sim_up", "Whether the instance's container is running (1) or not (0).", "gauge"),
+    ("isaac_sim_ready", "Whether the instance printed its ready line since it started (1) or not (0).", "gauge"),
+    ("isaac_sim_restarts", "Automatic restarts by systemd since the unit's counter was last reset (NRestarts).", "gauge"),
+    ("isaac_sim_uptime_seconds", "Seconds the instance's container has been running.", "gauge"),
+    ("isaac_sim_gpu_memory_used_bytes", "GPU memory held by the instance's processes.", "gauge"),
+    ("isaac_sim_info", "Release, image and GPU of the instance (always 1).", "gauge"),
+)
+
+
+def _label(value) -> str:
+    return re.sub(r'(["\\])', r"\\\1", str(value)).replace("\n", "\\n")
+
+
+def prometheus(result: dict) -> str:
+    """node_exporter textfile lines for one host's isaac_sim_info result.
+
+    The instance label is isaac_sim_instance: Prometheus reserves `instance`
+    for the scrape target.
+    """
+    samples = {name: [] for name, _, _ in _METRICS}
+    for inst in result.get("instances", []):
+        lab = f'isaac_sim_instance="{_label(inst["id"] if inst["id"] is not None else inst["name"])}"'
+        if inst.get("stray"):
+            lab += ',stray="true"'
+        container = inst.get("container") or {}
+        samples["isaac_sim_up"].append((lab, 1 if container.get("state") == "running" else 0))
+        samples["isaac_sim_ready"].append((lab, 1 if inst.get("ready") else 0))
+        samples["isaac_sim_restarts"].append((lab, inst.get("restarts") or 0))
+        samples["isaac_sim_uptime_seconds"].append((lab, inst.get("uptime_s") or 0))
+        if inst.get("gpu_memory_used_mib") is not None:
+            samples["isaac_sim_gpu_memory_used_bytes"].append((lab, inst["gpu_memory_used_mib"] * 1024 * 1024))
+        info = (
+            f'{lab},release="{_label(inst.get("release") or "")}",image="{_label(inst.get("image") or "")}",'
+            f'digest="{_label(inst.get("digest") or "")}",gpu="{_label("" if inst.get("gpu") is None else inst["gpu"])}"'
+        )
+        samples["isaac_sim_info"].append((info, 1))
+    out = []
+    for name, help_text, kind in _METRICS:
+        out.append(f"# HELP {name} {help_text}")
+        out.append(f"# TYPE {name} {kind}")
+        out += [f"{name}{{{lab}}} {value}" for lab, value in samples[name]]
+    return "\n".join(out) + "\n"
