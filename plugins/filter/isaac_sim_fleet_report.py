@@ -11,9 +11,9 @@ name: isaac_sim_fleet_report
 short_description: Fold the isaac_sim_info results of many hosts into one fleet report
 version_added: "0.2.0"
 description:
-  - Takes C({host: result}) of M(isaacsim.fleet.isaac_sim_info) and the hosts that were asked, and returns
+  - "Takes C({host: result}) of M(isaacsim.fleet.isaac_sim_info) and the hosts that were asked, and returns
     a fleet summary (hosts, instances, running, ready, failed, stray) and the hosts with their instances,
-    each with display fields (uptime, GPU text, primary URL, the URL to embed).
+    each with display fields (uptime, GPU text, primary URL, the URL to embed)."
   - A host without a result, or with a failed one, is reported unreachable with the reason.
 positional: _input, targets, generated_at
 options:

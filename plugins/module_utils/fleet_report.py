@@ -60,7 +60,14 @@ def build(results: dict, targets: list, generated_at: str = "") -> dict:
             short = detail.strip().splitlines()[0] if detail.strip() else detail
             short = short if len(short) <= 160 else short[:157] + "..."
             hosts.append(
-                {"host": host, "reachable": False, "error": short, "error_detail": detail, "instances": [], "summary": {}}
+                {
+                    "host": host,
+                    "reachable": False,
+                    "error": short,
+                    "error_detail": detail,
+                    "instances": [],
+                    "summary": {},
+                }
             )
             continue
         totals["reachable"] += 1
@@ -101,7 +108,9 @@ def table(report: dict) -> list:
             rows.append((h["host"], "-", "UNREACHABLE", "-", "-", "-", "-", h["error"]))
             continue
         if not h["instances"]:
-            rows.append((h["host"], "-", "no instances" if h.get("deployed") else "not deployed", "-", "-", "-", "-", "-"))
+            rows.append(
+                (h["host"], "-", "no instances" if h.get("deployed") else "not deployed", "-", "-", "-", "-", "-")
+            )
         for i in h["instances"]:
             rows.append(
                 (
@@ -128,7 +137,11 @@ def table(report: dict) -> list:
 _METRICS = (
     ("isaac_sim_up", "Whether the instance's container is running (1) or not (0).", "gauge"),
     ("isaac_sim_ready", "Whether the instance printed its ready line since it started (1) or not (0).", "gauge"),
-    ("isaac_sim_restarts", "Automatic restarts by systemd since the unit's counter was last reset (NRestarts).", "gauge"),
+    (
+        "isaac_sim_restarts",
+        "Automatic restarts by systemd since the unit's counter was last reset (NRestarts).",
+        "gauge",
+    ),
     ("isaac_sim_uptime_seconds", "Seconds the instance's container has been running.", "gauge"),
     ("isaac_sim_gpu_memory_used_bytes", "GPU memory held by the instance's processes.", "gauge"),
     ("isaac_sim_info", "Release, image and GPU of the instance (always 1).", "gauge"),
@@ -157,9 +170,10 @@ def prometheus(result: dict) -> str:
         samples["isaac_sim_uptime_seconds"].append((lab, inst.get("uptime_s") or 0))
         if inst.get("gpu_memory_used_mib") is not None:
             samples["isaac_sim_gpu_memory_used_bytes"].append((lab, inst["gpu_memory_used_mib"] * 1024 * 1024))
+        gpu = "" if inst.get("gpu") is None else inst["gpu"]
         info = (
             f'{lab},release="{_label(inst.get("release") or "")}",image="{_label(inst.get("image") or "")}",'
-            f'digest="{_label(inst.get("digest") or "")}",gpu="{_label("" if inst.get("gpu") is None else inst["gpu"])}"'
+            f'digest="{_label(inst.get("digest") or "")}",gpu="{_label(gpu)}"'
         )
         samples["isaac_sim_info"].append((info, 1))
     out = []

@@ -267,7 +267,8 @@ def build(
             {
                 "id": key if isinstance(key, int) else None,
                 "name": f"isaac-sim-{key}" if isinstance(key, int) else key,
-                "unit": unit_name(key) if isinstance(key, int) else None,
+                # a stray container with no unit behind it has no unit to act on
+                "unit": unit_name(key) if isinstance(key, int) and (is_configured or has_unit) else None,
                 "configured": is_configured,
                 "stray": not is_configured,
                 "state": state_of(unit if has_unit else None, container, ready)

@@ -62,9 +62,11 @@ def changed_count(result, host) -> int:
 
 
 def run_playbook(
-    host, extra_vars: dict | None = None, check=False, extra_inventory=None
+    host, extra_vars: dict | None = None, check=False, extra_inventory=None, playbook=None
 ) -> subprocess.CompletedProcess:
-    cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), converge_playbook()]
+    """A playbook (the scenario's converge unless named, e.g. "playbooks/status.yml") on this host only."""
+    book = str(ROOT / playbook) if playbook else converge_playbook()
+    cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), book]
     if extra_inventory:
         cmd += ["-i", str(extra_inventory)]
     if extra_vars:
@@ -76,6 +78,29 @@ def run_playbook(
     if f"{name(host)} " not in result.stdout.split("PLAY RECAP", 1)[-1]:
         raise AssertionError(f"the playbook did not run on {name(host)}:\n{result.stdout[-2000:]}{result.stderr}")
     return result
+
+
+def info(host, check=False, **params) -> dict:
+    """The isaac_sim_info module's result on this host (an ad-hoc call, JSON callback)."""
+    cmd = ["ansible", "-i", inventory(), name(host), "-m", "isaacsim.fleet.isaac_sim_info"]
+    if params:
+        cmd += ["-a", json.dumps(params)]
+    if check:
+        cmd.append("--check")
+    env = dict(os.environ, ANSIBLE_LOAD_CALLBACK_PLUGINS="1", ANSIBLE_STDOUT_CALLBACK="json")
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
+    try:
+        result = json.loads(out.stdout)["plays"][0]["tasks"][0]["hosts"][name(host)]
+    except (ValueError, KeyError, IndexError) as exc:
+        raise AssertionError(
+            f"isaac_sim_info gave no result ({exc}): {out.stdout[-2000:]}{out.stderr[-2000:]}"
+        ) from exc
+    assert not result.get("failed"), result.get("msg")
+    return result
+
+
+def by_name(result: dict) -> dict:
+    return {i["name"]: i for i in result["instances"]}
 
 
 def unit_show(host, unit: str) -> dict:

@@ -110,7 +110,7 @@ def test_stopped_instance_reports_stopped_and_not_ready():
 
 def test_stray_container_is_reported():
     r = records()["isaac-sim-9"]
-    assert r["stray"] and not r["configured"] and r["id"] == 9
+    assert r["stray"] and not r["configured"] and r["id"] == 9 and r["unit"] is None
     assert r["state"] == "stray-container" and r["container"]["state"] == "running"
     assert r["ready"] is False
 

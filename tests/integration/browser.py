@@ -1,0 +1,41 @@
+"""Headless Chromium (Debian's chromium and chromium-driver) driven through Selenium.
+
+Both come from the same Debian package source, so the driver always matches
+the browser; Selenium is pointed at them and never downloads anything.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+
+
+def _path(*names):
+    for n in names:
+        found = shutil.which(n) or (n if os.path.isabs(n) and os.path.exists(n) else None)
+        if found:
+            return found
+    raise RuntimeError(f"none of {names} is installed; tools/bootstrap installs Debian's chromium and chromium-driver")
+
+
+@contextlib.contextmanager
+def chromium(width=1400, height=1000):
+    options = webdriver.ChromeOptions()
+    options.binary_location = _path("chromium", "/usr/lib/chromium/chromium")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={width},{height}"):
+        options.add_argument(arg)
+    # every console message and failed load, from the page and its frames
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(service=Service(_path("chromedriver", "/usr/lib/chromium/chromedriver")), options=options)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def console_errors(driver) -> list:
+    return [e for e in driver.get_log("browser") if e.get("level") == "SEVERE"]

@@ -1,0 +1,315 @@
+"""Seeing and operating the fleet: isaac_sim_info, status.yml's dashboard, day-2 playbooks, metrics.
+
+Runs on the molecule default host (four 6.x stand-in instances) after the
+other instance tests; each test leaves every instance ready again.
+"""
+
+import json
+import re
+import socket
+import time
+import urllib.parse
+from pathlib import Path
+
+import pytest
+import testbed
+from browser import chromium, console_errors
+from test_releases import registry_image
+from testbed import INSTANCES, all_ready, by_name, container_id, sh, unit_show, wait_for
+
+OUTPUT = testbed.ROOT / "tests" / "output"
+
+
+@pytest.fixture()
+def ip(host):
+    return testbed.host_ip(host)
+
+
+def ok(result):
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    return result
+
+
+def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
+    all_ready(host)
+    result = testbed.info(host)
+    assert result["changed"] is False and result["deployed"] is True and result["errors"] == []
+    assert result["summary"] == {"configured": 4, "running": 4, "ready": 4, "failed": 0, "stopped": 0, "stray": 0}
+    digest = sh(host, "docker image inspect -f '{{index .RepoDigests 0}}' " + by_name(result)["isaac-sim-0"]["image"])
+    for i in range(INSTANCES):
+        inst = by_name(result)[f"isaac-sim-{i}"]
+        assert inst["id"] == i and inst["configured"] and not inst["stray"]
+        assert inst["state"] == "ready" and inst["ready"] is True and inst["ready_since"]
+        assert inst["active_state"] == "active" and inst["sub_state"] == "running" and inst["enabled"] is True
+        assert inst["container"]["id"] == container_id(host, f"isaac-sim-{i}")
+        assert inst["container"]["state"] == "running" and inst["container"]["health"] == "none"
+        assert 0 <= inst["uptime_s"] < 24 * 3600
+        assert inst["digest"] == digest.stdout.strip().split("@", 1)[1]
+        assert inst["ports"] == {"signal": 49100 + i, "stream": 47998 + i, "web_viewer": 8210 + i}
+        assert inst["urls"] == {
+            "signal": f"{ip}:{49100 + i}",
+            "stream": f"{ip}:{47998 + i}/udp",
+            "web_viewer": f"http://{ip}:{8210 + i}/",
+        }
+        assert inst["gpu"] is None and inst["limits"] == {"memory": "1g", "shm_size": "256m"}
+        # the signal address the URL names is the instance's own
+        with socket.create_connection((ip, 49100 + i), timeout=2) as conn:
+            assert conn.recv(64).startswith(b"isaac-sim-standin")
+    # fixed cost: one systemctl show, no nvidia-smi on this host, two Docker API calls
+    assert result["cost"] == {"spawns": 1, "docker_api_calls": 2}
+
+
+def test_info_in_check_mode_and_with_log_lines(host):
+    result = testbed.info(host, check=True, log_lines=5, instances=[1])
+    assert result["changed"] is False
+    assert [i["name"] for i in result["instances"]] == ["isaac-sim-1"]
+    logs = result["instances"][0]["logs"]
+    assert 1 <= len(logs) <= 5 and any("is loaded" in line or "is ready" in line for line in logs)
+    assert result["cost"]["spawns"] == 2  # + one journalctl for all asked units
+
+
+def test_a_stopped_instance_reports_stopped(host):
+    sh(host, "systemctl stop isaac-sim@3")
+    try:
+        inst = by_name(testbed.info(host))["isaac-sim-3"]
+        assert inst["state"] == "stopped" and inst["ready"] is False and inst["container"] is None
+        assert inst["active_state"] == "inactive" and inst["enabled"] is True
+    finally:
+        sh(host, "systemctl start isaac-sim@3")
+    all_ready(host, [3])
+
+
+def test_a_crashed_instance_shows_its_restarts(host):
+    before = int(unit_show(host, "isaac-sim@1.service")["NRestarts"])
+    sh(host, "docker kill isaac-sim-1")
+    wait_for(lambda: int(unit_show(host, "isaac-sim@1.service")["NRestarts"]) > before, what="a restart")
+    all_ready(host, [1])
+    inst = by_name(testbed.info(host))["isaac-sim-1"]
+    assert inst["restarts"] >= 1 and inst["restarts"] == before + 1
+    assert inst["ready"] is True
+
+
+def test_a_stray_container_is_reported(host):
+    image = by_name(testbed.info(host))["isaac-sim-0"]["image"]
+    sh(host, f"docker run -d --rm --name isaac-sim-9 --network none --entrypoint sleep {image} 600")
+    try:
+        result = testbed.info(host)
+        stray = by_name(result)["isaac-sim-9"]
+        assert stray["stray"] and not stray["configured"] and stray["state"] == "stray-container"
+        assert stray["container"]["state"] == "running" and stray["unit"] is None and stray["ready"] is False
+        assert result["summary"]["stray"] == 1 and result["summary"]["configured"] == 4
+    finally:
+        sh(host, "docker rm -f isaac-sim-9")
+
+
+def test_a_starting_instance_is_not_ready_and_a_day2_restart_fixes_it(host):
+    others = {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1, 3)}
+    # behind the role's back: instance 2 never prints its ready line
+    sh(
+        host,
+        "sed -i 's/^ISAAC_SIM_DOCKER_ARGS=\"/ISAAC_SIM_DOCKER_ARGS=\"--env=STANDIN_NEVER_READY=1 /' "
+        "/etc/isaac-sim/instance-2.env && systemctl restart --no-block isaac-sim@2",
+    )
+    wait_for(lambda: container_id(host, "isaac-sim-2"), what="the new container of instance 2")
+    inst = by_name(testbed.info(host))["isaac-sim-2"]
+    assert inst["ready"] is False and inst["state"] == "starting" and inst["container"]["state"] == "running"
+    # put the file back as the role wrote it and restart through the day-2 playbook
+    sh(host, "sed -i 's/--env=STANDIN_NEVER_READY=1 //' /etc/isaac-sim/instance-2.env")
+    run = ok(
+        testbed.run_playbook(
+            host,
+            {"isaac_sim_action": "restart", "isaac_sim_instances_selected": [2]},
+            playbook="playbooks/instance.yml",
+        )
+    )
+    assert testbed.changed_count(run, host) >= 1
+    assert by_name(testbed.info(host))["isaac-sim-2"]["ready"] is True
+    assert {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1, 3)} == others
+
+
+def dashboard(host, tmp_path, extra=None):
+    out = tmp_path / "report"
+    run = testbed.run_playbook(host, {"fleet_report_dir": str(out), **(extra or {})}, playbook="playbooks/status.yml")
+    ok(run)
+    return run, out
+
+
+def test_status_playbook_prints_the_table_and_writes_json(host, tmp_path, ip):
+    run, out = dashboard(host, tmp_path)
+    table = (out / "status.txt").read_text().splitlines()
+    assert table[0].split() == ["HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL"]
+    rows = [line.split() for line in table[1:-1]]
+    assert [(r[0], r[1], r[2], r[3], r[-1]) for r in rows] == [
+        (testbed.name(host), str(i), "ready", "yes", f"{ip}:{49100 + i}") for i in range(INSTANCES)
+    ]
+    assert table[0] in run.stdout  # also printed by the play
+    report = json.loads((out / "status.json").read_text())
+    assert report["summary"]["instances"] == INSTANCES and report["summary"]["ready"] == INSTANCES
+
+
+def check_dashboard(page: Path, expected: dict, shot: Path):
+    """expected: {instance id: info record}. Returns the driver's findings."""
+    with chromium() as driver:
+        driver.get(page.as_uri())
+        time.sleep(1)  # let frames load: their failures are console errors too
+        errors = console_errors(driver)
+        cards = driver.find_elements("css selector", ".instance-card")
+        links = [
+            (c.get_attribute("data-instance"), a.get_attribute("data-kind"), a.get_attribute("href"))
+            for c in cards
+            for a in c.find_elements("css selector", "a.stream-link")
+        ]
+        addresses = [
+            (c.get_attribute("data-instance"), a.get_attribute("data-kind"), a.text)
+            for c in cards
+            for a in c.find_elements("css selector", "code.stream-address")
+        ]
+        frames = [f.get_attribute("src") for f in driver.find_elements("css selector", "iframe.stream")]
+        states = {c.get_attribute("data-instance"): c.get_attribute("data-state") for c in cards}
+        summary = driver.find_element("id", "sum-instances").text
+        shot.parent.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(shot))
+        frame_text = []
+        for frame in driver.find_elements("css selector", "iframe.stream"):
+            driver.switch_to.frame(frame)
+            frame_text.append(driver.find_element("tag name", "body").text)
+            driver.switch_to.default_content()
+    assert errors == [], errors
+    assert len(cards) == len(expected) and summary == str(len(expected))
+    assert states == {str(i): rec["state"] for i, rec in expected.items()}
+    for instance, kind, href in links:
+        url = urllib.parse.urlsplit(href)
+        rec = expected[int(instance)]
+        # every link points at the instance's host and at the port of its own block for that kind
+        assert url.hostname == rec["public_address"], href
+        port_kind = "http" if kind == "webrtc_client" else kind
+        assert url.port == rec["ports"][port_kind], href
+        assert href == rec["urls"][kind]
+    for instance, kind, text in addresses:
+        assert text == expected[int(instance)]["urls"][kind]
+    return {"links": links, "addresses": addresses, "frames": frames, "frame_text": frame_text}
+
+
+def test_dashboard_in_headless_chromium(host, tmp_path):
+    _, out = dashboard(host, tmp_path)
+    expected = {i["id"]: i for i in testbed.info(host)["instances"]}
+    found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard.png")
+    assert len(found["links"]) == INSTANCES  # the web viewer of each 6.x instance
+    assert {kind for _, kind, _ in found["addresses"]} == {"signal", "stream"}
+    assert found["frames"] == []  # 6.x serves no browser client of its own
+
+
+def test_dashboard_embeds_the_2023_1_browser_client(host, tmp_path):
+    try:
+        ok(
+            testbed.run_playbook(
+                host, {"isaac_sim_release": "2023.1", "isaac_sim_image": registry_image(host, "2023.1.1")}
+            )
+        )
+        all_ready(host)
+        _, out = dashboard(host, tmp_path)
+        expected = {i["id"]: i for i in testbed.info(host)["instances"]}
+        found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard-2023.1.png")
+        assert sorted(found["frames"]) == sorted(rec["urls"]["webrtc_client"] for rec in expected.values())
+        assert all(re.search(r"server=\d+\.\d+\.\d+\.\d+", src) for src in found["frames"])
+        # the frames really loaded each instance's own client page
+        assert len(found["frame_text"]) == INSTANCES and all(found["frame_text"]), found["frame_text"]
+    finally:
+        ok(testbed.run_playbook(host))
+        all_ready(host)
+
+
+def test_day2_actions_refuse_bad_input_before_any_change(host):
+    before = testbed.snapshot(host)
+    for extra, message in (
+        ({"isaac_sim_action": "bounce"}, "isaac_sim_action must be one of: start, stop, restart, remove"),
+        (
+            {"isaac_sim_action": "restart", "isaac_sim_instances_selected": [7]},
+            "isaac_sim_instances_selected: 7 not configured",
+        ),
+    ):
+        run = testbed.run_playbook(host, extra, playbook="playbooks/instance.yml")
+        assert run.returncode != 0
+        assert message in re.sub(r"\s+", " ", run.stdout), run.stdout[-2000:]
+        assert testbed.changed_count(run, host) == 0
+    assert testbed.snapshot(host) == before
+
+
+def test_day2_stop_start_and_logs(host):
+    ids = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+    ok(
+        testbed.run_playbook(
+            host,
+            {"isaac_sim_action": "stop", "isaac_sim_instances_selected": [0, 1]},
+            playbook="playbooks/instance.yml",
+        )
+    )
+    result = by_name(testbed.info(host))
+    assert [result[f"isaac-sim-{i}"]["state"] for i in range(INSTANCES)] == ["stopped", "stopped", "ready", "ready"]
+    assert result["isaac-sim-0"]["enabled"] is True  # stop is not remove: it comes back at boot
+    ok(testbed.run_playbook(host, {"isaac_sim_action": "start"}, playbook="playbooks/instance.yml"))
+    result = by_name(testbed.info(host))
+    assert all(result[f"isaac-sim-{i}"]["ready"] for i in range(INSTANCES))
+    assert [container_id(host, f"isaac-sim-{i}") for i in (2, 3)] == [ids[2], ids[3]]
+    logs = ok(testbed.run_playbook(host, {"isaac_sim_log_lines": 4}, playbook="playbooks/logs.yml"))
+    for i in range(INSTANCES):
+        assert f"== isaac-sim-{i} (ready)" in logs.stdout
+    assert logs.stdout.count("App is loaded.") >= INSTANCES
+
+
+def test_remove_and_cleanup_keep_caches_and_foreign_containers(host):
+    image = by_name(testbed.info(host))["isaac-sim-0"]["image"]
+    ok(
+        testbed.run_playbook(
+            host, {"isaac_sim_action": "remove", "isaac_sim_instances_selected": [3]}, playbook="playbooks/instance.yml"
+        )
+    )
+    assert sh(host, "test -e /etc/isaac-sim/instance-3.env", check=False).rc != 0
+    assert sh(host, "systemctl is-enabled isaac-sim@3", check=False).stdout.strip() != "enabled"
+    assert sh(host, "test -d /var/lib/isaac-sim/instance-3/cache", check=False).rc == 0
+    assert [i["id"] for i in testbed.info(host)["instances"]] == [0, 1, 2]
+    sh(host, f"docker run -d --name not-ours --network none --entrypoint sleep {image} 600")
+    try:
+        cleanup = ok(testbed.run_playbook(host, playbook="playbooks/cleanup.yml"))
+        assert "caches, logs and data stay" in cleanup.stdout
+        assert sh(host, "ls /etc/systemd/system/ | grep -c isaac-sim", check=False).stdout.strip() == "0"
+        assert sh(host, "docker ps -q --filter name=isaac-sim-", check=False).stdout.strip() == ""
+        assert container_id(host, "not-ours")
+        for i in range(INSTANCES):
+            assert sh(host, f"test -d /var/lib/isaac-sim/instance-{i}/cache", check=False).rc == 0
+        # a host without a deployment: every day-2 action refuses, nothing changes
+        before = testbed.snapshot(host)
+        run = testbed.run_playbook(host, {"isaac_sim_action": "start"}, playbook="playbooks/instance.yml")
+        assert run.returncode != 0 and "Isaac Sim is not deployed on" in run.stdout
+        assert testbed.snapshot(host) == before
+        again = ok(testbed.run_playbook(host, playbook="playbooks/cleanup.yml"))
+        assert testbed.changed_count(again, host) == 0
+    finally:
+        sh(host, "docker rm -f not-ours", check=False)
+    # redeploy with metrics on: all four back, warm caches
+    ok(testbed.run_playbook(host, {"isaac_sim_metrics_enabled": True, "isaac_sim_metrics_interval": "5s"}))
+    all_ready(host)
+
+
+def test_metrics_timer_writes_prometheus_text_and_goes_away_when_off(host):
+    prom = "/var/lib/prometheus/node-exporter/isaac_sim.prom"
+    wait_for(lambda: sh(host, f"test -s {prom}", check=False).rc == 0, what="the metrics file")
+    sh(host, "systemctl stop isaac-sim@2")
+    try:
+        stamp = sh(host, f"stat -c %Y {prom}").stdout
+        wait_for(lambda: sh(host, f"stat -c %Y {prom}").stdout != stamp, timeout=30, what="a fresh metrics file")
+        text = sh(host, f"cat {prom}").stdout
+        for i in (0, 1, 3):
+            assert f'isaac_sim_up{{isaac_sim_instance="{i}"}} 1' in text
+            assert f'isaac_sim_ready{{isaac_sim_instance="{i}"}} 1' in text
+            assert re.search(rf'isaac_sim_uptime_seconds{{isaac_sim_instance="{i}"}} \d+', text)
+        assert 'isaac_sim_up{isaac_sim_instance="2"} 0' in text
+        assert 'isaac_sim_ready{isaac_sim_instance="2"} 0' in text
+        assert 'isaac_sim_restarts{isaac_sim_instance="0"} 0' in text
+        assert sh(host, "systemctl is-enabled isaac-sim-metrics.timer").stdout.strip() == "enabled"
+    finally:
+        sh(host, "systemctl start isaac-sim@2")
+    ok(testbed.run_playbook(host, {"isaac_sim_metrics_enabled": False}))
+    assert sh(host, f"test -e {prom}", check=False).rc != 0
+    assert sh(host, "test -e /etc/systemd/system/isaac-sim-metrics.timer", check=False).rc != 0
+    all_ready(host)

@@ -1,0 +1,78 @@
+"""The fleet report, its table and the Prometheus text, over results built from recorded outputs."""
+
+import re
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_report, fleet_status
+from test_fleet_status import NOW, containers, env, recorded
+
+
+def host_result(**kw):
+    units = fleet_status.parse_systemctl_show(recorded("systemctl-show.txt"))
+    instances = fleet_status.build(
+        {i: env(i) for i in range(4)},
+        units,
+        containers(),
+        {0: NOW - 200, 1: NOW - 195, 2: NOW - 190},
+        None,
+        {},
+        default_address="10.0.0.1",
+        now=NOW,
+        monotonic_now=11900.0,
+    )
+    result = {"deployed": True, "instances": instances, "summary": fleet_status.summarize(instances), "errors": []}
+    result.update(kw)
+    return result
+
+
+def test_report_counts_the_fleet_and_marks_unreachable_hosts():
+    report = fleet_report.build(
+        {"a": host_result(), "b": {"unreachable": True, "msg": "Failed to connect\nmore detail"}}, ["a", "b", "c"]
+    )
+    s = report["summary"]
+    assert (s["hosts"], s["reachable"], s["instances"], s["ready"], s["stray"]) == (3, 1, 5, 3, 1)
+    b, c = report["hosts"][1], report["hosts"][2]
+    assert not b["reachable"] and b["error"] == "Failed to connect" and "more detail" in b["error_detail"]
+    assert not c["reachable"] and "no answer" in c["error"]
+
+
+def test_table_has_one_aligned_line_per_instance():
+    lines = fleet_report.table(fleet_report.build({"gpu-node-1": host_result()}, ["gpu-node-1"]))
+    assert lines[0].split() == ["HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL"]
+    rows = [line.split() for line in lines[1:-1]]
+    assert [r[1] for r in rows] == ["0", "1", "2", "3", "9"]
+    assert rows[0][2:4] == ["ready", "yes"] and rows[0][-1] == "172.17.0.2:49100"
+    assert rows[3][2:4] == ["stopped", "no"]
+    assert rows[4][2:4] == ["stray-container", "(stray)"]
+    # columns line up: URL starts at the same offset on every line
+    assert len({line.index("172.17.0.2") for line in lines[1:4]}) == 1
+    assert lines[-1].startswith("1 hosts (1 answered), 5 instances: 4 running, 3 ready")
+
+
+def test_durations():
+    assert [fleet_report.duration(v) for v in (None, 5, 65, 3600 + 300, 2 * 86400 + 7200)] == [
+        "-",
+        "5s",
+        "1m05s",
+        "1h05m",
+        "2d2h",
+    ]
+
+
+def test_prometheus_text_is_well_formed():
+    text = fleet_report.prometheus(host_result())
+    sample = re.compile(r'^[a-z_]+\{isaac_sim_instance="[^"]+"(,[a-z_]+="[^"]*")*\} -?\d+$')
+    for line in text.splitlines():
+        assert line.startswith("# HELP ") or line.startswith("# TYPE ") or sample.match(line), line
+    assert 'isaac_sim_up{isaac_sim_instance="0"} 1' in text
+    assert 'isaac_sim_up{isaac_sim_instance="3"} 0' in text
+    assert 'isaac_sim_ready{isaac_sim_instance="3"} 0' in text
+    assert 'isaac_sim_up{isaac_sim_instance="9",stray="true"} 1' in text
+    assert "instance=" not in text.replace("isaac_sim_instance=", "")
+    # no GPU read: no GPU memory samples rather than zeros
+    assert "isaac_sim_gpu_memory_used_bytes{" not in text
+
+
+def test_prometheus_label_values_are_escaped():
+    result = host_result()
+    result["instances"][0]["image"] = 'reg/x:"quoted"\\'
+    assert 'image="reg/x:\\"quoted\\"\\\\"' in fleet_report.prometheus(result)
