@@ -1,0 +1,185 @@
+#!/usr/bin/env python3
+"""Benchmark: what one isaac_sim_info call costs on a host of N = 1, 4 and 8 instances.
+
+Prints, for each N:
+  - the processes the module spawns per call, counted from outside by strace
+    (every execve of the module's process tree) next to the module's own count;
+  - the module's time on the host as a ratio to the bare pair it replaces:
+    one `systemctl show` of the units and one `docker inspect` of the containers;
+and at N = 4 the time of a playbook with the module against a naive one that
+runs ansible.builtin.systemd_service and community.docker.docker_container_info
+once per instance.
+
+A script, not a test: timings on shared machines are noisy. Needs strace and
+nsenter on the machine that runs it. Run after ./tools/bootstrap:
+
+    .venv/bin/python tests/benchmarks/status.py [--runs 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+
+from benchhost import ENV, ROOT, bench_host, run, timed_play
+
+HOST = "isaacsim-bench-1"
+PAYLOAD = "/root/bench_isaac_sim_info.py"
+
+MODULE_PLAY = """- name: Status with isaac_sim_info (one call)
+  hosts: isaac_sim_hosts
+  gather_facts: false
+  tasks:
+    - name: Read every instance
+      isaacsim.fleet.isaac_sim_info:
+"""
+
+NAIVE_PLAY = """- name: Status the naive way (two module calls per instance)
+  hosts: isaac_sim_hosts
+  gather_facts: false
+  tasks:
+    - name: Read each unit
+      ansible.builtin.systemd_service:
+        name: "isaac-sim@{{ item }}.service"
+      loop: "{{ range(N) | list }}"
+    - name: Read each container
+      community.docker.docker_container_info:
+        name: "isaac-sim-{{ item }}"
+      loop: "{{ range(N) | list }}"
+"""
+
+# runs inside the host: median wall time of each command over `runs` runs
+TIMER = r"""
+import json, statistics, subprocess, sys, time
+cmds, runs = json.loads(sys.argv[1]), int(sys.argv[2])
+out = {}
+for name, cmd in cmds.items():
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        subprocess.run(cmd, shell=True, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        times.append(time.perf_counter() - t)
+    out[name] = statistics.median(times)
+print(json.dumps(out))
+"""
+
+
+def sh(cmd):
+    return subprocess.run(["docker", "exec", HOST, "sh", "-c", cmd], capture_output=True, text=True, check=True).stdout
+
+
+def deploy(inv, n):
+    timed_play(inv, ROOT / "playbooks" / "deploy.yml", HOST, ["-e", json.dumps({"isaac_sim_instance_count": n})])
+
+
+def keep_payload(inv):
+    """The module as Ansible ships it to the host (AnsiballZ, arguments inside), kept for direct runs."""
+    env = dict(ENV, ANSIBLE_KEEP_REMOTE_FILES="1")
+    proc = run(["ansible", "-i", str(inv), HOST, "-m", "isaacsim.fleet.isaac_sim_info"], env=env)
+    if proc.returncode != 0:
+        sys.exit(f"isaac_sim_info failed:\n{proc.stdout[-2000:]}{proc.stderr}")
+    sh(f"cp $(ls -t /root/.ansible/tmp/ansible-tmp-*/AnsiballZ_isaac_sim_info.py | head -1) {PAYLOAD}")
+
+
+def module_result():
+    return json.loads(sh(f"python3 {PAYLOAD}"))
+
+
+def spawns_by_strace():
+    """execve calls in the module's process tree, minus nsenter and the module's own python."""
+    pid = subprocess.run(
+        ["docker", "inspect", "-f", "{{.State.Pid}}", HOST], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    trace = subprocess.run(
+        [
+            "strace",
+            "-f",
+            "-qq",
+            "-e",
+            "trace=execve",
+            "-e",
+            "signal=none",
+            "-o",
+            "/dev/stdout",
+            "nsenter",
+            "-t",
+            pid,
+            "-m",
+            "-u",
+            "-i",
+            "-n",
+            "-p",
+            "--",
+            "python3",
+            PAYLOAD,
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    execs = [line for line in trace.splitlines() if "execve(" in line and "= 0" in line]
+    binaries = [line.split('execve("', 1)[1].split('"', 1)[0] for line in execs]
+    # the first two are nsenter itself and the python3 it starts
+    return binaries[2:]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=10, help="runs to take the median of")
+    args = parser.parse_args()
+    for tool in ("strace", "nsenter"):
+        if not shutil.which(tool):
+            sys.exit(f"{tool} is needed (apt-get install {'strace' if tool == 'strace' else 'util-linux'})")
+
+    rows, plays = [], {}
+    with bench_host(HOST) as (inv, tmp):
+        for n in (1, 4, 8):
+            deploy(inv, n)
+            keep_payload(inv)
+            result = module_result()
+            assert result["summary"]["configured"] == n and result["summary"]["ready"] == n, result["summary"]
+            spawned = spawns_by_strace()
+            units = " ".join(f"isaac-sim@{i}.service" for i in range(n))
+            names = " ".join(f"isaac-sim-{i}" for i in range(n))
+            bare = (
+                f"systemctl show -p Id,ActiveState,SubState,UnitFileState,NRestarts {units} >/dev/null; "
+                f"docker inspect {names} >/dev/null"
+            )
+            times = json.loads(
+                sh(f"python3 -c '{TIMER}' '{json.dumps({'module': f'python3 {PAYLOAD}', 'bare': bare})}' {args.runs}")
+            )
+            rows.append((n, spawned, result["cost"], times))
+            if n == 4:
+                module_play, naive_play = tmp / "module.yml", tmp / "naive.yml"
+                module_play.write_text(MODULE_PLAY)
+                naive_play.write_text(NAIVE_PLAY.replace("range(N)", "range(4)"))
+                plays = {
+                    "module": statistics.median(timed_play(inv, module_play, HOST)[0] for _ in range(3)),
+                    "naive": statistics.median(timed_play(inv, naive_play, HOST)[0] for _ in range(3)),
+                }
+
+    print("status benchmark: isaac_sim_info on one host, stand-in instances, no GPU")
+    print(
+        f"{'N':>2}  {'spawns (strace)':<16} {'(module says)':<14} {'module':>8} {'bare pair':>10} {'ratio':>7}  spawned"
+    )
+    for n, spawned, cost, times in rows:
+        print(
+            f"{n:>2}  {len(spawned):<16} {cost['spawns']:<14} {times['module'] * 1000:6.0f}ms "
+            f"{times['bare'] * 1000:8.0f}ms {times['module'] / times['bare']:6.2f}x  {', '.join(spawned)}"
+        )
+    print(f"docker API calls per module call: {', '.join(str(c['docker_api_calls']) for _, _, c, _ in rows)}")
+    grows = len({len(s) for _, s, _, _ in rows}) > 1
+    print(f"spawns grow with N: {'YES' if grows else 'no'}")
+    print(
+        f"N=4 playbook, median of 3: module {plays['module']:.1f} s, naive per-instance {plays['naive']:.1f} s, "
+        f"module / naive = {plays['module'] / plays['naive']:.2f}x"
+    )
+    return 1 if grows else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
