@@ -29,6 +29,7 @@ from benchhost import ENV, ROOT, bench_host, run, timed_play
 
 HOST = "isaacsim-bench-1"
 PAYLOAD = "/root/bench_isaac_sim_info.py"
+PING = "/root/bench_ping.py"
 
 MODULE_PLAY = """- name: Status with isaac_sim_info (one call)
   hosts: isaac_sim_hosts
@@ -76,13 +77,14 @@ def deploy(inv, n):
     timed_play(inv, ROOT / "playbooks" / "deploy.yml", HOST, ["-e", json.dumps({"isaac_sim_instance_count": n})])
 
 
-def keep_payload(inv):
+def keep_payload(inv, module, dest):
     """The module as Ansible ships it to the host (AnsiballZ, arguments inside), kept for direct runs."""
     env = dict(ENV, ANSIBLE_KEEP_REMOTE_FILES="1")
-    proc = run(["ansible", "-i", str(inv), HOST, "-m", "isaacsim.fleet.isaac_sim_info"], env=env)
+    proc = run(["ansible", "-i", str(inv), HOST, "-m", module], env=env)
     if proc.returncode != 0:
-        sys.exit(f"isaac_sim_info failed:\n{proc.stdout[-2000:]}{proc.stderr}")
-    sh(f"cp $(ls -t /root/.ansible/tmp/ansible-tmp-*/AnsiballZ_isaac_sim_info.py | head -1) {PAYLOAD}")
+        sys.exit(f"{module} failed:\n{proc.stdout[-2000:]}{proc.stderr}")
+    short = module.rsplit(".", 1)[-1]
+    sh(f"cp $(ls -t /root/.ansible/tmp/ansible-tmp-*/AnsiballZ_{short}.py | head -1) {dest}")
 
 
 def module_result():
@@ -139,7 +141,8 @@ def main():
     with bench_host(HOST) as (inv, tmp):
         for n in (1, 4, 8):
             deploy(inv, n)
-            keep_payload(inv)
+            keep_payload(inv, "isaacsim.fleet.isaac_sim_info", PAYLOAD)
+            keep_payload(inv, "ansible.builtin.ping", PING)
             result = module_result()
             assert result["summary"]["configured"] == n and result["summary"]["ready"] == n, result["summary"]
             spawned = spawns_by_strace()
@@ -150,7 +153,11 @@ def main():
                 f"docker inspect {names} >/dev/null"
             )
             times = json.loads(
-                sh(f"python3 -c '{TIMER}' '{json.dumps({'module': f'python3 {PAYLOAD}', 'bare': bare})}' {args.runs}")
+                sh(
+                    f"python3 -c '{TIMER}' "
+                    f"'{json.dumps({'module': f'python3 {PAYLOAD}', 'bare': bare, 'ping': f'python3 {PING}'})}' "
+                    f"{args.runs}"
+                )
             )
             rows.append((n, spawned, result["cost"], times))
             if n == 4:
@@ -163,13 +170,17 @@ def main():
                 }
 
     print("status benchmark: isaac_sim_info on one host, stand-in instances, no GPU")
+    print("times on the host, median of each; ping = Ansible's own ping module, the floor any module pays")
     print(
-        f"{'N':>2}  {'spawns (strace)':<16} {'(module says)':<14} {'module':>8} {'bare pair':>10} {'ratio':>7}  spawned"
+        f"{'N':>2}  {'spawns (strace)':<16} {'(module says)':<14} {'module':>8} {'bare pair':>10} {'ratio':>7}"
+        f" {'ping':>7} {'module-ping':>12} {'ratio':>6}  spawned"
     )
-    for n, spawned, cost, times in rows:
+    for n, spawned, cost, t in rows:
+        own = t["module"] - t["ping"]
         print(
-            f"{n:>2}  {len(spawned):<16} {cost['spawns']:<14} {times['module'] * 1000:6.0f}ms "
-            f"{times['bare'] * 1000:8.0f}ms {times['module'] / times['bare']:6.2f}x  {', '.join(spawned)}"
+            f"{n:>2}  {len(spawned):<16} {cost['spawns']:<14} {t['module'] * 1000:6.0f}ms "
+            f"{t['bare'] * 1000:8.0f}ms {t['module'] / t['bare']:6.2f}x {t['ping'] * 1000:5.0f}ms"
+            f" {own * 1000:10.0f}ms {own / t['bare']:5.2f}x  {', '.join(spawned)}"
         )
     print(f"docker API calls per module call: {', '.join(str(c['docker_api_calls']) for _, _, c, _ in rows)}")
     grows = len({len(s) for _, s, _, _ in rows}) > 1
