@@ -26,26 +26,30 @@ def run(cmd, **kw):
     return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, **kw)
 
 
-def timed_play(inventory, playbook, host, extra=()):
-    """(seconds, changed count) of one ansible-playbook run; exits on failure."""
+def timed_play(inventory, playbook, host, extra=(), env=None):
+    """(seconds, changed count of host) of one ansible-playbook run; exits on failure."""
     start = time.monotonic()
-    proc = run(["ansible-playbook", "-i", str(inventory), *extra, str(playbook)])
+    proc = run(["ansible-playbook", "-i", str(inventory), *extra, str(playbook)], env=env or ENV)
     elapsed = time.monotonic() - start
     if proc.returncode != 0:
         sys.exit(f"{playbook} failed:\n{proc.stdout[-3000:]}{proc.stderr}")
-    changed = int(re.search(rf"{host}\s*:.*changed=(\d+)", proc.stdout).group(1))
-    return elapsed, changed
+    return elapsed, int(re.search(rf"{host}\s*:.*changed=(\d+)", proc.stdout).group(1))
 
 
 @contextlib.contextmanager
-def bench_host(name: str):
-    """Yields (inventory dir, tmp dir) for a fresh host with Docker and the image; removes it after."""
-    hosts = json.dumps({"testbed_hosts": [name]})
+def bench_host(name):
+    """Yields (inventory dir, tmp dir) for fresh hosts (one name or a list) with Docker and the image.
+
+    The hosts are removed afterwards.
+    """
+    names = [name] if isinstance(name, str) else list(name)
+    hosts = json.dumps({"testbed_hosts": names})
     with tempfile.TemporaryDirectory() as tmp:
         inv = Path(tmp) / "inventory"
         inv.mkdir()
+        listed = "".join(f"        {n}:\n" for n in names)
         (inv / "hosts.yml").write_text(
-            f"all:\n  children:\n    isaac_sim_hosts:\n      hosts:\n        {name}:\n"
+            f"all:\n  children:\n    isaac_sim_hosts:\n      hosts:\n{listed}"
             "      vars:\n        ansible_connection: community.docker.docker\n"
         )
         (inv / "group_vars").symlink_to(ROOT / "inventory" / "demo" / "group_vars")

@@ -1,0 +1,145 @@
+"""Rolling restarts and upgrades across three hosts of four instances, watched from outside.
+
+Runs in molecule's verify step of molecule/fleet. The tests share the fleet and
+run in file order: a rolling restart, an upgrade that fails at the canary, and
+an upgrade that goes through.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+
+import pytest
+import testbed
+from portwatch import Watcher
+from testbed import ROOT, client
+
+INSTANCES = 4
+SIGNAL = 49100
+
+
+def hosts() -> list:
+    out = subprocess.run(
+        ["ansible-inventory", "-i", testbed.inventory(), "--list"], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    return sorted(json.loads(out.stdout)["isaac_sim_hosts"]["hosts"])
+
+
+def sh(host: str, command: str) -> str:
+    code, out = client().containers.get(host).exec_run(["sh", "-c", command])
+    if code != 0:
+        raise AssertionError(f"{command!r} on {host} failed ({code}): {out.decode()}")
+    return out.decode()
+
+
+def ip(host: str) -> str:
+    return client().containers.get(host).attrs["NetworkSettings"]["IPAddress"]
+
+
+def containers(host: str) -> dict:
+    out = sh(host, "docker ps --no-trunc --filter name=isaac-sim- --format '{{.Names}} {{.ID}} {{.Image}}'")
+    return {name: (cid, image) for name, cid, image in (line.split() for line in out.strip().splitlines())}
+
+
+def all_ready(host: str) -> bool:
+    out = sh(host, "systemctl is-active isaac-sim@0 isaac-sim@1 isaac-sim@2 isaac-sim@3; ls /run/isaac-sim")
+    return out.count("active\n") == INSTANCES and all(f"instance-{i}.ready" in out for i in range(INSTANCES))
+
+
+def playbook(name: str, extra: dict | None = None) -> subprocess.CompletedProcess:
+    cmd = ["ansible-playbook", "-i", testbed.inventory(), str(ROOT / "playbooks" / name)]
+    if extra:
+        cmd += ["-e", json.dumps(extra)]
+    env = dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1500, cwd=ROOT)
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    found = hosts()
+    assert len(found) >= 3
+    for h in found:
+        testbed.wait_for(lambda h=h: all_ready(h), timeout=180, what=f"{h} ready")
+    return found
+
+
+def registry_image(host, tag):
+    current = re.search(r'^ISAAC_SIM_IMAGE="([^"]+)"', sh(host, "cat /etc/isaac-sim/instance-0.env"), re.M).group(1)
+    return current.rsplit(":", 1)[0] + f":{tag}"
+
+
+def test_rolling_restart_keeps_n_minus_1_per_host_and_one_host_at_a_time(fleet):
+    before = {h: containers(h) for h in fleet}
+    watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + i for i in range(INSTANCES)])
+    watcher.start()
+    try:
+        run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3})
+    finally:
+        watcher.stop()
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr
+    assert "completed: every host rolled" in run.stdout
+    after = {h: containers(h) for h in fleet}
+    for h in fleet:
+        # every instance got a new container, with the same image
+        assert all(after[h][n][0] != before[h][n][0] and after[h][n][1] == before[h][n][1] for n in before[h]), h
+        assert all_ready(h)
+    assert len(watcher.samples) > 20, "the watcher must have seen the whole rollout"
+    # every host was seen disturbed (so these checks can fail), never by more than one instance
+    assert watcher.lowest() == {h: INSTANCES - 1 for h in fleet}, watcher.lowest()
+    # serial [1, 25%] on three hosts rolls one host at a time
+    assert watcher.most_disturbed_at_once(INSTANCES) == 1
+
+
+def test_upgrade_to_an_image_that_never_gets_ready_stops_at_the_canary_and_reverts_it(fleet):
+    canary, rest = fleet[0], fleet[1:]
+    before = {h: containers(h) for h in fleet}
+    envs = {h: sh(h, "cat /etc/isaac-sim/instance-1.env") for h in fleet}
+    bad = registry_image(canary, "6.0.1-never-ready")
+    run = playbook("upgrade.yml", {"isaac_sim_image": bad, "isaac_sim_ready_timeout": 15, "isaac_sim_rollout_soak": 3})
+    out = re.sub(r"\s+", " ", run.stdout)
+    assert run.returncode != 0
+    # the message names the instance and the reason
+    assert f"Rollout stopped on {canary}: isaac-sim-0: isaac-sim-0 was not ready within 15 s" in out, run.stdout[-4000:]
+    assert "reverted: " + canary + ": isaac-sim-0" in out
+    assert f"untouched: {canary}: isaac-sim-1, isaac-sim-2, isaac-sim-3" in out
+    for h in rest:
+        assert f"{h}: every instance (not reached)" in out
+    after = {h: containers(h) for h in fleet}
+    # the canary's instance 0 is back on the old image and ready; nothing else was touched
+    assert after[canary]["isaac-sim-0"][1] == before[canary]["isaac-sim-0"][1]
+    assert after[canary]["isaac-sim-0"][0] != before[canary]["isaac-sim-0"][0]
+    testbed.wait_for(lambda: all_ready(canary), timeout=60, what="the canary ready")
+    for h in fleet:
+        for n in before[h]:
+            if (h, n) != (canary, "isaac-sim-0"):
+                assert after[h][n] == before[h][n], (h, n)
+        assert sh(h, "cat /etc/isaac-sim/instance-1.env") == envs[h]
+        assert bad not in sh(h, "cat /etc/isaac-sim/instance-0.env")
+
+
+def test_upgrade_to_a_good_image_converges_every_host(fleet):
+    new = registry_image(fleet[0], "6.0.2")
+    run = playbook("upgrade.yml", {"isaac_sim_image": new, "isaac_sim_rollout_soak": 3})
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr
+    assert "completed: every host rolled" in run.stdout
+    digest = None
+    for h in fleet:
+        # the status module shows the new digest on every instance
+        info = json.loads(
+            subprocess.run(
+                ["ansible", "-i", testbed.inventory(), h, "-m", "isaacsim.fleet.isaac_sim_info"],
+                capture_output=True,
+                text=True,
+                cwd=ROOT,
+                env=dict(os.environ, ANSIBLE_LOAD_CALLBACK_PLUGINS="1", ANSIBLE_STDOUT_CALLBACK="json"),
+                check=True,
+            ).stdout
+        )["plays"][0]["tasks"][0]["hosts"][h]
+        registry = sh(h, f"docker image inspect -f '{{{{index .RepoDigests 0}}}}' {new}").strip().split("@", 1)[1]
+        digest = digest or registry
+        assert registry == digest
+        assert [i["digest"] for i in info["instances"]] == [digest] * INSTANCES, h
+        assert all(i["ready"] and i["image"] == new for i in info["instances"]), h

@@ -1,0 +1,49 @@
+"""A watcher that checks every instance's port on every host once a second, from outside the hosts.
+
+Used by the fleet tests and the rollout benchmark to see what clients see
+during a rollout: how many instances of each host answer at each moment.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+
+def answers(address: str, port: int) -> bool:
+    """Whether the stand-in answers on the port with its banner."""
+    try:
+        with socket.create_connection((address, port), timeout=0.5) as conn:
+            conn.settimeout(0.5)
+            return conn.recv(64).startswith(b"isaac-sim-standin")
+    except OSError:
+        return False
+
+
+class Watcher(threading.Thread):
+    """samples: [(monotonic time, {host: instances answering})], one per second."""
+
+    def __init__(self, addresses: dict, ports: list):
+        super().__init__(daemon=True)
+        self.addresses, self.ports = addresses, ports
+        self.samples = []
+        self.done = threading.Event()
+
+    def run(self):
+        while not self.done.is_set():
+            start = time.monotonic()
+            self.samples.append((start, {h: sum(answers(a, p) for p in self.ports) for h, a in self.addresses.items()}))
+            self.done.wait(max(0.0, 1.0 - (time.monotonic() - start)))
+
+    def stop(self):
+        self.done.set()
+        self.join()
+
+    def lowest(self) -> dict:
+        """The fewest instances seen answering on each host."""
+        return {h: min(s[h] for _, s in self.samples) for h in self.addresses}
+
+    def most_disturbed_at_once(self, full: int) -> int:
+        """The most hosts seen with fewer than `full` instances answering in one sample."""
+        return max(sum(1 for v in s.values() if v < full) for _, s in self.samples)
