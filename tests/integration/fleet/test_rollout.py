@@ -99,7 +99,7 @@ def test_upgrade_to_an_image_that_never_gets_ready_stops_at_the_canary_and_rever
     envs = {h: sh(h, "cat /etc/isaac-sim/instance-1.env") for h in fleet}
     bad = registry_image(canary, "6.0.1-never-ready")
     run = playbook("upgrade.yml", {"isaac_sim_image": bad, "isaac_sim_ready_timeout": 15, "isaac_sim_rollout_soak": 3})
-    out = re.sub(r"\s+", " ", run.stdout)
+    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
     assert run.returncode != 0
     # the message names the instance and the reason
     assert f"Rollout stopped on {canary}: isaac-sim-0: isaac-sim-0 was not ready within 15 s" in out, run.stdout[-4000:]

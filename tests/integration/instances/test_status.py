@@ -230,7 +230,8 @@ def test_day2_actions_refuse_bad_input_before_any_change(host):
     ):
         run = testbed.run_playbook(host, extra, playbook="playbooks/instance.yml")
         assert run.returncode != 0
-        assert message in re.sub(r"\s+", " ", run.stdout), run.stdout[-2000:]
+        # argument-spec errors go to stderr, assert messages to stdout
+        assert message in re.sub(r"\s+", " ", run.stdout + run.stderr), run.stdout[-2000:] + run.stderr
         assert testbed.changed_count(run, host) == 0
     assert testbed.snapshot(host) == before
 
@@ -280,7 +281,7 @@ def test_remove_and_cleanup_keep_caches_and_foreign_containers(host):
         # a host without a deployment: every day-2 action refuses, nothing changes
         before = testbed.snapshot(host)
         run = testbed.run_playbook(host, {"isaac_sim_action": "start"}, playbook="playbooks/instance.yml")
-        assert run.returncode != 0 and "Isaac Sim is not deployed on" in run.stdout
+        assert run.returncode != 0 and "Isaac Sim is not deployed on" in run.stdout + run.stderr
         assert testbed.snapshot(host) == before
         again = ok(testbed.run_playbook(host, playbook="playbooks/cleanup.yml"))
         assert testbed.changed_count(again, host) == 0
