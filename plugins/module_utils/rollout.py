@@ -156,7 +156,8 @@ def roll(host: Host, paths: Paths, instances: list, soak_seconds: float, env_mod
         i = inst["id"]
         current = host.read(paths.env(i))
         if current is None:
-            failed = {"id": i, "reason": f"{paths.env(i)} is missing (not deployed here)", "reverted": False}
+            # nothing was changed on it, so there is nothing to revert
+            failed = {"id": i, "reason": f"{paths.env(i)} is missing (not deployed here)", "reverted": None}
             untouched = [x["id"] for x in instances[n + 1 :]]
             break
         new = inst.get("env")
@@ -217,11 +218,12 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
             unchanged.append(f"{host}: " + ", ".join(f"isaac-sim-{i}" for i in same))
         failed = out.get("failed_instance")
         if failed:
-            state = (
-                f"back on {failed.get('reverted_to')}, ready"
-                if failed.get("reverted")
-                else f"REVERT FAILED: {failed.get('revert_error')}"
-            )
+            if failed.get("reverted") is None:
+                state = "not changed"
+            elif failed.get("reverted"):
+                state = f"back on {failed.get('reverted_to')}, ready"
+            else:
+                state = f"REVERT FAILED: {failed.get('revert_error')}"
             reverted.append(f"{host}: isaac-sim-{failed['id']} ({failed.get('reason')}) - {state}")
             why = f"isaac-sim-{failed['id']} on {host}: {failed.get('reason')}"
         elif out.get("failed") and not out.get("done"):

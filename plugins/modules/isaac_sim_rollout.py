@@ -193,11 +193,12 @@ def main():
     )
     failed = result["failed"]
     if failed:
-        back = (
-            f"reverted to {failed.get('reverted_to')} and ready again"
-            if failed.get("reverted")
-            else f"the revert failed too: {failed.get('revert_error')}"
-        )
+        if failed.get("reverted") is None:
+            back = "nothing was changed on it"
+        elif failed.get("reverted"):
+            back = f"reverted to {failed.get('reverted_to')} and ready again"
+        else:
+            back = f"the revert failed too: {failed.get('revert_error')}"
         module.fail_json(msg=f"isaac-sim-{failed['id']}: {failed['reason']}; {back}", **out)
     module.exit_json(**out)
 

@@ -172,3 +172,21 @@ def test_a_missing_env_file_stops_with_a_reason():
     h = ScriptedHost(1)
     result = rollout.roll(h.host, P, [{"id": 5}], soak_seconds=0)
     assert result["failed"]["id"] == 5 and "missing" in result["failed"]["reason"]
+    assert result["failed"]["reverted"] is None
+    lines = rollout.summary({"a": {"done": [], "failed_instance": result["failed"], "untouched": []}}, ["a", "b"])
+    assert (
+        "reverted: a: isaac-sim-5 (/etc/isaac-sim/instance-5.env is missing (not deployed here)) - not changed" in lines
+    )
+    assert "untouched: b: every instance (not reached)" in lines
+
+
+def test_summary_of_a_completed_rollout():
+    ok = {"done": [{"id": 0, "action": "apply"}, {"id": 1, "action": "unchanged"}], "failed_instance": None}
+    lines = rollout.summary({"a": ok, "b": ok}, ["a", "b"])
+    assert lines == [
+        "rolled: a: isaac-sim-0; b: isaac-sim-0",
+        "already current: a: isaac-sim-1; b: isaac-sim-1",
+        "reverted: none",
+        "untouched: none",
+        "completed: every host rolled",
+    ]
