@@ -210,6 +210,22 @@ def test_smi_xml_gives_gpus_in_index_order_with_processes():
     }
 
 
+def test_smi_xml_recorded_on_a_real_h100():
+    """nvidia-smi -q -x from an H100 (driver 580.159.04) while one process held 4 GiB (tests/hardware/gpu_check.py)."""
+    usage = gpu_usage.parse_smi_xml(recorded("h100-nvidia-smi-q-x.xml"))
+    assert usage["driver"] == "580.159.04"
+    assert usage["gpus"] == [
+        {
+            "index": 0,
+            "name": "NVIDIA H100 80GB HBM3",
+            "uuid": "GPU-7c29f82e-cc0f-6e84-d164-aa52ca7577e0",
+            "memory_total_mib": 81559,
+            "memory_used_mib": 4715,
+        }
+    ]
+    assert usage["processes"] == [{"gpu": 0, "pid": 470, "type": "C", "used_mib": 4706}]
+
+
 def recorded_nvml(calls):
     """nvidia-ml-py's calls (pynvml names), answering with fixed values of the shape pynvml returns."""
     return SimpleNamespace(
@@ -247,6 +263,30 @@ def test_nvml_path_merges_compute_and_graphics_lists():
     assert procs[10] == {"gpu": 0, "pid": 10, "type": "C+G", "used_mib": 3072}
     assert procs[11]["used_mib"] is None
     assert calls == ["init", "shutdown"]
+
+
+def test_nvml_memory_leaves_out_what_the_driver_reserves():
+    """Seen on an H100 (driver 580.159.04): v1 'used' includes the reserved 480 MiB, v2 does not."""
+    reserved, mib = 480 * 1024**2, 1024**2
+
+    def memory_info(handle, version=None):
+        if version is None:
+            return SimpleNamespace(total=81559 * mib, used=reserved, free=81559 * mib - reserved)
+        assert version == 0x02000028
+        return SimpleNamespace(total=81559 * mib, reserved=reserved, used=0, free=81559 * mib - reserved)
+
+    nvml = recorded_nvml([])
+    nvml.nvmlMemory_v2 = 0x02000028
+    nvml.nvmlDeviceGetMemoryInfo = memory_info
+    assert gpu_usage.from_nvml(nvml)["gpus"][0]["memory_used_mib"] == 0
+
+    def v2_missing(handle, version=None):
+        if version is not None:
+            raise RuntimeError("NVMLError_FunctionNotFound")
+        return memory_info(handle)
+
+    nvml.nvmlDeviceGetMemoryInfo = v2_missing
+    assert gpu_usage.from_nvml(nvml)["gpus"][0]["memory_used_mib"] == 480
 
 
 def no_nvml():

@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import hostprobe
 
@@ -72,6 +73,13 @@ def test_gpu_list():
     gpus = hostprobe.parse_gpu_list(out)
     assert gpus[1] == {"index": 1, "name": "NVIDIA L40S", "memory_total_mib": 46068, "driver": "570.172.08"}
     assert hostprobe.parse_gpu_list("No devices were found\n") == []
+
+
+def test_gpu_list_recorded_on_a_real_h100():
+    out = (Path(__file__).parent / "recorded" / "h100-nvidia-smi-query-gpu.csv").read_text()
+    assert hostprobe.parse_gpu_list(out) == [
+        {"index": 0, "name": "NVIDIA H100 80GB HBM3", "memory_total_mib": 81559, "driver": "580.159.04"}
+    ]
 
 
 def test_existing_instances(tmp_path):
