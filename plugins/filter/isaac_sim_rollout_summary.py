@@ -26,7 +26,7 @@ options:
     elements: str
     required: true
   stopped_on:
-    description: The host the rollout stopped on, if it stopped.
+    description: The host the rollout stopped on, or why it stopped, when no instance failed.
     type: str
 """
 

@@ -1,16 +1,21 @@
 """Rolling restarts and upgrades across three hosts of four instances, watched from outside.
 
 Runs in molecule's verify step of molecule/fleet. The tests share the fleet and
-run in file order: a rolling restart, an upgrade that fails at the canary, and
-an upgrade that goes through.
+run in file order: a rolling restart, an upgrade that fails at the canary, a
+preflight that refuses an unhealthy fleet, a rollout scoped by --limit and
+instance selection, a canary pause nobody answers, and an upgrade approved at
+the canary prompt that goes through.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import pty
 import re
+import select
 import subprocess
+import time
 
 import pytest
 import testbed
@@ -49,12 +54,61 @@ def all_ready(host: str) -> bool:
     return out.count("active\n") == INSTANCES and all(f"instance-{i}.ready" in out for i in range(INSTANCES))
 
 
-def playbook(name: str, extra: dict | None = None) -> subprocess.CompletedProcess:
+def playbook_argv(name: str, extra: dict | None, limit: str | None) -> list:
     cmd = ["ansible-playbook", "-i", testbed.inventory(), str(ROOT / "playbooks" / name)]
     if extra:
         cmd += ["-e", json.dumps(extra)]
-    env = dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1500, cwd=ROOT)
+    return cmd + (["--limit", limit] if limit else [])
+
+
+PLAIN = {"ANSIBLE_FORCE_COLOR": "0", "ANSIBLE_NOCOLOR": "1"}
+
+
+def playbook(name: str, extra: dict | None = None, limit: str | None = None) -> subprocess.CompletedProcess:
+    """Run unattended: stdin is not a terminal, as under cron or CI."""
+    return subprocess.run(
+        playbook_argv(name, extra, limit),
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, **PLAIN),
+        timeout=1500,
+        cwd=ROOT,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def playbook_on_a_terminal(name: str, extra: dict, prompt: str, answer) -> tuple:
+    """Run on a pseudo-terminal, as an operator would; when `prompt` shows, type answer() and Enter.
+
+    Returns (exit code, output, whether the prompt was answered).
+    """
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: session leader on the terminal, so Ansible's pause may prompt
+        os.chdir(ROOT)
+        os.environ.update(PLAIN)
+        argv = playbook_argv(name, extra, None)
+        os.execvp(argv[0], argv)
+    out, answered, deadline = b"", False, time.monotonic() + 1500
+    try:
+        while time.monotonic() < deadline:
+            if not select.select([fd], [], [], 5)[0]:
+                continue
+            try:
+                chunk = os.read(fd, 65536)
+            except OSError:  # EIO: the playbook ended and closed the terminal
+                break
+            if not chunk:
+                break
+            out += chunk
+            if not answered and prompt in re.sub(r"\s+", " ", out.decode(errors="replace")):
+                os.write(fd, answer().encode() + b"\r")
+                answered = True
+        else:
+            os.kill(pid, 9)
+    finally:
+        os.close(fd)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status), out.decode(errors="replace"), answered
 
 
 @pytest.fixture(scope="module")
@@ -120,11 +174,72 @@ def test_upgrade_to_an_image_that_never_gets_ready_stops_at_the_canary_and_rever
         assert bad not in sh(h, "cat /etc/isaac-sim/instance-0.env")
 
 
-def test_upgrade_to_a_good_image_converges_every_host(fleet):
-    new = registry_image(fleet[0], "6.0.2")
-    run = playbook("upgrade.yml", {"isaac_sim_image": new, "isaac_sim_rollout_soak": 3})
+def test_preflight_refuses_an_unhealthy_instance_before_anything_restarts(fleet):
+    sick = fleet[-1]
+    sh(sick, "systemctl stop isaac-sim@2")
+    before = {h: containers(h) for h in fleet}
+    run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3})
+    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    assert run.returncode != 0
+    assert f"isaac-sim-2 on {sick} not ready before the rollout. Fix: repair them first" in out, run.stdout[-4000:]
+    assert "isaac_sim_rollout_allow_unhealthy: true" in out
+    # not one instance on any host was restarted, the canary's included
+    assert {h: containers(h) for h in fleet} == before
+    assert "isaac-sim-2" not in before[sick]
+
+
+def test_limit_and_instance_selection_roll_only_what_they_name(fleet):
+    target = fleet[-1]
+    before = {h: containers(h) for h in fleet}
+    scope = {"isaac_sim_instances_selected": [1, 2], "isaac_sim_rollout_allow_unhealthy": True}
+    run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3, **scope}, limit=target)
     assert run.returncode == 0, run.stdout[-4000:] + run.stderr
-    assert "completed: every host rolled" in run.stdout
+    assert f"rolled: {target}: isaac-sim-1, isaac-sim-2" in re.sub(r"\s+", " ", run.stdout)
+    after = {h: containers(h) for h in fleet}
+    # the stopped instance is running again, 1 has a new container, 0 and 3 were not touched
+    assert all_ready(target)
+    assert after[target]["isaac-sim-1"][0] != before[target]["isaac-sim-1"][0]
+    assert {n: after[target][n] for n in ("isaac-sim-0", "isaac-sim-3")} == {
+        n: before[target][n] for n in ("isaac-sim-0", "isaac-sim-3")
+    }
+    for h in fleet[:-1]:
+        assert after[h] == before[h], h
+
+
+def test_canary_pause_with_nobody_to_answer_stops_after_the_canary(fleet):
+    canary, rest = fleet[0], fleet[1:]
+    before = {h: containers(h) for h in fleet}
+    run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3, "isaac_sim_rollout_pause_after_canary": True})
+    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    assert run.returncode != 0
+    assert f"Rollout stopped after the canary {canary}: not approved" in out, run.stdout[-4000:]
+    assert "stopped: no approval after the canary" in out
+    after = {h: containers(h) for h in fleet}
+    assert all(after[canary][n][0] != before[canary][n][0] for n in before[canary])
+    for h in rest:
+        assert after[h] == before[h], h
+        assert f"{h}: every instance (not reached)" in out
+
+
+def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
+    new = registry_image(fleet[0], "6.0.2")
+    seen = {}
+
+    def approve():
+        # at the prompt the canary runs the new image and no other host was touched yet
+        seen.update({h: {image for _, image in containers(h).values()} for h in fleet})
+        return "yes"
+
+    code, out, answered = playbook_on_a_terminal(
+        "upgrade.yml",
+        {"isaac_sim_image": new, "isaac_sim_rollout_soak": 3, "isaac_sim_rollout_pause_after_canary": True},
+        prompt="Type yes and Enter to go on",
+        answer=approve,
+    )
+    assert answered, out[-4000:]
+    assert seen[fleet[0]] == {new} and all(new not in seen[h] for h in fleet[1:]), seen
+    assert code == 0, out[-4000:]
+    assert "completed: every host rolled" in out
     digest = None
     for h in fleet:
         # the status module shows the new digest on every instance
