@@ -49,7 +49,8 @@ def restart_times(stdout: str) -> dict:
     times = {}
     for play in json.loads(stdout)["plays"]:
         for task in play["tasks"]:
-            if task["task"]["name"] != "Restart, wait until ready and soak each instance":
+            # a role task is named "ROLE : NAME"
+            if not task["task"]["name"].endswith("Restart, wait until ready and soak each instance"):
                 continue
             for host, res in task["hosts"].items():
                 times[host] = [d["restart_s"] for d in res.get("done", [])]

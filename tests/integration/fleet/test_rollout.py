@@ -2,7 +2,8 @@
 
 Runs in molecule's verify step of molecule/fleet. The tests share the fleet and
 run in file order: a rolling restart, an upgrade that fails at the canary, a
-preflight that refuses an unhealthy fleet, a rollout scoped by --limit and
+preflight that refuses an unhealthy fleet and one with a host that does not
+answer, a rollout scoped by --limit and
 instance selection, a canary pause nobody answers, and an upgrade approved at
 the canary prompt that goes through.
 """
@@ -186,6 +187,24 @@ def test_preflight_refuses_an_unhealthy_instance_before_anything_restarts(fleet)
     # not one instance on any host was restarted, the canary's included
     assert {h: containers(h) for h in fleet} == before
     assert "isaac-sim-2" not in before[sick]
+
+
+def test_a_host_that_does_not_answer_stops_the_rollout_before_anything_restarts(fleet):
+    gone = fleet[1]
+    before = {h: containers(h) for h in fleet if h != gone}
+    # frozen, not stopped: nothing on it answers, and it keeps its address and instances for later tests
+    client().containers.get(gone).pause()
+    try:
+        run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3})
+    finally:
+        client().containers.get(gone).unpause()
+    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    assert run.returncode != 0
+    assert f"Rollout stopped before any instance restarted: {gone} did not answer" in out, out[-4000:]
+    assert "Fix: bring the host back, or leave it out with --limit" in out
+    # any error in the preflight is fatal for all: the canary was not restarted either
+    assert {h: containers(h) for h in fleet if h != gone} == before
+    assert "Roll this batch" not in out
 
 
 def test_limit_and_instance_selection_roll_only_what_they_name(fleet):
