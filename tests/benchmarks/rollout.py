@@ -7,7 +7,7 @@ Prints, for each H:
     stop + start + ready time of its instances, one after another (the times
     the rollout module measured around each `systemctl restart`);
   - the overhead as a percentage of that limit (goal: at most 15 %);
-  - the fewest instances seen answering per host (a watcher probes every port once a second).
+  - the fewest instances seen answering per host (a watcher probes every port four times a second).
 
 The default serial [1, "25%"] and no soak (the issue's limit counts no soak).
 --ready-delay makes the stand-in take that many seconds to get ready, closer to a

@@ -141,7 +141,7 @@ def test_rolling_restart_keeps_n_minus_1_per_host_and_one_host_at_a_time(fleet):
         # every instance got a new container, with the same image
         assert all(after[h][n][0] != before[h][n][0] and after[h][n][1] == before[h][n][1] for n in before[h]), h
         assert all_ready(h)
-    assert len(watcher.samples) > 20, "the watcher must have seen the whole rollout"
+    assert len(watcher.samples) > 80, "the watcher must have seen the whole rollout"
     # every host was seen disturbed (so these checks can fail), never by more than one instance
     assert watcher.lowest() == {h: INSTANCES - 1 for h in fleet}, watcher.lowest()
     # serial [1, 25%] on three hosts rolls one host at a time
