@@ -65,6 +65,11 @@ def playbook_argv(name: str, extra: dict | None, limit: str | None) -> list:
 PLAIN = {"ANSIBLE_FORCE_COLOR": "0", "ANSIBLE_NOCOLOR": "1"}
 
 
+def squash(text: str) -> str:
+    """Output with every run of whitespace made one space: Ansible wraps long messages."""
+    return re.sub(r"\s+", " ", text)
+
+
 def playbook(name: str, extra: dict | None = None, limit: str | None = None) -> subprocess.CompletedProcess:
     """Run unattended: stdin is not a terminal, as under cron or CI."""
     return subprocess.run(
@@ -101,7 +106,7 @@ def playbook_on_a_terminal(name: str, extra: dict, prompt: str, answer) -> tuple
             if not chunk:
                 break
             out += chunk
-            if not answered and prompt in re.sub(r"\s+", " ", out.decode(errors="replace")):
+            if not answered and prompt in squash(out.decode(errors="replace")):
                 os.write(fd, answer().encode() + b"\r")
                 answered = True
         else:
@@ -154,7 +159,7 @@ def test_upgrade_to_an_image_that_never_gets_ready_stops_at_the_canary_and_rever
     envs = {h: sh(h, "cat /etc/isaac-sim/instance-1.env") for h in fleet}
     bad = registry_image(canary, "6.0.1-never-ready")
     run = playbook("upgrade.yml", {"isaac_sim_image": bad, "isaac_sim_ready_timeout": 15, "isaac_sim_rollout_soak": 3})
-    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    out = squash(run.stdout + run.stderr)
     assert run.returncode != 0
     # the message names the instance and the reason
     assert f"Rollout stopped on {canary}: isaac-sim-0: isaac-sim-0 was not ready within 15 s" in out, run.stdout[-4000:]
@@ -180,7 +185,7 @@ def test_preflight_refuses_an_unhealthy_instance_before_anything_restarts(fleet)
     sh(sick, "systemctl stop isaac-sim@2")
     before = {h: containers(h) for h in fleet}
     run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3})
-    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    out = squash(run.stdout + run.stderr)
     assert run.returncode != 0
     assert f"isaac-sim-2 on {sick} not ready before the rollout. Fix: repair them first" in out, run.stdout[-4000:]
     assert "isaac_sim_rollout_allow_unhealthy: true" in out
@@ -198,7 +203,7 @@ def test_a_host_that_does_not_answer_stops_the_rollout_before_anything_restarts(
         run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3})
     finally:
         client().containers.get(gone).unpause()
-    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    out = squash(run.stdout + run.stderr)
     assert run.returncode != 0
     assert f"Rollout stopped before any instance restarted: {gone} did not answer" in out, out[-4000:]
     assert "Fix: bring the host back, or leave it out with --limit" in out
@@ -213,7 +218,7 @@ def test_limit_and_instance_selection_roll_only_what_they_name(fleet):
     scope = {"isaac_sim_instances_selected": [1, 2], "isaac_sim_rollout_allow_unhealthy": True}
     run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3, **scope}, limit=target)
     assert run.returncode == 0, run.stdout[-4000:] + run.stderr
-    assert f"rolled: {target}: isaac-sim-1, isaac-sim-2" in re.sub(r"\s+", " ", run.stdout)
+    assert f"rolled: {target}: isaac-sim-1, isaac-sim-2" in squash(run.stdout)
     after = {h: containers(h) for h in fleet}
     # the stopped instance is running again, 1 has a new container, 0 and 3 were not touched
     assert all_ready(target)
@@ -229,7 +234,7 @@ def test_canary_pause_with_nobody_to_answer_stops_after_the_canary(fleet):
     canary, rest = fleet[0], fleet[1:]
     before = {h: containers(h) for h in fleet}
     run = playbook("rolling_restart.yml", {"isaac_sim_rollout_soak": 3, "isaac_sim_rollout_pause_after_canary": True})
-    out = re.sub(r"\s+", " ", run.stdout + run.stderr)
+    out = squash(run.stdout + run.stderr)
     assert run.returncode != 0
     assert f"Rollout stopped after the canary {canary}: not approved" in out, run.stdout[-4000:]
     assert "stopped: no approval after the canary" in out
