@@ -4,14 +4,15 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.rollout import summary
+from ansible_collections.isaacsim.fleet.plugins.module_utils.lifecycle import summary
 
 DOCUMENTATION = r"""
 name: isaac_sim_rollout_summary
 short_description: What a rollout rolled, reverted and left untouched, and why it stopped
 version_added: "0.2.0"
 description:
-  - "Takes C({host: isaac_sim_rollout result or none}) and the hosts of the rollout, and returns lines:
+  - "Takes C({host: isaac_sim_lifecycle result, or {} when not reached}) and the hosts of the rollout, and
+    returns lines:
     instances rolled, already current, reverted (with the reason and where they are now), untouched
     (instances after a failure, hosts not reached), and why the rollout stopped, if it did."
 positional: _input, targets, stopped_on

@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils.layout import quote
+
 DOCUMENTATION = r"""
 name: systemd_env_quote
 short_description: Quote a value for a systemd EnvironmentFile
@@ -31,11 +33,7 @@ _value:
 
 
 def systemd_env_quote(value):
-    text = str(value)
-    # the characters systemd's env-file parser unescapes inside double quotes
-    for raw, escaped in (("\\", "\\\\"), ('"', '\\"'), ("$", "\\$"), ("`", "\\`")):
-        text = text.replace(raw, escaped)
-    return f'"{text}"'
+    return quote(value)
 
 
 class FilterModule:

@@ -158,7 +158,7 @@ def prometheus(result: dict) -> str:
     The instance label is isaac_sim_instance: Prometheus reserves `instance`
     for the scrape target.
     """
-    samples = {name: [] for name, _, _ in _METRICS}
+    samples = {metric[0]: [] for metric in _METRICS}
     for inst in result.get("instances", []):
         lab = f'isaac_sim_instance="{_label(inst["id"] if inst["id"] is not None else inst["name"])}"'
         if inst.get("stray"):

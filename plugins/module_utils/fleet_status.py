@@ -24,11 +24,12 @@ import socket
 import time
 
 try:
-    from ansible_collections.isaacsim.fleet.plugins.module_utils import gpu_usage
+    from ansible_collections.isaacsim.fleet.plugins.module_utils import gpu_usage, layout
     from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError
     from ansible_collections.isaacsim.fleet.plugins.module_utils.endpoints import endpoints
 except ImportError:  # copied next to the metrics script on a host (roles/isaac_sim/tasks/metrics.yml)
     import gpu_usage
+    import layout
     from docker_socket import DockerError
     from endpoints import endpoints
 
@@ -43,14 +44,10 @@ UNIT_PROPERTIES = (
     "MainPID",
     "ActiveEnterTimestampMonotonic",
 )
-UNIT_GLOB = "isaac-sim@*.service"
-_UNIT_ID = re.compile(r"^isaac-sim@(\d+)\.service$")
-_CONTAINER_NAME = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
-_ENV_FILE = re.compile(r"instance-(\d+)\.env$")
-
-
-def unit_name(i: int) -> str:
-    return f"isaac-sim@{i}.service"
+UNIT_GLOB = layout.UNIT_GLOB
+_UNIT_ID = layout.UNIT_RE
+_CONTAINER_NAME = layout.CONTAINER_RE
+unit_name = layout.unit
 
 
 def systemctl_show_argv(ids) -> list:
@@ -72,32 +69,20 @@ def parse_systemctl_show(text: str) -> dict:
 
 
 def parse_env_file(text: str) -> dict:
-    """KEY=VALUE lines as systemd reads them (double quotes with backslash escapes)."""
-    env = {}
-    for line in text.splitlines():
-        line = line.strip()
-        if not line or line.startswith(("#", ";")) or "=" not in line:
-            continue
-        key, value = line.split("=", 1)
-        value = value.strip()
-        if len(value) >= 2 and value[0] == value[-1] == '"':
-            value = re.sub(r"\\(.)", r"\1", value[1:-1], flags=re.S)
-        elif len(value) >= 2 and value[0] == value[-1] == "'":
-            value = value[1:-1]
-        env[key.strip()] = value
-    return env
+    """KEY=VALUE lines as systemd reads them (the layout's env-file format)."""
+    return layout.parse(text)
 
 
 def read_env_files(config_dir: str) -> tuple:
     """({id: env}, [errors]) for every instance-N.env the role wrote."""
     found, errors = {}, []
     for path in glob.glob(os.path.join(config_dir, "instance-*.env")):
-        match = _ENV_FILE.search(path)
-        if not match:
+        i = layout.instance_id(layout.ENV_FILE_RE, path)
+        if i is None:
             continue
         try:
             with open(path) as fh:
-                found[int(match.group(1))] = parse_env_file(fh.read())
+                found[i] = parse_env_file(fh.read())
         except OSError as exc:
             errors.append(f"cannot read {path}: {exc.strerror} (the module needs root: become: true)")
     return found, errors
@@ -107,13 +92,13 @@ def read_ready_markers(run_dir: str) -> dict:
     """{id: epoch seconds} of the gate's markers: the instance printed its ready line then."""
     markers = {}
     for path in glob.glob(os.path.join(run_dir, "instance-*.ready")):
-        match = re.search(r"instance-(\d+)\.ready$", path)
-        if not match:
+        i = layout.instance_id(layout.MARKER_RE, path)
+        if i is None:
             continue
         try:
             with open(path) as fh:
                 text = fh.read().strip()
-            markers[int(match.group(1))] = int(text) if text.isdigit() else int(os.path.getmtime(path))
+            markers[i] = int(text) if text.isdigit() else int(os.path.getmtime(path))
         except OSError:
             continue
     return markers
@@ -139,7 +124,7 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
         if not names:
             continue
         name = _CONTAINER_NAME.match(names[0]).group(1)
-        label = (c.get("Labels") or {}).get("org.isaacsim.fleet.instance")
+        label = (c.get("Labels") or {}).get(layout.LABEL_INSTANCE)
         created = c.get("Created")
         running = c.get("State") == "running"
         out[name] = {
@@ -160,19 +145,24 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
 
 
 def parse_limits(docker_args: str) -> dict:
+    """Memory, shm, GPU and CPU limits from the instance's docker arguments (the env file's shell words)."""
+    try:
+        args = layout.split_args(docker_args)
+    except ValueError:
+        args = (docker_args or "").split()
     limits = {}
-    for flag, key in (("--memory", "memory"), ("--shm-size", "shm_size"), ("--gpus", "gpus"), ("--cpus", "cpus")):
-        match = re.search(rf"(?:^|\s){flag}[= ](\S+)", docker_args or "")
-        if match:
-            limits[key] = match.group(1).strip("'\"")
+    for arg in args:
+        for flag, key in (("--memory", "memory"), ("--shm-size", "shm_size"), ("--gpus", "gpus"), ("--cpus", "cpus")):
+            if arg.startswith(flag + "="):
+                limits[key] = arg[len(flag) + 1 :]
     return limits
 
 
 def ports_of(env: dict) -> dict:
     return {
-        key[len("ISAAC_SIM_PORT_") :].lower(): int(value)
+        key[len(layout.K_PORT_PREFIX) :].lower(): int(value)
         for key, value in env.items()
-        if key.startswith("ISAAC_SIM_PORT_") and value.isdigit()
+        if key.startswith(layout.K_PORT_PREFIX) and value.isdigit()
     }
 
 
@@ -222,7 +212,7 @@ def build(
     configured = set(envs)
     by_id = {}
     for name, c in containers.items():
-        suffix = name[len("isaac-sim-") :]
+        suffix = name[len(layout.CONTAINER_PREFIX) :]
         key = int(suffix) if suffix.isdigit() else name
         by_id[key] = c
     stray_units = {
@@ -256,17 +246,17 @@ def build(
             and container.get("state") == "running"
         )
         ports = ports_of(env)
-        release = env.get("ISAAC_SIM_RELEASE")
-        address = address_override or env.get("ISAAC_SIM_PUBLIC_ADDRESS") or default_address
+        release = env.get(layout.K_RELEASE)
+        address = address_override or env.get(layout.K_PUBLIC_ADDRESS) or default_address
         urls = endpoints(release, ports, address) if release and ports else {}
         procs = gpu_by_container.get((container or {}).get("id"), [])
-        gpu_index = env.get("ISAAC_SIM_GPU", "")
+        gpu_index = env.get(layout.K_GPU, "")
         active_enter = _int((unit or {}).get("ActiveEnterTimestampMonotonic"))
         active = (unit or {}).get("ActiveState") == "active"
         records.append(
             {
                 "id": key if isinstance(key, int) else None,
-                "name": f"isaac-sim-{key}" if isinstance(key, int) else key,
+                "name": layout.container(key) if isinstance(key, int) else key,
                 # a stray container with no unit behind it has no unit to act on
                 "unit": unit_name(key) if isinstance(key, int) and (is_configured or has_unit) else None,
                 "configured": is_configured,
@@ -285,8 +275,8 @@ def build(
                 "container": container,
                 "uptime_s": (container or {}).get("uptime_s"),
                 "release": release,
-                "image": env.get("ISAAC_SIM_IMAGE") or (container or {}).get("image"),
-                "image_id": (container or {}).get("image_id") or env.get("ISAAC_SIM_IMAGE_ID"),
+                "image": env.get(layout.K_IMAGE) or (container or {}).get("image"),
+                "image_id": (container or {}).get("image_id") or env.get(layout.K_IMAGE_ID),
                 "digest": (container or {}).get("digest"),
                 "ports": ports,
                 "public_address": address,
@@ -294,7 +284,7 @@ def build(
                 "gpu": int(gpu_index) if gpu_index.isdigit() else None,
                 "gpu_memory_used_mib": sum(p["used_mib"] or 0 for p in procs) if procs else (0 if gpu else None),
                 "gpu_processes": procs,
-                "limits": parse_limits(env.get("ISAAC_SIM_DOCKER_ARGS", "")),
+                "limits": parse_limits(env.get(layout.K_DOCKER_ARGS, "")),
             }
         )
     return records
@@ -312,9 +302,13 @@ def summarize(records: list) -> dict:
     }
 
 
-def journal_argv(ids) -> list:
-    """One reverse read of the journal for all asked units, newest first, as JSON lines."""
-    argv = ["journalctl", "--no-pager", "--reverse", "--output=json"]
+JOURNAL_FIELDS = "MESSAGE,_SYSTEMD_UNIT,UNIT"
+
+
+def journal_argv(ids, limit: int) -> list:
+    """One reverse read of the journal for the asked units: the newest `limit` entries, newest first, as JSON."""
+    argv = ["journalctl", "--no-pager", "--reverse", "--output=json", f"--output-fields={JOURNAL_FIELDS}"]
+    argv.append(f"--lines={limit}")
     for i in ids:
         argv += ["-u", unit_name(i)]
     return argv
@@ -323,7 +317,7 @@ def journal_argv(ids) -> list:
 def take_journal_tail(lines, ids, count: int) -> dict:
     """{id: [messages, oldest first]} with the last `count` per unit, from reverse JSON lines.
 
-    Stops reading as soon as every unit has its lines (the caller then ends journalctl).
+    Stops reading as soon as every unit has its lines.
     """
     wanted = {unit_name(i): i for i in ids}
     tails = {i: [] for i in ids}
@@ -348,6 +342,32 @@ def take_journal_tail(lines, ids, count: int) -> dict:
     return {i: list(reversed(t)) for i, t in tails.items()}
 
 
+def read_journal_tails(run, ids, count: int) -> tuple:
+    """({id: [messages, oldest first]}, error or None): the last `count` journal lines of each unit.
+
+    One journalctl for all the units reads at most count x units entries, so the output stays
+    small however long the journal is. A chatty unit may fill that window before a quiet one
+    has its lines; then the units still short are read again without the ones served. Each
+    further read serves at least one more unit or reaches the journal's end, so the common
+    case is one read (the module's fixed cost) and the worst case one per unit.
+    """
+    tails, pending, limit = {}, list(ids), count * len(ids)
+    while pending:
+        rc, out, err = run(journal_argv(pending, limit))
+        if rc != 0:
+            return tails, f"journalctl failed: {(err or out).strip()}"
+        lines = out.splitlines()
+        got = take_journal_tail(lines, pending, count)
+        tails.update(got)
+        if len(lines) < limit:  # the journal holds nothing older for these units
+            break
+        short = [i for i in pending if len(got[i]) < count]
+        # entries matched by -u but kept by no unit (a core dump's) can fill the window: widen it
+        limit = count * len(short) if len(short) < len(pending) else limit * 2
+        pending = short
+    return tails, None
+
+
 def default_ipv4() -> str:
     """The source address of the default route (no packet is sent), else 127.0.0.1."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -365,18 +385,20 @@ def gather(
     stream,
     docker,
     import_nvml,
-    config_dir="/etc/isaac-sim",
-    run_dir="/run/isaac-sim",
-    unit_path="/etc/systemd/system/isaac-sim@.service",
+    config_dir=layout.CONFIG_DIR,
+    run_dir=layout.RUN_DIR,
+    unit_path=layout.UNIT_DIR + "/" + layout.UNIT_TEMPLATE,
     proc="/proc",
     public_address="",
     gpu_source="auto",
     log_lines=0,
     only=None,
 ) -> dict:
-    """The whole status of this host. run(argv) -> (rc, out, err); stream(argv, consume) feeds lines.
+    """The whole status of this host. run(argv) -> (rc, out, err) runs a command.
 
     docker is a DockerSocket (or anything with containers(prefix) and images()).
+    `stream` is not used (the journal is read through run); it stays in the signature while
+    roles/isaac_sim/files/isaac-sim-metrics passes None in its place.
     """
     errors = []
     envs, env_errors = read_env_files(config_dir)
@@ -391,7 +413,7 @@ def gather(
     containers, docker_ok = {}, True
     try:
         now = time.time()
-        containers = parse_containers(docker.containers("isaac-sim-"), docker.images(), now)
+        containers = parse_containers(docker.containers(layout.CONTAINER_PREFIX), docker.images(), now)
     except DockerError as exc:
         docker_ok = False
         errors.append(str(exc))
@@ -413,7 +435,9 @@ def gather(
     )
     with_units = [r["id"] for r in records if r["unit"]]
     if log_lines and with_units:
-        tails = stream(journal_argv(with_units), lambda lines: take_journal_tail(lines, with_units, log_lines))
+        tails, journal_error = read_journal_tails(run, with_units, log_lines)
+        if journal_error:
+            errors.append(journal_error)
         for r in records:
             r["logs"] = tails.get(r["id"], [])
     return {

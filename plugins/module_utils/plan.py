@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
     ENV,
     KIT,
@@ -21,7 +22,14 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
 
 PORT_MIN = 1024
 PORT_MAX = 65535
-CONTAINER_PREFIX = "isaac-sim-"
+NGC_DOMAIN = "nvcr.io"
+# (name, lowest value, what it is): integers the unit and the lifecycle use
+SETTINGS = (
+    ("ready_timeout", 1, "seconds an instance may take to become ready"),
+    ("stop_timeout", 0, "seconds between SIGTERM and SIGKILL"),
+    ("restart_sec", 0, "seconds systemd waits before restarting a failed instance"),
+    ("start_limit_burst", 1, "failed starts before systemd gives up"),
+)
 
 # https://github.com/distribution/reference grammar, condensed
 _COMPONENT = r"[a-z0-9]+(?:(?:[._]|__|-+)[a-z0-9]+)*"
@@ -52,6 +60,46 @@ def parse_size(text) -> int | None:
     return int(float(number) * _UNITS[unit.lower() if unit else None])
 
 
+def docker_size(text) -> str:
+    """The size as Docker's flags want it, one word: "1 GB" -> "1g", "2GiB" -> "2g"."""
+    number, unit, _ = SIZE_RE.match(str(text).strip()).groups()
+    return f"{number}{unit.lower() if unit else ''}"
+
+
+def as_int(value):
+    """An int from an int or a string of digits (values given with -e are strings), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    text = str(value).strip()
+    return int(text) if re.fullmatch(r"-?\d+", text) else None
+
+
+def _check_numbers(cfg) -> list:
+    """Errors for port bases and GPU map entries that are not integers, before anything uses them."""
+    errors = []
+    for kind, base in (cfg.get("port_bases") or {}).items():
+        if as_int(base) is None:
+            errors.append(
+                f"isaac_sim_port_bases.{kind}: {base!r} is not a port number. Fix: give an integer, e.g. {kind}: 49100."
+            )
+    for inst, gpu in (cfg.get("gpu_map") or {}).items():
+        if as_int(inst) is None or as_int(gpu) is None:
+            errors.append(
+                f"isaac_sim_gpu_map: {inst!r}: {gpu!r} is not instance number: GPU index. "
+                "Fix: use integers, e.g. {0: 0, 1: 1}."
+            )
+    for name, lowest, what in SETTINGS:
+        value = as_int(cfg.get(name))
+        if value is None or value < lowest:
+            errors.append(
+                f"isaac_sim_{name}: {cfg.get(name)!r} is not a valid number of {what}. "
+                f"Fix: give an integer of {lowest} or more."
+            )
+    return errors
+
+
 def human(nbytes: int) -> str:
     return f"{nbytes / 1024**3:.1f} GiB"
 
@@ -71,7 +119,7 @@ def port_blocks(release: str, count: int, bases: dict, stride: int):
     """{instance: {kind: port}}: each named port is base + i * stride."""
     profile = RELEASES[release]["ports"]
     merged = {kind: spec[1] for kind, spec in profile.items()}
-    merged.update(bases or {})
+    merged.update({k: v for k, v in (bases or {}).items() if k in profile and as_int(v) is not None})
     return {i: {kind: int(base) + i * stride for kind, base in merged.items()} for i in range(count)}
 
 
@@ -123,7 +171,7 @@ def _check_ports(release, blocks, bases, stride, held):
 def assign_gpus(count, gpu_count, gpu_map, exclusive):
     """({instance: gpu index}, errors). Round-robin unless the map says otherwise."""
     errors = []
-    gpu_map = {int(k): int(v) for k, v in (gpu_map or {}).items()}
+    gpu_map = {as_int(k): as_int(v) for k, v in (gpu_map or {}).items()}
     if gpu_count < 1:
         return {}, [
             "isaac_sim_gpu_enabled: true, but this host shows no NVIDIA GPU (nvidia-smi lists none). "
@@ -164,8 +212,17 @@ def build(cfg: dict, host: dict) -> dict:
 
     Raises PlanError with every problem found, so a user fixes them in one go.
     """
-    errors = []
     release = cfg["release"]
+    if release not in RELEASES:
+        raise PlanError(
+            [
+                f"isaac_sim_release: {release!r} is not a release this collection knows. "
+                f"Fix: choose one of {', '.join(RELEASES)}."
+            ]
+        )
+    errors = _check_numbers(cfg)
+    if errors:
+        raise PlanError(errors)
     profile = RELEASES[release]
     count = cfg["instance_count"]
 
@@ -196,6 +253,13 @@ def build(cfg: dict, host: dict) -> dict:
             errors.append(
                 f"isaac_sim_image: tag {parsed[1]} is an Isaac Sim {tag_release} image but isaac_sim_release is "
                 f"{release}. Fix: set isaac_sim_release: {tag_release!r}, or pick a {release} image."
+            )
+        needs_key = parsed[0].split("/")[0] == NGC_DOMAIN and cfg.get("image_pull", "missing") != "never"
+        if needs_key and not cfg.get("registry_login") and not host.get("image_present"):
+            errors.append(
+                f"isaac_sim_registry_password: empty, but {image} is on NGC ({NGC_DOMAIN}), which refuses pulls "
+                "without an API key, and the image is not on this host. Fix: set isaac_sim_registry_password to "
+                "your NGC API key (from a vault), or load the image on the host and set isaac_sim_image_pull: never."
             )
 
     memory = parse_size(cfg["memory_limit"])
@@ -231,18 +295,11 @@ def build(cfg: dict, host: dict) -> dict:
         )
 
     for name in list(cfg.get("env") or {}) + list(cfg.get("secret_env_names") or []):
-        if not ENV_NAME_RE.match(name) or name.startswith("ISAAC_SIM_"):
+        if not ENV_NAME_RE.match(name) or name.startswith(layout.RESERVED_PREFIX):
             errors.append(
                 f"isaac_sim_env / isaac_sim_secret_env: {name!r} is not a usable variable name "
-                f"(letters, digits, _; the ISAAC_SIM_ prefix is the collection's own). Fix: rename it."
+                f"(letters, digits, _; the {layout.RESERVED_PREFIX} prefix is the collection's own). Fix: rename it."
             )
-    for var in ("docker_args", "app_args"):
-        for arg in cfg.get(var) or []:
-            if re.search(r"\s", str(arg)):
-                errors.append(
-                    f"isaac_sim_extra_{var}: {arg!r} contains whitespace, which systemd would split. "
-                    f"Fix: pass one word per list item (--flag=value)."
-                )
 
     bases = cfg.get("port_bases") or {}
     stride = cfg.get("port_stride", 1)
@@ -251,7 +308,12 @@ def build(cfg: dict, host: dict) -> dict:
     errors += _check_ports(release, blocks, bases, stride, held)
 
     gpus = {}
-    if cfg.get("gpu_enabled"):
+    if cfg.get("gpu_enabled") and host.get("nvidia_smi") is False:
+        errors.append(
+            "isaac_sim_gpu_enabled: true, but this host has no nvidia-smi (no NVIDIA driver installed). "
+            "Fix: install the NVIDIA driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
+        )
+    elif cfg.get("gpu_enabled"):
         gpus, gpu_errors = assign_gpus(count, host.get("gpu_count", 0), cfg.get("gpu_map"), cfg.get("gpu_exclusive"))
         errors += gpu_errors
     elif cfg.get("gpu_map"):
@@ -262,7 +324,8 @@ def build(cfg: dict, host: dict) -> dict:
     if errors:
         raise PlanError(errors)
 
-    instances = [_instance(cfg, profile, i, blocks[i], gpus.get(i), memory, shm) for i in range(count)]
+    sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
+    instances = [_instance(sized, profile, i, blocks[i], gpus.get(i)) for i in range(count)]
     return {
         "release": release,
         "image": image,
@@ -271,11 +334,16 @@ def build(cfg: dict, host: dict) -> dict:
         "ready_pattern": cfg.get("ready_pattern") or profile["ready_pattern"],
         "uid": profile["uid"],
         "gid": profile["gid"],
+        "public_address": cfg.get("public_address") or "",
+        "memory_limit": sized["memory_limit"],
+        "shm_size": sized["shm_size"],
+        "settings": {name: as_int(cfg[name]) for name, _, _ in SETTINGS},
+        "layout": layout.as_dict(data_root),
     }
 
 
-def _instance(cfg, profile, i, ports, gpu, memory, shm):
-    root = f"{cfg['data_root']}/instance-{i}"
+def _instance(cfg, profile, i, ports, gpu):
+    root = layout.data_dir(i, cfg["data_root"])
     docker = [
         "--network=host",
         "--pull=never",
@@ -284,7 +352,7 @@ def _instance(cfg, profile, i, ports, gpu, memory, shm):
         f"--shm-size={cfg['shm_size']}",
         f"--user={profile['uid']}:{profile['gid']}",
         f"--entrypoint={profile['entrypoint']}",
-        f"--label=org.isaacsim.fleet.instance={i}",
+        f"--label={layout.LABEL_INSTANCE}={i}",
     ]
     env_names = ["ACCEPT_EULA", "PRIVACY_CONSENT"]
     container_env = {"ACCEPT_EULA": "Y", "PRIVACY_CONSENT": "Y" if cfg.get("privacy_consent") else "N"}
@@ -319,7 +387,7 @@ def _instance(cfg, profile, i, ports, gpu, memory, shm):
     app += [str(a) for a in cfg.get("app_args") or []]
     return {
         "id": i,
-        "name": f"{CONTAINER_PREFIX}{i}",
+        "name": layout.container(i),
         "ports": ports,
         "protocols": {kind: profile["ports"][kind][0] for kind in ports},
         "gpu": gpu,

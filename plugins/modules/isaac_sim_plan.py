@@ -16,10 +16,11 @@ description:
 author: isaacsim.fleet contributors
 options:
   release:
-    description: Isaac Sim release family.
+    description:
+      - Isaac Sim release family, one of the release table's (V(2023.1), V(4.x), V(5.x), V(6.x)).
+      - An unknown one is refused by the plan with a short message naming C(isaac_sim_release).
     type: str
     required: true
-    choices: ["2023.1", "4.x", "5.x", "6.x"]
   image:
     description: Image reference the instances run; NVIDIA's image of O(release) when empty.
     type: str
@@ -97,6 +98,30 @@ options:
     type: list
     elements: str
     default: []
+  ready_timeout:
+    description: Seconds an instance may take to print its ready line.
+    type: raw
+    default: 300
+  stop_timeout:
+    description: Seconds between SIGTERM and SIGKILL when an instance stops.
+    type: raw
+    default: 60
+  restart_sec:
+    description: Seconds systemd waits before restarting a failed instance.
+    type: raw
+    default: 10
+  start_limit_burst:
+    description: Failed starts after which systemd stops restarting an instance.
+    type: raw
+    default: 5
+  image_pull:
+    description: The role's C(isaac_sim_image_pull); an NGC image that will be pulled needs a registry key.
+    type: str
+    default: missing
+  registry_login:
+    description: Whether a registry password (the NGC API key) is given; the key itself is not passed here.
+    type: bool
+    default: false
   check_host_ports:
     description: Fail when a planned port is held by a process that is not one of our instances.
     type: bool
@@ -151,14 +176,14 @@ host:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import hostprobe, plan
-from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES
+from ansible_collections.isaacsim.fleet.plugins.module_utils import hostprobe, layout, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, default_image
 
 
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            release=dict(type="str", required=True, choices=list(RELEASES)),
+            release=dict(type="str", required=True),
             image=dict(type="str", default=""),
             instance_count=dict(type="int", required=True),
             max_instances=dict(type="int", default=8),
@@ -178,6 +203,12 @@ def main():
             secret_env_names=dict(type="list", elements="str", default=[]),
             docker_args=dict(type="list", elements="str", default=[]),
             app_args=dict(type="list", elements="str", default=[]),
+            ready_timeout=dict(type="raw", default=300),
+            stop_timeout=dict(type="raw", default=60),
+            restart_sec=dict(type="raw", default=10),
+            start_limit_burst=dict(type="raw", default=5),
+            image_pull=dict(type="str", default="missing"),
+            registry_login=dict(type="bool", default=False),
             check_host_ports=dict(type="bool", default=True),
             config_dir=dict(type="path", default="/etc/isaac-sim"),
             systemd_dir=dict(type="path", default="/etc/systemd/system"),
@@ -188,22 +219,31 @@ def main():
     cfg = {k: p[k] for k in p}
 
     host = {"memory_bytes": hostprobe.memory_bytes(), "gpu_count": 0, "gpus": [], "ports_held": []}
-    if p["gpu_enabled"]:
-        rc, out, err = module.run_command(hostprobe.GPU_QUERY)
+    # a missing binary would end the module with a raw OSError; the plan says it in words instead
+    smi = module.get_bin_path(hostprobe.GPU_QUERY[0]) if p["gpu_enabled"] else None
+    if smi:
+        rc, out, err = module.run_command([smi] + hostprobe.GPU_QUERY[1:])
         if rc == 0:
             host["gpus"] = hostprobe.parse_gpu_list(out)
             host["gpu_count"] = len(host["gpus"])
+    host["nvidia_smi"] = bool(smi)
+    docker = module.get_bin_path("docker")
 
-    if p["check_host_ports"]:
+    image = p["image"] or (default_image(p["release"]) if p["release"] in RELEASES else "")
+    if docker and image:
+        rc, _, _ = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", image])
+        host["image_present"] = rc == 0
+
+    if p["check_host_ports"] and p["release"] in RELEASES:
         profile = RELEASES[p["release"]]["ports"]
-        bases = {k: v for k, v in p["port_bases"].items() if k in profile}
-        blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), bases, max(p["port_stride"], 1))
+        blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), p["port_bases"], max(p["port_stride"], 1))
         wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
 
         def our_ids():
-            rc, out, _ = module.run_command(
-                ["docker", "ps", "--no-trunc", "--filter", "name=^" + plan.CONTAINER_PREFIX, "--format", "{{.ID}}"]
-            )
+            if not docker:
+                return []
+            argv = [docker, "ps", "--no-trunc", "--filter", "name=^" + layout.CONTAINER_PREFIX, "--format", "{{.ID}}"]
+            rc, out, _ = module.run_command(argv)
             return out.split() if rc == 0 else []
 
         host["ports_held"] = hostprobe.ports_held(wanted, our_ids)
@@ -216,7 +256,7 @@ def main():
             errors=exc.errors,
         )
 
-    existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], "isaac-sim.target.wants"))
+    existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], layout.TARGET + ".wants"))
     stale = [i for i in existing if i not in result["ids"]]
     module.exit_json(changed=False, plan=result, stale_ids=stale, host=host)
 

@@ -62,15 +62,20 @@ def changed_count(result, host) -> int:
 
 
 def run_playbook(
-    host, extra_vars: dict | None = None, check=False, extra_inventory=None, playbook=None
+    host, extra_vars: dict | None = None, check=False, extra_inventory=None, playbook=None, raw_vars=()
 ) -> subprocess.CompletedProcess:
-    """A playbook (the scenario's converge unless named, e.g. "playbooks/status.yml") on this host only."""
+    """A playbook (the scenario's converge unless named, e.g. "playbooks/status.yml") on this host only.
+
+    raw_vars: "name=value" strings given with -e as an operator types them (every value a string).
+    """
     book = str(ROOT / playbook) if playbook else converge_playbook()
     cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), book]
     if extra_inventory:
         cmd += ["-i", str(extra_inventory)]
     if extra_vars:
         cmd += ["-e", json.dumps(extra_vars)]
+    for raw in raw_vars:
+        cmd += ["-e", raw]
     if check:
         cmd.append("--check")
     env = dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")

@@ -39,7 +39,11 @@ def test_units_pass_systemd_analyze_verify(host):
 def test_units_are_stamped_and_wired_to_docker(host):
     unit = sh(host, "cat /etc/systemd/system/isaac-sim@.service").stdout
     assert unit.startswith("# Ansible managed")
-    for line in ("Requires=docker.service", "Restart=on-failure", "ExecStopPost=-/usr/bin/docker rm -f isaac-sim-%i"):
+    for line in (
+        "Requires=docker.service",
+        "Restart=always",
+        "ExecStopPost=-/usr/bin/docker rm -f ${ISAAC_SIM_CONTAINER}",
+    ):
         assert line in unit
     assert "--pull" not in sh(host, "grep ^ExecStart= /etc/systemd/system/isaac-sim@.service").stdout
     assert sh(host, "systemctl is-enabled isaac-sim.target").stdout.strip() == "enabled"

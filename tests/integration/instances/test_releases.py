@@ -54,3 +54,44 @@ def test_5x_takes_its_ports_as_kit_flags(host, restore_default):
         socket.create_connection((ip, 49100 + i), timeout=2).close()
         with urllib.request.urlopen(f"http://{ip}:{8011 + i}/health", timeout=5) as page:
             assert page.status == 200
+
+
+def test_a_release_switch_goes_through_the_lifecycle_and_a_failed_one_goes_back(host, restore_default):
+    four = testbed.run_playbook(host, {"isaac_sim_release": "4.x", "isaac_sim_image": registry_image(host, "4.5.0")})
+    assert four.returncode == 0, four.stdout[-3000:] + four.stderr
+    testbed.all_ready(host)
+    root_ids = {i: testbed.container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+    # written as root by the 4.x instance (its ov cache and log)
+    assert sh(host, "stat -c %u /var/lib/isaac-sim/instance-0/cache/ov/standin-shader-cache").stdout.strip() == "0"
+
+    # the canary of a 4.x -> 5.x switch never gets ready: it goes back to a running 4.x instance
+    bad = testbed.run_playbook(
+        host,
+        {
+            "isaac_sim_release": "5.x",
+            "isaac_sim_image": registry_image(host, "5.1.0-never-ready"),
+            "isaac_sim_ready_timeout": 15,
+        },
+    )
+    out = " ".join((bad.stdout + bad.stderr).split())
+    assert bad.returncode != 0
+    assert f"Rollout stopped on {testbed.name(host)}: isaac-sim-0: isaac-sim-0 was not ready within 15 s" in out, out[
+        -3000:
+    ]
+    testbed.all_ready(host)
+    assert sh(host, "docker inspect -f '{{.Config.User}} {{.Config.Image}}' isaac-sim-0").stdout.split() == [
+        "0:0",
+        registry_image(host, "4.5.0"),
+    ]
+    assert {i: testbed.container_id(host, f"isaac-sim-{i}") for i in (1, 2, 3)} == {i: root_ids[i] for i in (1, 2, 3)}
+
+    # the good switch: every instance runs as uid 1234 with its caches kept and handed over
+    five = testbed.run_playbook(host, {"isaac_sim_release": "5.x", "isaac_sim_image": registry_image(host, "5.1.0")})
+    assert five.returncode == 0, five.stdout[-3000:] + five.stderr
+    testbed.all_ready(host)
+    for i in range(INSTANCES):
+        assert sh(host, f"docker inspect -f '{{{{.Config.User}}}}' isaac-sim-{i}").stdout.strip() == "1234:1234"
+        # the 4.x cache is still there, and what 4.x wrote in the shared logs now belongs to uid 1234
+        assert sh(host, f"test -s /var/lib/isaac-sim/instance-{i}/cache/ov/standin-shader-cache", check=False).rc == 0
+        owners = sh(host, f"find /var/lib/isaac-sim/instance-{i}/logs -printf '%u\\n' | sort -u").stdout.split()
+        assert owners == ["1234"], owners

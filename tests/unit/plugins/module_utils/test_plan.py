@@ -26,12 +26,16 @@ def cfg(**over):
         "secret_env_names": [],
         "docker_args": [],
         "app_args": [],
+        "ready_timeout": 300,
+        "stop_timeout": 60,
+        "restart_sec": 10,
+        "start_limit_burst": 5,
     }
     base.update(over)
     return base
 
 
-HOST = {"memory_bytes": 64 * GIB, "gpu_count": 0, "ports_held": []}
+HOST = {"memory_bytes": 64 * GIB, "gpu_count": 0, "ports_held": [], "image_present": True}
 
 
 def errors_of(c, host=HOST):
@@ -96,7 +100,6 @@ def test_empty_image_means_the_release_image():
         ({"port_stride": 0}, "isaac_sim_port_stride"),
         ({"data_root": "relative/path"}, "isaac_sim_data_root"),
         ({"env": {"ISAAC_SIM_IMAGE": "x"}}, "usable variable name"),
-        ({"docker_args": ["--cpus 8"]}, "contains whitespace"),
         ({"gpu_map": {"0": 1}}, "isaac_sim_gpu_enabled is false"),
     ],
 )
@@ -191,3 +194,46 @@ def test_release_of_tag():
     assert release_of_tag("4.5.0") == "4.x"
     assert release_of_tag("latest") is None
     assert set(RELEASES) == {"2023.1", "4.x", "5.x", "6.x"}
+
+
+def test_values_given_on_the_command_line_are_numbers_in_the_plan():
+    result = plan.build(cfg(ready_timeout="20", stop_timeout="20", restart_sec="5", start_limit_burst="3"), HOST)
+    assert result["settings"] == {"ready_timeout": 20, "stop_timeout": 20, "restart_sec": 5, "start_limit_burst": 3}
+
+
+def test_sizes_become_one_docker_word():
+    inst = plan.build(cfg(memory_limit="1 gb", shm_size="256 MiB"), HOST)["instances"][0]
+    assert "--memory=1g" in inst["docker_args"] and "--shm-size=256m" in inst["docker_args"]
+
+
+@pytest.mark.parametrize(
+    "over, needle",
+    [
+        ({"release": "7.x"}, "isaac_sim_release: '7.x' is not a release this collection knows"),
+        ({"port_bases": {"signal": "abc"}}, "isaac_sim_port_bases.signal: 'abc' is not a port number"),
+        ({"gpu_enabled": True, "gpu_map": {"x": 1}}, "isaac_sim_gpu_map: 'x': 1 is not instance number: GPU index"),
+        ({"ready_timeout": "soon"}, "isaac_sim_ready_timeout: 'soon' is not a valid number"),
+        ({"start_limit_burst": 0}, "isaac_sim_start_limit_burst: 0 is not a valid number"),
+    ],
+)
+def test_raw_errors_become_plan_errors(over, needle):
+    errors = errors_of(cfg(**over))
+    assert any(needle in e for e in errors), errors
+    assert len(errors) == 1 and len(errors[0]) < 300
+
+
+def test_gpus_on_a_host_without_nvidia_smi_is_a_plan_error():
+    errors = errors_of(cfg(gpu_enabled=True), dict(HOST, nvidia_smi=False))
+    assert errors == [
+        "isaac_sim_gpu_enabled: true, but this host has no nvidia-smi (no NVIDIA driver installed). "
+        "Fix: install the NVIDIA driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
+    ]
+
+
+def test_an_ngc_image_to_pull_needs_the_registry_key():
+    errors = errors_of(cfg(), dict(HOST, image_present=False))
+    assert any(e.startswith("isaac_sim_registry_password: empty, but nvcr.io/nvidia/isaac-sim:6.0.1") for e in errors)
+    assert plan.build(cfg(registry_login=True), HOST)
+    assert plan.build(cfg(), HOST)
+    assert plan.build(cfg(image_pull="never"), dict(HOST, image_present=False))
+    assert plan.build(cfg(image="registry.local/isaac-sim:6.0.1"), dict(HOST, image_present=False))

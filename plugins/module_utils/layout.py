@@ -1,0 +1,269 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The host layout of the collection, defined once.
+
+Paths, unit, container and marker names, env-file keys, labels, and the
+env-file format (one quote/parse pair). Modules, filters, the role's
+templates (through the plan's ``layout``) and the host-side scripts (through
+the env file, which carries the names they need) take them from here.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+
+CONFIG_DIR = "/etc/isaac-sim"
+UNIT_DIR = "/etc/systemd/system"
+LIBEXEC_DIR = "/usr/local/libexec/isaac-sim"
+LIB_DIR = "/usr/local/lib/isaac-sim/status"
+RUN_DIR = "/run/isaac-sim"
+DATA_ROOT = "/var/lib/isaac-sim"
+
+UNIT_TEMPLATE = "isaac-sim@.service"
+TARGET = "isaac-sim.target"
+UNIT_GLOB = "isaac-sim@*.service"
+CONTAINER_PREFIX = "isaac-sim-"
+LABEL_INSTANCE = "org.isaacsim.fleet.instance"
+# host-side scripts, installed in LIBEXEC_DIR
+RUN_SCRIPT = "isaac-sim-run"
+READY_SCRIPT = "isaac-sim-ready"
+SCRIPTS = (RUN_SCRIPT, READY_SCRIPT)
+
+UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
+CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
+ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env$")
+MARKER_RE = re.compile(r"^instance-(\d+)\.ready$")
+
+# env-file keys: the unit, the scripts and the status module read these
+K_INSTANCE = "ISAAC_SIM_INSTANCE"
+K_CONTAINER = "ISAAC_SIM_CONTAINER"
+K_RELEASE = "ISAAC_SIM_RELEASE"
+K_IMAGE = "ISAAC_SIM_IMAGE"
+K_IMAGE_ID = "ISAAC_SIM_IMAGE_ID"
+K_PORT_PREFIX = "ISAAC_SIM_PORT_"
+K_GPU = "ISAAC_SIM_GPU"
+K_PUBLIC_ADDRESS = "ISAAC_SIM_PUBLIC_ADDRESS"
+K_READY_TIMEOUT = "ISAAC_SIM_READY_TIMEOUT"
+K_READY_PATTERN = "ISAAC_SIM_READY_PATTERN"
+K_READY_MARKER = "ISAAC_SIM_READY_MARKER"
+K_STOP_TIMEOUT = "ISAAC_SIM_STOP_TIMEOUT"
+K_DOCKER_ARGS = "ISAAC_SIM_DOCKER_ARGS"
+K_APP_ARGS = "ISAAC_SIM_APP_ARGS"
+RESERVED_PREFIX = "ISAAC_SIM_"
+
+
+def unit(i: int) -> str:
+    return f"isaac-sim@{i}.service"
+
+
+def container(i: int) -> str:
+    return f"{CONTAINER_PREFIX}{i}"
+
+
+def env_file(i: int, config_dir: str = CONFIG_DIR) -> str:
+    return os.path.join(config_dir, f"instance-{i}.env")
+
+
+def marker(i: int, run_dir: str = RUN_DIR) -> str:
+    return os.path.join(run_dir, f"instance-{i}.ready")
+
+
+def data_dir(i: int, data_root: str = DATA_ROOT) -> str:
+    return os.path.join(data_root, f"instance-{i}")
+
+
+def instance_id(pattern: re.Pattern, name: str):
+    """The instance number in a unit, env-file or marker name, else None."""
+    match = pattern.match(os.path.basename(name))
+    return int(match.group(1)) if match else None
+
+
+def as_dict(data_root: str = DATA_ROOT) -> dict:
+    """The layout for templates and playbooks (the plan module returns it)."""
+    return {
+        "config_dir": CONFIG_DIR,
+        "unit_dir": UNIT_DIR,
+        "libexec_dir": LIBEXEC_DIR,
+        "lib_dir": LIB_DIR,
+        "run_dir": RUN_DIR,
+        "data_root": data_root,
+        "unit_template": UNIT_TEMPLATE,
+        "target": TARGET,
+        "container_prefix": CONTAINER_PREFIX,
+        "label_instance": LABEL_INSTANCE,
+    }
+
+
+# --- the env-file format: what systemd's EnvironmentFile= reads back exactly ---
+
+# inside double quotes systemd unescapes exactly these
+_ESCAPES = (("\\", "\\\\"), ('"', '\\"'), ("$", "\\$"), ("`", "\\`"))
+
+
+def quote(value) -> str:
+    """A value for an env file, double-quoted so systemd reads back exactly ``value``.
+
+    A newline stays inside the quotes; systemd keeps it.
+    """
+    text = str(value)
+    for raw, escaped in _ESCAPES:
+        text = text.replace(raw, escaped)
+    return f'"{text}"'
+
+
+def parse(text: str) -> dict:
+    """KEY=VALUE pairs as systemd reads them: the inverse of ``quote`` (and of plain values).
+
+    Handles double-quoted values spanning lines, backslash escapes inside them,
+    single-quoted values, comments and blank lines.
+    """
+    env, i, n = {}, 0, len(text or "")
+    while i < n:
+        # one logical line: skip blanks and comments
+        while i < n and text[i] in " \t\r\n":
+            i += 1
+        if i >= n:
+            break
+        if text[i] in "#;":
+            i = text.find("\n", i)
+            i = n if i < 0 else i + 1
+            continue
+        eq = text.find("=", i)
+        nl = text.find("\n", i)
+        if eq < 0 or (0 <= nl < eq):
+            i = n if nl < 0 else nl + 1
+            continue
+        key = text[i:eq].strip()
+        i = eq + 1
+        while i < n and text[i] in " \t":
+            i += 1
+        out = []
+        if i < n and text[i] == '"':
+            i += 1
+            while i < n and text[i] != '"':
+                if text[i] == "\\" and i + 1 < n:
+                    nxt = text[i + 1]
+                    if nxt == "\n":  # a line continuation
+                        i += 2
+                        continue
+                    out.append(nxt if nxt in '"\\$`' else "\\" + nxt)
+                    i += 2
+                    continue
+                out.append(text[i])
+                i += 1
+            i += 1
+            nl = text.find("\n", i)
+            i = n if nl < 0 else nl + 1
+        elif i < n and text[i] == "'":
+            end = text.find("'", i + 1)
+            end = n if end < 0 else end
+            out.append(text[i + 1 : end])
+            nl = text.find("\n", end)
+            i = n if nl < 0 else nl + 1
+        else:
+            nl = text.find("\n", i)
+            end = n if nl < 0 else nl
+            out.append(text[i:end].rstrip())
+            i = end + 1
+        env[key] = "".join(out)
+    return env
+
+
+def join_args(args) -> str:
+    """Arguments as one env value that isaac-sim-run splits back exactly (POSIX shell quoting)."""
+    return shlex.join(str(a) for a in args)
+
+
+def split_args(value: str) -> list:
+    return shlex.split(value or "")
+
+
+# --- files rendered from a plan ---
+
+
+def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, managed: str) -> str:
+    """The env file of one instance. Every value quoted; arguments kept one per word."""
+    settings = plan["settings"]
+    i = instance["id"]
+    lines = [
+        f"# {managed}",
+        f"# Isaac Sim instance {i}, read by {unit(i)}.",
+        f"{K_INSTANCE}={i}",
+        f"{K_CONTAINER}={quote(container(i))}",
+        f"{K_RELEASE}={quote(plan['release'])}",
+        f"{K_IMAGE}={quote(plan['image'])}",
+        f"{K_IMAGE_ID}={quote(image_id)}",
+    ]
+    lines += [f"{K_PORT_PREFIX}{kind.upper()}={port}" for kind, port in instance["ports"].items()]
+    lines += [
+        f"{K_GPU}={'' if instance.get('gpu') is None else instance['gpu']}",
+        f"{K_PUBLIC_ADDRESS}={quote(plan.get('public_address') or '')}",
+        f"{K_READY_TIMEOUT}={settings['ready_timeout']}",
+        f"{K_READY_PATTERN}={quote(plan['ready_pattern'])}",
+        f"{K_READY_MARKER}={quote(marker(i))}",
+        f"{K_STOP_TIMEOUT}={settings['stop_timeout']}",
+        f"{K_DOCKER_ARGS}={quote(join_args(instance['docker_args']))}",
+        f"{K_APP_ARGS}={quote(join_args(instance['app_args']))}",
+        "# Container environment (passed by name with docker run --env NAME)",
+    ]
+    lines += [f"{name}={quote(value)}" for name, value in instance["container_env"].items()]
+    lines += [f"{name}={quote(value)}" for name, value in (secret_env or {}).items()]
+    return "\n".join(lines) + "\n"
+
+
+def render_unit(settings: dict, managed: str) -> str:
+    """The template unit isaac-sim@.service. Everything per instance comes from its env file."""
+    burst = settings["start_limit_burst"]
+    interval = burst * (settings["restart_sec"] + settings["ready_timeout"] + 30)
+    env = env_file("%i")
+    return f"""# {managed}
+# One Isaac Sim container per instance: systemctl start isaac-sim@2
+# The instance's settings live in {env}.
+[Unit]
+Description=Isaac Sim instance %i
+Requires=docker.service
+After=docker.service network-online.target
+Wants=network-online.target
+PartOf={TARGET}
+AssertPathExists={env}
+# Wide enough that {burst} failed starts, each up to the ready deadline apart, still count.
+StartLimitIntervalSec={interval}
+StartLimitBurst={burst}
+
+[Service]
+Type=simple
+EnvironmentFile={env}
+SyslogIdentifier={CONTAINER_PREFIX}%i
+# A container left by a crash or an unclean reboot would block the name.
+ExecStartPre=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
+ExecStart={LIBEXEC_DIR}/{RUN_SCRIPT}
+ExecStartPost={LIBEXEC_DIR}/{READY_SCRIPT}
+# the container may have exited already (an app that quit): not an error
+ExecStop=-/usr/bin/docker stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}
+ExecStopPost=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
+ExecStopPost=-/bin/rm -f ${{{K_READY_MARKER}}}
+# Any exit, status 0 included, is restarted (6.x quits when a stream session ends);
+# only systemctl stop keeps an instance down.
+Restart=always
+RestartSec={settings["restart_sec"]}
+TimeoutStartSec={settings["ready_timeout"] + 30}
+TimeoutStopSec={settings["stop_timeout"] + 30}
+
+[Install]
+WantedBy={TARGET}
+"""
+
+
+def render_target(managed: str) -> str:
+    return f"""# {managed}
+# All Isaac Sim instances of this host: systemctl stop {TARGET}
+[Unit]
+Description=Isaac Sim instances
+Requires=docker.service
+After=docker.service
+
+[Install]
+WantedBy=multi-user.target
+"""

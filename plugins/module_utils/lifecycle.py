@@ -1,0 +1,409 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The one lifecycle of a host's Isaac Sim instances.
+
+Every path that changes running instances comes here: a deploy (apply), a
+day-2 start, stop, restart or remove, a scale-down, a cleanup, a rolling
+restart and an upgrade. The steps are the same everywhere:
+
+- an instance that is not serving (new, stopped, failed) is started at once,
+  all of them together;
+- a serving instance whose settings changed is changed one at a time: stop it
+  if stuck activating, reset its start counter, restart, wait until ready,
+  soak; so a host of N keeps N-1 serving;
+- on the first failure the instance goes back to its previous settings (and
+  image), the files shared by all instances too, everything after it is left
+  as it is, and the failure is reported with the instance and the reason.
+
+The host is reached through a small interface (run, read, write, remove,
+mode, exists, sleep, now, wall) that the module binds to the real host and
+the unit tests to a scripted one.
+"""
+
+from __future__ import annotations
+
+import re
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
+
+_GATE_WORDS = re.compile(
+    r"not ready within|stopped before it was ready|went away before it was ready|docker run exited"
+)
+
+
+class Host:
+    """The host as the lifecycle sees it. The module fills it with real calls.
+
+    read(path) -> text or None; write(path, text, mode); remove(path) removes a
+    file or a tree; mode(path) -> int or None; now() a monotonic clock, wall()
+    epoch seconds for the journal.
+    """
+
+    def __init__(self, run, read, write, remove, mode, exists, sleep, now, wall):
+        self.run, self.read, self.write, self.remove, self.mode = run, read, write, remove, mode
+        self.exists, self.sleep, self.now, self.wall = exists, sleep, now, wall
+
+
+def states(host: Host, ids) -> dict:
+    """{id: {ActiveState, SubState, NRestarts, Result, UnitFileState}} in one systemctl call."""
+    ids = list(ids)
+    if not ids:
+        return {}
+    props = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"
+    _, out, _ = host.run(["systemctl", "show", "-p", props] + [layout.unit(i) for i in ids])
+    found = {}
+    for block in re.split(r"\n\s*\n", out.strip()):
+        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+        i = layout.instance_id(layout.UNIT_RE, fields.get("Id", ""))
+        if i is not None:
+            found[i] = fields
+    return {i: found.get(i, {}) for i in ids}
+
+
+def serving(state: dict) -> bool:
+    return state.get("ActiveState") == "active"
+
+
+def _gate_reason(host: Host, i: int, since: float) -> str:
+    """The readiness gate's own words about why the start failed, with the container's last
+    lines the gate quoted ("| ..."), else systemd's result."""
+    _, out, _ = host.run(["journalctl", "-u", layout.unit(i), "--since", f"@{int(since)}", "-o", "cat", "--no-pager"])
+    lines = [line.strip() for line in out.splitlines()]
+    for n in range(len(lines) - 1, -1, -1):
+        if _GATE_WORDS.search(lines[n]) and not lines[n].startswith("|"):
+            quoted = [q[1:].strip() for q in lines[n + 1 :] if q.startswith("|") and not _GATE_WORDS.search(q)]
+            return lines[n] + (f" (last lines: {' / '.join(quoted[-3:])})" if quoted else "")
+    state = states(host, [i])[i]
+    return f"the unit did not start (ActiveState={state.get('ActiveState')}, Result={state.get('Result')})"
+
+
+def _prepare_start(host: Host, ids, state: dict):
+    for i in ids:
+        if state.get(i, {}).get("ActiveState") == "activating":
+            # a restart would cancel the pending start job and fail; stop it first
+            host.run(["systemctl", "stop", layout.unit(i)])
+    # a deliberate (re)start must not count against the crash-loop limit
+    host.run(["systemctl", "reset-failed"] + [layout.unit(i) for i in ids])
+
+
+def restart(host: Host, i: int) -> tuple:
+    """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it."""
+    _prepare_start(host, [i], states(host, [i]))
+    start, since = host.now(), host.wall()
+    rc, _, _ = host.run(["systemctl", "restart", layout.unit(i)])
+    seconds = host.now() - start
+    if rc != 0:
+        return False, _gate_reason(host, i, since - 1), seconds
+    if not host.exists(layout.marker(i)):
+        return False, "the unit is active but the readiness gate left no ready marker", seconds
+    return True, None, seconds
+
+
+def start(host: Host, ids) -> dict:
+    """{id: (ok, reason)}: start instances that are not serving, all at once; each ends ready or failed."""
+    ids = list(ids)
+    if not ids:
+        return {}
+    _prepare_start(host, ids, states(host, ids))
+    since = host.wall()
+    host.run(["systemctl", "start"] + [layout.unit(i) for i in ids])
+    after = states(host, ids)
+    out = {}
+    for i in ids:
+        if serving(after[i]) and host.exists(layout.marker(i)):
+            out[i] = (True, None)
+        else:
+            out[i] = (False, _gate_reason(host, i, since - 1))
+    return out
+
+
+def soak(host: Host, i: int, seconds: float, interval: float = 1.0) -> tuple:
+    """(ok, reason): stay active and ready, with the restart count unchanged, for `seconds`."""
+    first = states(host, [i])[i]
+    base = first.get("NRestarts", "0")
+    begin = host.now()
+    while True:
+        state = first if first is not None else states(host, [i])[i]
+        first = None
+        elapsed = host.now() - begin
+        if state.get("NRestarts", "0") != base:
+            return (
+                False,
+                f"restarted during the soak (NRestarts {base} -> {state.get('NRestarts')}) after {elapsed:.0f} s",
+            )
+        if not serving(state) or not host.exists(layout.marker(i)):
+            return (
+                False,
+                f"lost readiness during the soak after {elapsed:.0f} s (ActiveState={state.get('ActiveState')})",
+            )
+        if elapsed >= seconds:
+            return True, None
+        host.sleep(min(interval, max(0.0, seconds - elapsed)))
+
+
+def pinned(host: Host, text: str) -> str:
+    """An env file pinned to its image id when its tag has moved to another image since it was written."""
+    env = layout.parse(text)
+    ref, image_id = env.get(layout.K_IMAGE, ""), env.get(layout.K_IMAGE_ID, "")
+    if not image_id.startswith("sha256:"):
+        return text
+    rc, out, _ = host.run(["docker", "image", "inspect", "-f", "{{.Id}}", ref])
+    if rc == 0 and out.strip() == image_id:
+        return text
+    line = f"{layout.K_IMAGE}={layout.quote(image_id)}"
+    return re.sub(rf"^{layout.K_IMAGE}=.*$", lambda _: line, text, count=1, flags=re.M)
+
+
+def stop(host: Host, ids) -> None:
+    if ids:
+        host.run(["systemctl", "stop"] + [layout.unit(i) for i in ids])
+
+
+def remove(host: Host, ids, purge=False, data_root=layout.DATA_ROOT) -> None:
+    """Stop, disable and forget instances; their caches, logs and data stay unless purge."""
+    ids = list(ids)
+    if not ids:
+        return
+    units = [layout.unit(i) for i in ids]
+    host.run(["systemctl", "disable", "--now"] + units)
+    for i in ids:
+        host.remove(layout.env_file(i))
+        if purge:
+            host.remove(layout.data_dir(i, data_root))
+    host.run(["systemctl", "reset-failed"] + units)
+
+
+class _Files:
+    """Writes that remember what was there, so a failure can put it back."""
+
+    def __init__(self, host: Host):
+        self.host, self.before = host, {}
+
+    def write(self, path, text, mode):
+        if path not in self.before:
+            self.before[path] = (self.host.read(path), self.host.mode(path))
+        self.host.write(path, text, mode)
+
+    def restore(self, paths):
+        for path in paths:
+            text, mode = self.before.get(path, (None, None))
+            if text is None:
+                self.host.remove(path)
+            else:
+                self.host.write(path, text, mode)
+
+
+def _enabled(state: dict) -> bool:
+    return state.get("UnitFileState") in ("enabled", "enabled-runtime", "static", "indirect")
+
+
+def apply(host: Host, want: dict, check=False) -> dict:
+    """Bring the host to `want`, never taking more than one serving instance down at a time.
+
+    want: {"files": {path: (text, mode)} shared by every instance (units, scripts),
+           "instances": {id: env text}, "env_mode": int, "remove": [ids], "purge": bool,
+           "data_root": str, "soak": seconds, "defer_running": bool}
+    With defer_running, a host where a serving instance would restart is left as it is
+    (deferred=True): the caller rolls it later, in canary batches.
+    """
+    desired = dict(sorted(want["instances"].items()))
+    gone = sorted(want.get("remove") or [])
+    state = states(host, list(desired) + gone)
+    shared = {p: f for p, f in want.get("files", {}).items() if host.read(p) != f[0] or host.mode(p) != f[1]}
+    current = {i: host.read(layout.env_file(i)) for i in desired}
+    new_env = {i: text for i, text in desired.items() if current[i] != text}
+    to_start = [i for i in desired if not serving(state[i])]
+    to_roll = [i for i in desired if serving(state[i]) and (i in new_env or shared)]
+    to_enable = [i for i in desired if not _enabled(state[i])]
+    _, target_state, _ = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
+    target_enabled = target_state.strip() == "enabled"
+    plan = {
+        "files": sorted(shared),
+        "start": to_start,
+        "roll": to_roll,
+        "remove": gone,
+        "enable": to_enable + ([] if target_enabled else [layout.TARGET]),
+    }
+    result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
+    changed = bool(shared or to_start or to_roll or gone or plan["enable"])
+    if check or not changed:
+        result["changed"] = changed
+        return result
+    if want.get("defer_running") and to_roll:
+        result.update(changed=False, deferred=True)
+        return result
+
+    if want.get("prepare"):
+        want["prepare"]()
+    files = _Files(host)
+    # scale-down first: it frees the ports and GPUs of the instances that go
+    remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT))
+    result["removed"] = gone
+    for path, (text, mode) in shared.items():
+        files.write(path, text, mode)
+    units_changed = any(p.endswith((".service", ".target")) for p in shared)
+    if units_changed:
+        host.run(["systemctl", "daemon-reload"])
+
+    def put_back(i):
+        """Previous settings of instance i (and the shared files), pinned to the previous image."""
+        env_path = layout.env_file(i)
+        if current[i] is None:
+            host.remove(env_path)
+        elif host.read(env_path) != current[i]:
+            host.write(env_path, pinned(host, current[i]), files.before.get(env_path, (None, want["env_mode"]))[1])
+        if shared:
+            files.restore(sorted(shared))
+            if units_changed:
+                host.run(["systemctl", "daemon-reload"])
+
+    # not serving: nothing to keep up, so all of them at once
+    for i in to_start:
+        if i in new_env:
+            files.write(layout.env_file(i), desired[i], want["env_mode"])
+    for i, (ok, reason) in start(host, to_start).items():
+        if ok:
+            result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
+            continue
+        stop(host, [i])
+        put_back(i)
+        result["failed"] = {
+            "id": i,
+            "reason": reason,
+            # a new instance has nothing to go back to; it is stopped
+            "reverted": None if current[i] is None else True,
+            "reverted_to": None if current[i] is None else layout.parse(current[i]).get(layout.K_IMAGE),
+            "revert_error": None,
+            "left": "stopped",
+        }
+        result["untouched"] = to_roll
+        result["changed"] = True
+        return result
+
+    for n, i in enumerate(to_roll):
+        if i in new_env:
+            files.write(layout.env_file(i), desired[i], want["env_mode"])
+        ok, reason, restart_s = restart(host, i)
+        soak_start = host.now()
+        if ok:
+            ok, reason = soak(host, i, want.get("soak", 0))
+        soak_s = host.now() - soak_start
+        if ok:
+            action = "apply" if i in new_env else "restart"
+            result["done"].append(
+                {"id": i, "action": action, "restart_s": round(restart_s, 3), "soak_s": round(soak_s, 3)}
+            )
+            continue
+        put_back(i)
+        back, back_reason, _ = restart(host, i)
+        result["failed"] = {
+            "id": i,
+            "reason": reason,
+            "reverted": back,
+            "reverted_to": layout.parse(current[i] or "").get(layout.K_IMAGE),
+            "revert_error": back_reason,
+            "restart_s": round(restart_s, 3),
+            "left": "running" if back else "failed",
+        }
+        result["untouched"] = to_roll[n + 1 :]
+        result["changed"] = True
+        return result
+
+    if plan["enable"]:
+        host.run(["systemctl", "enable", layout.TARGET] + [layout.unit(i) for i in to_enable])
+    result["changed"] = True
+    return result
+
+
+def restart_each(host: Host, ids, soak_seconds: float, check=False) -> dict:
+    """A rolling restart of a host: each instance in turn restarted, ready and soaked.
+
+    An instance that fails is restarted once more with the same settings (there is
+    nothing older to go back to) and the restart stops there.
+    """
+    ids = list(ids)
+    result = {"done": [], "failed": None, "untouched": [], "changed": bool(ids)}
+    if check:
+        result["done"] = [{"id": i, "action": "restart", "restart_s": 0.0, "soak_s": 0.0} for i in ids]
+        return result
+    for n, i in enumerate(ids):
+        text = host.read(layout.env_file(i))
+        if text is None:
+            result["failed"] = {
+                "id": i,
+                "reason": f"{layout.env_file(i)} is missing (not deployed here)",
+                "reverted": None,
+            }
+            result["untouched"] = ids[n + 1 :]
+            return result
+        ok, reason, restart_s = restart(host, i)
+        soak_start = host.now()
+        if ok:
+            ok, reason = soak(host, i, soak_seconds)
+        if ok:
+            result["done"].append(
+                {
+                    "id": i,
+                    "action": "restart",
+                    "restart_s": round(restart_s, 3),
+                    "soak_s": round(host.now() - soak_start, 3),
+                }
+            )
+            continue
+        # the tag may have moved since the instance started: back to the image it ran
+        if pinned(host, text) != text:
+            host.write(layout.env_file(i), pinned(host, text), host.mode(layout.env_file(i)) or 0o600)
+        back, back_reason, _ = restart(host, i)
+        result["failed"] = {
+            "id": i,
+            "reason": reason,
+            "reverted": back,
+            "reverted_to": layout.parse(text).get(layout.K_IMAGE),
+            "revert_error": back_reason,
+            "restart_s": round(restart_s, 3),
+        }
+        result["untouched"] = ids[n + 1 :]
+        return result
+    return result
+
+
+def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> list:
+    """Lines for a person: what was rolled, reverted and untouched, and why the rollout stopped.
+
+    outcomes: {host: isaac_sim_lifecycle result (success or failure), or {} when the host was not reached}
+    """
+    rolled, unchanged, reverted, untouched, why = [], [], [], [], None
+    for host in targets:
+        out = outcomes.get(host)
+        if not out:
+            untouched.append(f"{host}: every instance (not reached)")
+            continue
+        moved = [str(d["id"]) for d in out.get("done", []) if d.get("action") != "unchanged"]
+        if moved:
+            rolled.append(f"{host}: " + ", ".join(layout.container(i) for i in moved))
+        elif not out.get("failed"):
+            unchanged.append(host)
+        failed = out.get("failed_instance")
+        if failed:
+            if failed.get("reverted") is None:
+                state = "not started, stopped" if failed.get("left") == "stopped" else "not changed"
+            elif failed.get("reverted"):
+                state = f"back on {failed.get('reverted_to')}" + (", ready" if failed.get("left") != "stopped" else "")
+            else:
+                state = f"REVERT FAILED: {failed.get('revert_error')}"
+            reverted.append(f"{host}: {layout.container(failed['id'])} ({failed.get('reason')}) - {state}")
+            why = f"{layout.container(failed['id'])} on {host}: {failed.get('reason')}"
+        elif out.get("failed") and not out.get("done"):
+            why = why or f"{host}: {out.get('msg')}"
+        if out.get("untouched"):
+            untouched.append(f"{host}: " + ", ".join(layout.container(i) for i in out["untouched"]))
+    lines = ["rolled: " + ("; ".join(rolled) or "none")]
+    if unchanged:
+        lines.append("already current: " + ", ".join(unchanged))
+    lines.append("reverted: " + ("; ".join(reverted) or "none"))
+    lines.append("untouched: " + ("; ".join(untouched) or "none"))
+    if stopped_on or why:
+        lines.append(f"stopped: {why or stopped_on}")
+    else:
+        lines.append("completed: every host rolled")
+    return lines

@@ -1,0 +1,352 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_lifecycle
+short_description: The one lifecycle of a host's Isaac Sim instances - apply, start, stop, restart, remove
+version_added: "0.3.0"
+description:
+  - Every change to the instances of a host goes through this module - deploys, day-2 actions, scale-down,
+    cleanup, rolling restarts and upgrades - so the steps are the same everywhere.
+  - O(action=apply) brings the host to a plan of M(isaacsim.fleet.isaac_sim_plan) - directories, the template
+    unit, the target, the host-side scripts and each instance's env file. Instances that are not serving
+    (new, stopped, failed) are started together. A serving instance whose env file or the shared files
+    changed is restarted one at a time - stopped first if stuck activating, its start counter reset, restarted
+    (C(systemctl restart) returns once the readiness gate saw the ready line), then soaked for
+    O(soak_seconds). On the first failure that instance goes back to its previous env file (pinned to its
+    previous image id when the tag has moved) and the shared files to theirs, the instances after it are left
+    untouched, and the module fails naming the instance and the reason. Instances the plan no longer has are
+    stopped, disabled and their env files removed (scale-down), before anything starts.
+  - With O(defer_running), a host where a serving instance would restart is left unchanged and reported as
+    RV(deferred), so the playbook can roll it in canary batches.
+  - O(action=restart) restarts O(ids) one at a time, each ready and soaked. O(action=start) starts them together,
+    O(action=stop) stops them (they stay enabled), O(action=remove) stops, disables and forgets them; caches, logs
+    and data stay unless O(purge).
+author: isaacsim.fleet contributors
+attributes:
+  check_mode:
+    support: full
+    description: Reports what would be written, started, restarted and removed; changes nothing.
+  diff_mode:
+    support: partial
+    description: Shows the shared files (units, scripts); env files may hold secrets and are not shown.
+options:
+  action:
+    description: What to do.
+    type: str
+    choices: [apply, start, stop, restart, remove]
+    default: apply
+  ids:
+    description: Instance numbers for O(action=start), V(stop), V(restart) and V(remove).
+    type: list
+    elements: int
+    default: []
+  plan:
+    description: The plan of M(isaacsim.fleet.isaac_sim_plan) (its RV(isaacsim.fleet.isaac_sim_plan#module:plan)),
+      for O(action=apply).
+    type: dict
+  image_id:
+    description: Id of the planned image on this host, written to each env file so a new image restarts its
+      instances.
+    type: str
+    default: unknown
+  secret_env:
+    description: Secret container variables; the env files holding them are mode 0600.
+    type: dict
+    default: {}
+  scripts:
+    description: Content of the host-side scripts (C(isaac-sim-run), C(isaac-sim-ready)), installed in the
+      layout's libexec directory.
+    type: dict
+    default: {}
+  managed:
+    description: The stamp written at the top of every file.
+    type: str
+    default: Ansible managed (isaacsim.fleet)
+  soak_seconds:
+    description: How long a restarted instance must stay ready with its restart count unchanged.
+    type: float
+    default: 0
+  defer_running:
+    description: With O(action=apply), change nothing on a host where a serving instance would restart.
+    type: bool
+    default: false
+  remove_others:
+    description: With O(action=apply), remove the instances this collection set up earlier that the plan no
+      longer has.
+    type: bool
+    default: true
+  purge:
+    description: Also delete the caches, logs and data of removed instances.
+    type: bool
+    default: false
+  data_root:
+    description: Where the instances' caches, logs and data are (C(DATA_ROOT/instance-N)), for O(purge).
+      O(action=apply) takes it from the plan.
+    type: path
+    default: /var/lib/isaac-sim
+notes:
+  - The module runs for as long as the instances take; one call per host keeps Ansible's per-task cost out of
+    a rollout's time.
+seealso:
+  - module: isaacsim.fleet.isaac_sim_plan
+  - module: isaacsim.fleet.isaac_sim_info
+"""
+
+EXAMPLES = r"""
+- name: Apply the plan, starting new instances and rolling changed ones one at a time
+  isaacsim.fleet.isaac_sim_lifecycle:
+    plan: "{{ planned.plan }}"
+    image_id: "{{ image.images[0].Id }}"
+    scripts:
+      isaac-sim-run: "{{ lookup('ansible.builtin.file', 'isaac-sim-run') }}"
+      isaac-sim-ready: "{{ lookup('ansible.builtin.file', 'isaac-sim-ready') }}"
+    soak_seconds: 30
+
+- name: Restart instances 0 and 1, one at a time, each soaked 30 s
+  isaacsim.fleet.isaac_sim_lifecycle:
+    action: restart
+    ids: [0, 1]
+    soak_seconds: 30
+"""
+
+RETURN = r"""
+plan:
+  description: What O(action=apply) found to do - shared files to write, instances to start, roll, remove, enable.
+  returned: action is apply
+  type: dict
+  sample: {"files": [], "start": [], "roll": [0, 1], "remove": [], "enable": []}
+deferred:
+  description: O(defer_running) left the host unchanged because serving instances would restart.
+  returned: action is apply
+  type: bool
+done:
+  description: Instances changed, in order, each with C(action) (start, apply, restart) and its timings.
+  returned: always
+  type: list
+  elements: dict
+  sample: [{"id": 0, "action": "apply", "restart_s": 6.2, "soak_s": 30.0}]
+failed_instance:
+  description: The instance that failed, why, and whether it went back to its previous settings.
+  returned: always
+  type: dict
+  sample: {"id": 0, "reason": "isaac-sim-0 was not ready within 20 s", "reverted": true,
+           "reverted_to": "nvcr.io/nvidia/isaac-sim:5.0.0", "revert_error": null, "left": "running"}
+untouched:
+  description: Instances not reached because of the failure.
+  returned: always
+  type: list
+  elements: int
+directories:
+  description: Directories created or given the container user's owner and mode.
+  returned: action is apply
+  type: list
+  elements: str
+"""
+
+import os
+import shutil
+import time
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle
+
+
+def _host(module):
+    def run(argv):
+        return module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:])
+
+    def read(path):
+        try:
+            with open(path) as fh:
+                return fh.read()
+        except OSError:
+            return None
+
+    def write(path, text, mode):
+        directory = os.path.dirname(path)
+        os.makedirs(directory, mode=0o755, exist_ok=True)
+        tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+
+    def remove(path):
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path):
+            os.unlink(path)
+
+    def mode(path):
+        try:
+            return os.stat(path).st_mode & 0o777
+        except OSError:
+            return None
+
+    return lifecycle.Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
+
+
+def _want(module, host):
+    """The wanted state of the host, from the plan."""
+    p = module.params
+    plan = p["plan"]
+    env_mode = 0o600 if p["secret_env"] else 0o644
+    files = {
+        os.path.join(layout.UNIT_DIR, layout.UNIT_TEMPLATE): (
+            layout.render_unit(plan["settings"], p["managed"]),
+            0o644,
+        ),
+        os.path.join(layout.UNIT_DIR, layout.TARGET): (layout.render_target(p["managed"]), 0o644),
+    }
+    for name in layout.SCRIPTS:
+        if name not in p["scripts"]:
+            module.fail_json(msg=f"scripts: {name} is missing. Fix: pass the role's files/{name}.")
+        text = p["scripts"][name]
+        files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o755)
+    instances = {
+        inst["id"]: layout.render_env(inst, plan, p["image_id"], p["secret_env"], p["managed"])
+        for inst in plan["instances"]
+    }
+    gone = []
+    if p["remove_others"]:
+        wants = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")
+        gone = [i for i in hostprobe.existing_instances(layout.CONFIG_DIR, wants) if i not in instances]
+    return {
+        "files": files,
+        "instances": instances,
+        "env_mode": env_mode,
+        "remove": gone,
+        "purge": p["purge"],
+        "data_root": plan["layout"]["data_root"],
+        "soak": p["soak_seconds"],
+        "defer_running": p["defer_running"],
+    }
+
+
+def _directories(plan):
+    """(paths, uid, gid) of the instances' own directories, owned by the release's container user."""
+    paths = [inst["root"] for inst in plan["instances"]] + [d for inst in plan["instances"] for d in inst["dirs"]]
+    return paths, plan["uid"], plan["gid"]
+
+
+def _diff(host, files):
+    out = []
+    for path, (text, _) in sorted(files.items()):
+        before = host.read(path)
+        if before != text:
+            out.append({"before_header": path, "after_header": path, "before": before or "", "after": text})
+    return out
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            action=dict(type="str", default="apply", choices=["apply", "start", "stop", "restart", "remove"]),
+            ids=dict(type="list", elements="int", default=[]),
+            plan=dict(type="dict"),
+            image_id=dict(type="str", default="unknown"),
+            secret_env=dict(type="dict", default={}, no_log=True),
+            scripts=dict(type="dict", default={}),
+            managed=dict(type="str", default="Ansible managed (isaacsim.fleet)"),
+            soak_seconds=dict(type="float", default=0),
+            defer_running=dict(type="bool", default=False),
+            remove_others=dict(type="bool", default=True),
+            purge=dict(type="bool", default=False),
+            data_root=dict(type="path", default=layout.DATA_ROOT),
+        ),
+        required_if=[("action", "apply", ["plan"])],
+        supports_check_mode=True,
+    )
+    p = module.params
+    host = _host(module)
+    out = dict(changed=False, done=[], failed_instance=None, untouched=[])
+
+    if p["action"] == "apply":
+        want = _want(module, host)
+        paths, uid, gid = _directories(p["plan"])
+        dir_changes = dirs.wanted_changes(paths, uid, gid, 0o750)
+        applied = []
+
+        def prepare():
+            dirs.apply(dir_changes, uid, gid, 0o750)
+            # a release whose container user differs (4.x root -> 5.x uid 1234) must be able to
+            # write what the old one left there: caches are kept and handed over, not wiped
+            for path, what in dir_changes:
+                if what == "owner":
+                    for root, subdirs, names in os.walk(path):
+                        for name in subdirs + names:
+                            os.lchown(os.path.join(root, name), uid, gid)
+            applied.append(True)
+
+        want["prepare"] = prepare
+        diff = _diff(host, want["files"]) if module._diff else None
+        try:
+            result = lifecycle.apply(host, want, check=module.check_mode)
+            if dir_changes and not applied and not module.check_mode and not result["deferred"]:
+                prepare()
+        except OSError as exc:
+            module.fail_json(msg=f"could not write the host's files: {exc}", **out)
+        out.update(
+            plan=result["plan"],
+            deferred=result["deferred"],
+            directories=sorted({path for path, _ in dir_changes}),
+            changed=result["changed"] or (bool(dir_changes) and not result["deferred"]),
+        )
+        if diff:
+            out["diff"] = diff
+    elif p["action"] == "restart":
+        result = lifecycle.restart_each(host, p["ids"], p["soak_seconds"], check=module.check_mode)
+    elif module.check_mode:
+        result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
+        out["changed"] = bool(p["ids"])
+    elif p["action"] == "start":
+        result = {"done": [], "failed": None, "untouched": []}
+        for i, (ok, reason) in lifecycle.start(host, p["ids"]).items():
+            if ok:
+                result["done"].append({"id": i, "action": "start"})
+            elif result["failed"] is None:
+                result["failed"] = {"id": i, "reason": reason, "reverted": None, "left": "failed"}
+        out["changed"] = bool(p["ids"])
+    else:
+        if p["action"] == "stop":
+            lifecycle.stop(host, p["ids"])
+        else:
+            lifecycle.remove(host, p["ids"], p["purge"], p["data_root"])
+        result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
+        out["changed"] = bool(p["ids"])
+
+    out.update(done=result["done"], failed_instance=result["failed"], untouched=result["untouched"])
+    if p["action"] == "restart":
+        out["changed"] = result["changed"]
+    failed = result["failed"]
+    if failed:
+        if failed.get("reverted") is None:
+            back = (
+                "it was stopped (there are no earlier settings to go back to)"
+                if failed.get("left") == "stopped"
+                else ""
+            )
+        elif failed.get("reverted"):
+            back = f"it went back to {failed.get('reverted_to')}" + (
+                " and is ready again" if failed.get("left") == "running" else ""
+            )
+        else:
+            back = f"going back failed too: {failed.get('revert_error')}"
+        untouched = (
+            f"; not reached: {', '.join(layout.container(i) for i in result['untouched'])}"
+            if result["untouched"]
+            else ""
+        )
+        module.fail_json(
+            msg=f"{layout.container(failed['id'])}: {failed['reason']}" + (f"; {back}" if back else "") + untouched,
+            **out,
+        )
+    module.exit_json(**out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""The one lifecycle on a real systemd host: a deploy that breaks an instance goes back
+and stops; an app that quits by itself comes back; values typed on the command line
+reach systemd as numbers; a size with a space reaches Docker as one word.
+
+Runs in molecule's verify step on molecule/default; each test leaves every instance ready.
+"""
+
+import time
+
+import testbed
+from testbed import INSTANCES, container_id, sh, unit_show
+
+
+def ids(host) -> dict:
+    return {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+
+
+def test_a_deploy_that_breaks_an_instance_stops_there_and_puts_it_back(host):
+    before, envs = ids(host), {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)}
+    started = time.monotonic()
+    # a setting that makes the app die at once, before it is ready
+    run = testbed.run_playbook(host, {"isaac_sim_env": {"STANDIN_CRASH_AFTER": "0"}})
+    took = time.monotonic() - started
+    out = " ".join((run.stdout + run.stderr).split())
+    assert run.returncode != 0, out[-3000:]
+    # named: host, instance, reason, with the container's own last words
+    assert f"Rollout stopped on {testbed.name(host)}: isaac-sim-0: isaac-sim-0 stopped before it was ready" in out, out[
+        -3000:
+    ]
+    assert "simulated crash" in out
+    assert "it went back to" in out and "not reached: isaac-sim-1, isaac-sim-2, isaac-sim-3" in out
+    # the gate failed at once, not at the ready deadline (180 s here)
+    assert took < 120, took
+    testbed.all_ready(host)
+    after = ids(host)
+    assert after[0] != before[0], "isaac-sim-0 was not restarted on its previous settings"
+    assert {i: after[i] for i in (1, 2, 3)} == {i: before[i] for i in (1, 2, 3)}
+    assert {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)} == envs
+
+
+def test_an_app_that_quits_by_itself_with_status_0_is_restarted(host):
+    before = unit_show(host, "isaac-sim@1.service")
+    old = container_id(host, "isaac-sim-1")
+    # SIGTERM from inside: the app shuts down cleanly and exits 0, as 6.x does when a stream session ends
+    sh(host, "docker kill --signal=TERM isaac-sim-1")
+    testbed.wait_for(lambda: container_id(host, "isaac-sim-1") not in ("", old), timeout=60, what="a new isaac-sim-1")
+    testbed.all_ready(host, [1])
+    after = unit_show(host, "isaac-sim@1.service")
+    assert int(after["NRestarts"]) == int(before["NRestarts"]) + 1
+    assert "exited, code=exited, status=0" in sh(host, "journalctl -u isaac-sim@1 -n 40 --no-pager").stdout or (
+        "SIGTERM received" in sh(host, "journalctl -u isaac-sim@1 -n 40 --no-pager").stdout
+    )
+
+
+def test_values_typed_on_the_command_line_reach_systemd_and_docker_typed(host):
+    raw = [
+        "isaac_sim_start_limit_burst=4",
+        "isaac_sim_ready_timeout=60",
+        "isaac_sim_stop_timeout=20",
+        "isaac_sim_restart_sec=5",
+        'isaac_sim_memory_limit="1 gb"',
+        "isaac_sim_gpu_enabled=false",
+        "isaac_sim_rollout_soak=1",
+        'isaac_sim_extra_docker_args="--label=from-the-command-line=a b"',
+    ]
+    try:
+        run = testbed.run_playbook(host, raw_vars=raw)
+        assert run.returncode == 0, run.stdout[-3000:] + run.stderr
+        testbed.all_ready(host)
+        verify = sh(host, "systemd-analyze verify /etc/systemd/system/isaac-sim@.service isaac-sim@0.service 2>&1")
+        assert "isaac-sim" not in verify.stdout, verify.stdout
+        props = sh(
+            host,
+            "systemctl show isaac-sim@0 -p StartLimitBurst -p StartLimitIntervalUSec -p RestartUSec "
+            "-p TimeoutStartUSec -p TimeoutStopUSec",
+        ).stdout.splitlines()
+        # 4 * (5 + 60 + 30) = 380 s
+        assert sorted(props) == [
+            "RestartUSec=5s",
+            "StartLimitBurst=4",
+            "StartLimitIntervalUSec=6min 20s",
+            "TimeoutStartUSec=1min 30s",
+            "TimeoutStopUSec=50s",
+        ], props
+        inspect = sh(host, "docker inspect -f '{{.HostConfig.Memory}} {{json .Config.Labels}}' isaac-sim-0").stdout
+        assert inspect.startswith("1073741824 ")
+        assert '"from-the-command-line":"a b"' in inspect
+    finally:
+        restored = testbed.run_playbook(host)
+        assert restored.returncode == 0, restored.stdout[-3000:] + restored.stderr
+        testbed.all_ready(host)

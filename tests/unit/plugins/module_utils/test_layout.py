@@ -1,0 +1,104 @@
+"""The host-layout contract: names, paths and the env-file quote/parse pair."""
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, plan
+
+HARD = [
+    "plain",
+    "",
+    "with spaces  and  tabs\t",
+    'double "quotes" inside',
+    "single 'quotes' inside",
+    "back\\slash and \\\\ two and trailing \\",
+    "dollar $HOME ${HOME} $$",
+    "back`tick`",
+    "a=b=c",
+    "new\nline",
+    "  leading and trailing  ",
+    "#not a comment",
+    "mixed $'\"\\`= \n end",
+]
+
+
+@pytest.mark.parametrize("value", HARD)
+def test_quote_and_parse_round_trip(value):
+    text = f"# comment\nKEY={layout.quote(value)}\nOTHER=plain\n"
+    assert layout.parse(text) == {"KEY": value, "OTHER": "plain"}
+
+
+def test_parse_reads_what_systemd_reads():
+    text = "A=one\n\n; note\nB='single quoted'\nC=\"x\\\ny\"\nD = spaced\n"
+    # a backslash-newline inside double quotes is a line continuation
+    assert layout.parse(text) == {"A": "one", "B": "single quoted", "C": "xy", "D": "spaced"}
+
+
+@pytest.mark.parametrize("args", [["--memory=1 gb"], ["--label=a b", "--env=X", "it's", '"q"', "$x", "a\\b", ""]])
+def test_arguments_stay_one_argument_each(args):
+    value = layout.parse("K=" + layout.quote(layout.join_args(args)) + "\n")["K"]
+    assert layout.split_args(value) == args
+
+
+def test_names_and_paths():
+    assert layout.unit(2) == "isaac-sim@2.service"
+    assert layout.container(2) == "isaac-sim-2"
+    assert layout.env_file(2) == "/etc/isaac-sim/instance-2.env"
+    assert layout.marker(2) == "/run/isaac-sim/instance-2.ready"
+    assert layout.data_dir(2, "/data") == "/data/instance-2"
+    assert layout.instance_id(layout.UNIT_RE, "isaac-sim@7.service") == 7
+    assert layout.instance_id(layout.ENV_FILE_RE, "/etc/isaac-sim/instance-3.env") == 3
+    assert layout.instance_id(layout.UNIT_RE, "isaac-sim-metrics.service") is None
+
+
+def _plan(**over):
+    cfg = {
+        "release": "6.x",
+        "image": "reg/isaac-sim:6.0.1",
+        "instance_count": 2,
+        "max_instances": 8,
+        "port_bases": {},
+        "port_stride": 1,
+        "gpu_enabled": False,
+        "gpu_map": {},
+        "gpu_exclusive": False,
+        "memory_limit": "1 GB",
+        "shm_size": "256m",
+        "data_root": "/var/lib/isaac-sim",
+        "public_address": "10.0.0.5",
+        "accept_eula": True,
+        "privacy_consent": False,
+        "env": {"TRICKY": 'a "b" $c\nd'},
+        "secret_env_names": ["NGC_KEY"],
+        "docker_args": ["--label=team=a b"],
+        "app_args": [],
+        "ready_timeout": "20",
+        "stop_timeout": 5,
+        "restart_sec": "2",
+        "start_limit_burst": "3",
+    }
+    cfg.update(over)
+    return plan.build(cfg, {"memory_bytes": 64 * 1024**3})
+
+
+def test_env_file_carries_every_value_exactly():
+    p = _plan()
+    text = layout.render_env(p["instances"][1], p, "sha256:abc", {"NGC_KEY": "k$y\"'\\"}, "managed")
+    env = layout.parse(text)
+    assert env[layout.K_CONTAINER] == "isaac-sim-1"
+    assert env[layout.K_READY_MARKER] == "/run/isaac-sim/instance-1.ready"
+    assert env[layout.K_READY_TIMEOUT] == "20"
+    assert env["TRICKY"] == 'a "b" $c\nd'
+    assert env["NGC_KEY"] == "k$y\"'\\"
+    args = layout.split_args(env[layout.K_DOCKER_ARGS])
+    # a size with a space becomes Docker's one word; a label with a space stays one argument
+    assert "--memory=1g" in args and "--label=team=a b" in args
+    assert env[layout.K_PORT_PREFIX + "SIGNAL"] == "49101"
+
+
+def test_unit_numbers_are_numbers_whatever_was_given():
+    unit = layout.render_unit(_plan()["settings"], "managed")
+    assert "StartLimitBurst=3\n" in unit
+    assert "StartLimitIntervalSec=156\n" in unit  # 3 * (2 + 20 + 30)
+    assert "RestartSec=2\n" in unit and "TimeoutStartSec=50\n" in unit and "TimeoutStopSec=35\n" in unit
+    assert "Restart=always\n" in unit
+    assert "ExecStop=-/usr/bin/docker stop" in unit
+    assert "EnvironmentFile=/etc/isaac-sim/instance-%i.env\n" in unit

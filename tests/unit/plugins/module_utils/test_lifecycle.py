@@ -1,0 +1,291 @@
+"""The instance lifecycle against a scripted host.
+
+The scripted host answers systemctl, journalctl and docker the way a real one
+does for the cases that matter: an image that becomes ready, one that never
+does (the gate's message in the journal), one that crashes during the soak,
+an instance stuck activating. The real thing runs in the molecule scenarios.
+"""
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, lifecycle
+
+UNIT_FILE = "/etc/systemd/system/isaac-sim@.service"
+GATE = "/usr/local/libexec/isaac-sim/isaac-sim-ready"
+
+
+def env(image, image_id, extra=""):
+    return f"{layout.K_IMAGE}={layout.quote(image)}\n{layout.K_IMAGE_ID}={layout.quote(image_id)}\n{extra}"
+
+
+OLD = env("reg/isaac-sim:5.0.0", "sha256:old")
+NEW = env("reg/isaac-sim:5.1.0", "sha256:new")
+NEVER = env("reg/isaac-sim:never-ready", "sha256:never")
+CRASHY = env("reg/isaac-sim:crashy", "sha256:crashy")
+
+
+class ScriptedHost:
+    def __init__(self, n=4, running=True, tags=None):
+        self.files = {}
+        self.units = {}
+        for i in range(n):
+            if running:
+                self.files[layout.env_file(i)] = (OLD, 0o644)
+            self.units[i] = {
+                "ActiveState": "active" if running else "inactive",
+                "SubState": "running" if running else "dead",
+                "NRestarts": 0,
+                "Result": "success",
+                "UnitFileState": "enabled" if running else "disabled",
+            }
+        if running:
+            self.files[UNIT_FILE] = ("unit v1\n", 0o644)
+            self.files[GATE] = ("gate v1\n", 0o755)
+        self.target = "enabled" if running else "disabled"
+        self.markers = {i for i in range(n) if running}
+        self.tags = tags or {"reg/isaac-sim:5.0.0": "sha256:old"}
+        self.clock = 1000.0
+        self.log = []
+        self.journal = {}
+        self.host = lifecycle.Host(
+            self.run,
+            lambda p: self.files.get(p, (None, None))[0],
+            self.write,
+            self.remove,
+            lambda p: self.files.get(p, (None, None))[1],
+            lambda p: any(p == layout.marker(i) for i in self.markers),
+            self.sleep,
+            lambda: self.clock,
+            lambda: 1795000000 + self.clock,
+        )
+
+    def write(self, path, text, mode):
+        self.files[path] = (text, mode)
+
+    def remove(self, path):
+        self.log.append(f"rm {path}")
+        for p in [p for p in self.files if p == path or p.startswith(path + "/")]:
+            del self.files[p]
+
+    def image(self, i):
+        return layout.parse(self.files.get(layout.env_file(i), ("", 0))[0]).get(layout.K_IMAGE, "")
+
+    def sleep(self, s):
+        self.clock += s
+        for i, u in self.units.items():
+            # the crashy image dies 3 s after its start and systemd restarts it
+            crashy = self.image(i).endswith("crashy")
+            if crashy and u.get("since") and self.clock - u["since"] > 3 and u["NRestarts"] == u.get("base", 0):
+                u["NRestarts"] += 1
+
+    def _start(self, i):
+        u = self.units[i]
+        self.markers.discard(i)
+        if "never-ready" in self.image(i):
+            self.clock += 20
+            # Restart=always: the failed start is tried again after RestartSec
+            u.update(ActiveState="activating", SubState="auto-restart", Result="exit-code")
+            gate = f"isaac-sim-{i} was not ready within 20 s"
+            # the gate quotes the journal's last lines, its own message among them
+            self.journal.setdefault(i, []).extend([gate, "  | loading scene", "  | " + gate])
+            return False
+        self.clock += 5
+        u.update(ActiveState="active", SubState="running", Result="success", since=self.clock, base=u["NRestarts"])
+        self.markers.add(i)
+        return True
+
+    def run(self, argv):
+        self.log.append(" ".join(argv))
+        ids = [layout.instance_id(layout.UNIT_RE, a) for a in argv if layout.instance_id(layout.UNIT_RE, a) is not None]
+        if argv[:2] == ["systemctl", "show"] and layout.TARGET in argv:
+            return 0, self.target + "\n", ""
+        if argv[:2] == ["systemctl", "show"]:
+            blocks = []
+            for i in ids:
+                u = self.units.setdefault(
+                    i,
+                    {
+                        "ActiveState": "inactive",
+                        "SubState": "dead",
+                        "NRestarts": 0,
+                        "Result": "success",
+                        "UnitFileState": "disabled",
+                    },
+                )
+                blocks.append(f"Id={layout.unit(i)}\n" + "".join(f"{k}={v}\n" for k, v in u.items() if k[0].isupper()))
+            return 0, "\n".join(blocks), ""
+        if argv[:2] in (["systemctl", "restart"], ["systemctl", "start"]):
+            ok = all([self._start(i) for i in ids])
+            return (0, "", "") if ok else (1, "", "Job for isaac-sim@.service failed")
+        if argv[:2] == ["systemctl", "stop"] or argv[:3] == ["systemctl", "disable", "--now"]:
+            for i in ids:
+                self.units[i].update(ActiveState="inactive", SubState="dead")
+                self.markers.discard(i)
+                if argv[1] == "disable":
+                    self.units[i]["UnitFileState"] = "disabled"
+            return 0, "", ""
+        if argv[:2] == ["systemctl", "enable"]:
+            for i in ids:
+                self.units[i]["UnitFileState"] = "enabled"
+            self.target = "enabled"
+            return 0, "", ""
+        if argv[0] == "journalctl":
+            return 0, "\n".join(self.journal.get(ids[0], [])), ""
+        if argv[:3] == ["docker", "image", "inspect"]:
+            tag = argv[-1]
+            return (0, self.tags[tag] + "\n", "") if tag in self.tags else (1, "", "No such image")
+        return 0, "", ""
+
+    def commands(self, verb):
+        return [line for line in self.log if line.startswith(f"systemctl {verb}")]
+
+
+def want(instances, files=None, **over):
+    w = {
+        "files": files if files is not None else {UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755)},
+        "instances": instances,
+        "env_mode": 0o644,
+        "remove": [],
+        "soak": 0,
+    }
+    w.update(over)
+    return w
+
+
+def test_a_fresh_host_starts_every_instance_at_once_and_enables_them():
+    h = ScriptedHost(4, running=False)
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(4)}))
+    assert result["failed"] is None and result["changed"]
+    assert h.commands("start") == ["systemctl start " + " ".join(layout.unit(i) for i in range(4))]
+    assert h.commands("restart") == []
+    assert [d["action"] for d in result["done"]] == ["start"] * 4
+    assert h.files[layout.env_file(3)] == (NEW, 0o644) and h.files[GATE] == ("gate v1\n", 0o755)
+    assert all(u["UnitFileState"] == "enabled" for u in h.units.values()) and h.target == "enabled"
+
+
+def test_nothing_to_do_changes_nothing():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(4)}))
+    assert not result["changed"] and result["done"] == []
+    assert [line for line in h.log if not line.startswith("systemctl show")] == []
+
+
+def test_a_changed_image_rolls_one_instance_at_a_time_with_a_soak_each():
+    h = ScriptedHost(3)
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}, soak=10))
+    assert result["failed"] is None
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(i)}" for i in range(3)]
+    assert all(d["action"] == "apply" and d["restart_s"] == 5 and d["soak_s"] >= 10 for d in result["done"])
+    # each restart comes after the previous instance's soak: its counter is reset just before it
+    assert h.log.index(f"systemctl reset-failed {layout.unit(1)}") > h.log.index(f"systemctl restart {layout.unit(0)}")
+
+
+def test_a_never_ready_image_goes_back_and_leaves_the_others_untouched():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({i: NEVER for i in range(4)}))
+    failed = result["failed"]
+    assert failed["id"] == 0 and failed["reason"].startswith("isaac-sim-0 was not ready within 20 s")
+    assert failed["reason"].endswith("(last lines: loading scene)")
+    assert failed["reverted"] is True and failed["reverted_to"] == "reg/isaac-sim:5.0.0" and failed["left"] == "running"
+    assert result["untouched"] == [1, 2, 3]
+    assert all(h.files[layout.env_file(i)][0] == OLD for i in range(4))
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"] * 2
+    # the failed start left it activating (auto-restart): stopped before it is restarted on the old image
+    assert f"systemctl stop {layout.unit(0)}" in h.log
+    assert h.units[0]["ActiveState"] == "active"
+
+
+def test_going_back_pins_the_previous_image_id_when_its_tag_moved():
+    h = ScriptedHost(2, tags={"reg/isaac-sim:5.0.0": "sha256:moved"})
+    lifecycle.apply(h.host, want({0: NEVER, 1: NEVER}))
+    assert layout.parse(h.files[layout.env_file(0)][0])[layout.K_IMAGE] == "sha256:old"
+
+
+def test_a_changed_shared_file_rolls_every_serving_instance_and_goes_back_with_it():
+    h = ScriptedHost(3)
+    ok = lifecycle.apply(h.host, want({i: OLD for i in range(3)}, files={UNIT_FILE: ("unit v2\n", 0o644)}))
+    assert [d["action"] for d in ok["done"]] == ["restart"] * 3
+    assert h.log.count("systemctl daemon-reload") == 1
+    h = ScriptedHost(3)
+    bad = lifecycle.apply(h.host, want({0: NEVER, 1: OLD, 2: OLD}, files={UNIT_FILE: ("unit v2\n", 0o644)}))
+    assert bad["failed"]["id"] == 0 and bad["untouched"] == [1, 2]
+    assert h.files[UNIT_FILE] == ("unit v1\n", 0o644)
+    assert h.log.count("systemctl daemon-reload") == 2
+
+
+def test_defer_running_changes_nothing_on_a_host_that_would_restart():
+    h = ScriptedHost(2)
+    result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, defer_running=True))
+    assert result["deferred"] and not result["changed"] and result["plan"]["roll"] == [0, 1]
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if "show" not in x] == []
+    fresh = ScriptedHost(2, running=False)
+    assert not lifecycle.apply(fresh.host, want({0: NEW, 1: NEW}, defer_running=True))["deferred"]
+
+
+def test_a_new_instance_that_does_not_start_is_stopped_and_forgotten():
+    h = ScriptedHost(2)
+    h.units[2] = dict(h.units[0], ActiveState="inactive", UnitFileState="disabled")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD, 2: NEVER}))
+    assert (
+        result["failed"]["id"] == 2 and result["failed"]["reverted"] is None and result["failed"]["left"] == "stopped"
+    )
+    assert layout.env_file(2) not in h.files and h.units[2]["ActiveState"] == "inactive"
+    assert h.commands("restart") == []
+
+
+def test_scale_down_goes_first_and_keeps_data_unless_purge():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, remove=[2, 3]))
+    assert result["failed"] is None
+    assert h.log.index("systemctl disable --now isaac-sim@2.service isaac-sim@3.service") < h.log.index(
+        "systemctl restart isaac-sim@0.service"
+    )
+    assert layout.env_file(2) not in h.files and "rm /var/lib/isaac-sim/instance-2" not in h.log
+    h = ScriptedHost(4)
+    lifecycle.apply(h.host, want({0: OLD, 1: OLD}, remove=[2, 3], purge=True))
+    assert "rm /var/lib/isaac-sim/instance-3" in h.log
+
+
+def test_an_instance_stuck_activating_is_stopped_then_started():
+    h = ScriptedHost(2)
+    h.units[1].update(ActiveState="activating", SubState="start-post")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD}))
+    assert result["plan"]["start"] == [1] and result["failed"] is None
+    assert h.log.index("systemctl stop isaac-sim@1.service") < h.log.index("systemctl start isaac-sim@1.service")
+
+
+def test_check_mode_reports_and_changes_nothing():
+    h = ScriptedHost(2)
+    result = lifecycle.apply(h.host, want({0: NEW, 1: OLD}, remove=[3]), check=True)
+    assert result["changed"] and result["plan"]["roll"] == [0] and result["plan"]["remove"] == [3]
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if "show" not in x] == []
+
+
+def test_rolling_restart_soaks_and_stops_at_a_crash():
+    h = ScriptedHost(3)
+    h.files[layout.env_file(1)] = (CRASHY, 0o644)
+    result = lifecycle.restart_each(h.host, [0, 1, 2], soak_seconds=10)
+    assert [d["id"] for d in result["done"]] == [0]
+    assert "restarted during the soak" in result["failed"]["reason"] and result["untouched"] == [2]
+
+
+def test_summary_names_what_was_rolled_reverted_and_untouched():
+    outcomes = {
+        "a": {"done": [{"id": 0, "action": "apply"}], "failed_instance": None},
+        "b": {
+            "failed": True,
+            "done": [],
+            "failed_instance": {
+                "id": 0,
+                "reason": "not ready",
+                "reverted": True,
+                "reverted_to": "img:1",
+                "left": "running",
+            },
+            "untouched": [1, 2],
+        },
+        "c": {},
+    }
+    lines = lifecycle.summary(outcomes, ["a", "b", "c"])
+    assert lines[0] == "rolled: a: isaac-sim-0"
+    assert "b: isaac-sim-0 (not ready) - back on img:1, ready" in lines[1]
+    assert "b: isaac-sim-1, isaac-sim-2" in lines[2] and "c: every instance (not reached)" in lines[2]
+    assert lines[-1] == "stopped: isaac-sim-0 on b: not ready"
