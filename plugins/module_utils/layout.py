@@ -29,7 +29,8 @@ LABEL_INSTANCE = "org.isaacsim.fleet.instance"
 # host-side scripts, installed in LIBEXEC_DIR
 RUN_SCRIPT = "isaac-sim-run"
 READY_SCRIPT = "isaac-sim-ready"
-SCRIPTS = (RUN_SCRIPT, READY_SCRIPT)
+PORTS_SCRIPT = "isaac-sim-ports"
+SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT)
 
 UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
@@ -43,6 +44,7 @@ K_RELEASE = "ISAAC_SIM_RELEASE"
 K_IMAGE = "ISAAC_SIM_IMAGE"
 K_IMAGE_ID = "ISAAC_SIM_IMAGE_ID"
 K_PORT_PREFIX = "ISAAC_SIM_PORT_"
+K_PORTS = "ISAAC_SIM_PORTS"
 K_GPU = "ISAAC_SIM_GPU"
 K_PUBLIC_ADDRESS = "ISAAC_SIM_PUBLIC_ADDRESS"
 K_READY_TIMEOUT = "ISAAC_SIM_READY_TIMEOUT"
@@ -197,6 +199,9 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{K_IMAGE_ID}={quote(image_id)}",
     ]
     lines += [f"{K_PORT_PREFIX}{kind.upper()}={port}" for kind, port in instance["ports"].items()]
+    protocols = instance.get("protocols", {})
+    ports = " ".join(f"{protocols.get(kind, 'tcp')}/{port}" for kind, port in instance["ports"].items())
+    lines.append(f"{K_PORTS}={quote(ports)}")
     lines += [
         f"{K_GPU}={'' if instance.get('gpu') is None else instance['gpu']}",
         f"{K_PUBLIC_ADDRESS}={quote(plan.get('public_address') or '')}",
@@ -238,6 +243,8 @@ EnvironmentFile={env}
 SyslogIdentifier={CONTAINER_PREFIX}%i
 # A container left by a crash or an unclean reboot would block the name.
 ExecStartPre=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
+# Kit moves to another port when its own is taken: refuse instead, naming the holder.
+ExecStartPre={LIBEXEC_DIR}/{PORTS_SCRIPT}
 ExecStart={LIBEXEC_DIR}/{RUN_SCRIPT}
 ExecStartPost={LIBEXEC_DIR}/{READY_SCRIPT}
 # the container may have exited already (an app that quit): not an error

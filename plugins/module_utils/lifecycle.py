@@ -193,6 +193,58 @@ class _Files:
                 self.host.write(path, text, mode)
 
 
+def ports_of(text) -> set:
+    """The port numbers an env file gives its instance (protocol left out: the safe side)."""
+    env = layout.parse(text or "")
+    return {int(v) for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX) and v.isdigit()}
+
+
+def port_order(old: dict, new: dict, roll: list, start: list) -> tuple:
+    """(steps, notes): the order in which to change instances so none starts on a port
+    another instance still holds.
+
+    old/new: {id: set of ports} before and after; roll: serving instances to restart one
+    at a time; start: instances not serving, to start. steps: [("start", [ids]) or
+    ("roll", id) or ("stop", [ids])]. When serving instances block each other in a
+    cycle, the blockers are stopped before the instance that needs their ports (the
+    host goes below N-1 for that step) and started after: notes say so.
+    """
+    holding = {i: set(old.get(i, ())) for i in roll}  # serving, still on their old ports
+
+    def blocked(i):
+        return {j for j, ports in holding.items() if j != i and ports & new.get(i, set())}
+
+    steps, notes = [], []
+    first = [i for i in start if not blocked(i)]
+    later = [i for i in start if i not in first]
+    if first:
+        steps.append(("start", first))
+    pending = list(roll)
+    while pending:
+        free = [i for i in pending if not blocked(i)]
+        if free:
+            i = free[0]
+        else:
+            i = min(pending, key=lambda x: (len(blocked(x)), x))
+            gone = sorted(blocked(i))
+            steps.append(("stop", gone))
+            notes.append(
+                f"{', '.join(layout.container(j) for j in gone)} stopped before {layout.container(i)} to free "
+                f"port(s) {', '.join(str(p) for p in sorted(new[i] & set().union(*(holding[j] for j in gone))))}: "
+                f"the host is below N-1 until they start again on their new ports"
+            )
+            for j in gone:
+                pending.remove(j)
+                holding.pop(j)
+                later.append(j)
+        pending.remove(i)
+        holding.pop(i)
+        steps.append(("roll", i))
+    if later:
+        steps.append(("start", sorted(later)))
+    return steps, notes
+
+
 def _enabled(state: dict) -> bool:
     return state.get("UnitFileState") in ("enabled", "enabled-runtime", "static", "indirect")
 
@@ -217,12 +269,17 @@ def apply(host: Host, want: dict, check=False) -> dict:
     to_enable = [i for i in desired if not _enabled(state[i])]
     _, target_state, _ = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
     target_enabled = target_state.strip() == "enabled"
+    steps, notes = port_order(
+        {i: ports_of(current[i]) for i in desired}, {i: ports_of(desired[i]) for i in desired}, to_roll, to_start
+    )
     plan = {
         "files": sorted(shared),
         "start": to_start,
         "roll": to_roll,
         "remove": gone,
         "enable": to_enable + ([] if target_enabled else [layout.TARGET]),
+        "order": [f"{kind} {' '.join(map(str, what)) if isinstance(what, list) else what}" for kind, what in steps],
+        "notes": notes,
     }
     result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
     changed = bool(shared or to_start or to_roll or gone or plan["enable"])
@@ -257,30 +314,47 @@ def apply(host: Host, want: dict, check=False) -> dict:
             if units_changed:
                 host.run(["systemctl", "daemon-reload"])
 
-    # not serving: nothing to keep up, so all of them at once
-    for i in to_start:
-        if i in new_env:
-            files.write(layout.env_file(i), desired[i], want["env_mode"])
-    for i, (ok, reason) in start(host, to_start).items():
-        if ok:
-            result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
-            continue
-        stop(host, [i])
-        put_back(i)
-        result["failed"] = {
-            "id": i,
-            "reason": reason,
-            # a new instance has nothing to go back to; it is stopped
-            "reverted": None if current[i] is None else True,
-            "reverted_to": None if current[i] is None else layout.parse(current[i]).get(layout.K_IMAGE),
-            "revert_error": None,
-            "left": "stopped",
-        }
-        result["untouched"] = to_roll
-        result["changed"] = True
+    stopped = []  # serving instances stopped to free ports, not started again yet
+
+    def stop_here(failed, n):
+        """The failure ends the apply: instances stopped for ports come back as they were."""
+        if stopped:
+            start(host, stopped)
+        later = [w for kind, w in steps[n + 1 :] if kind == "roll"]
+        result.update(failed=failed, untouched=[i for i in later if i not in stopped] + stopped, changed=True)
         return result
 
-    for n, i in enumerate(to_roll):
+    for n, (kind, what) in enumerate(steps):
+        if kind == "stop":
+            stop(host, what)
+            stopped.extend(what)
+            continue
+        if kind == "start":
+            # not serving: nothing to keep up, so all of them at once
+            for i in what:
+                if i in new_env:
+                    files.write(layout.env_file(i), desired[i], want["env_mode"])
+            stopped[:] = [i for i in stopped if i not in what]
+            for i, (ok, reason) in start(host, what).items():
+                if ok:
+                    result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
+                    continue
+                stop(host, [i])
+                put_back(i)
+                return stop_here(
+                    {
+                        "id": i,
+                        "reason": reason,
+                        # a new instance has nothing to go back to; it is stopped
+                        "reverted": None if current[i] is None else True,
+                        "reverted_to": None if current[i] is None else layout.parse(current[i]).get(layout.K_IMAGE),
+                        "revert_error": None,
+                        "left": "stopped",
+                    },
+                    n,
+                )
+            continue
+        i = what
         if i in new_env:
             files.write(layout.env_file(i), desired[i], want["env_mode"])
         ok, reason, restart_s = restart(host, i)
@@ -296,18 +370,18 @@ def apply(host: Host, want: dict, check=False) -> dict:
             continue
         put_back(i)
         back, back_reason, _ = restart(host, i)
-        result["failed"] = {
-            "id": i,
-            "reason": reason,
-            "reverted": back,
-            "reverted_to": layout.parse(current[i] or "").get(layout.K_IMAGE),
-            "revert_error": back_reason,
-            "restart_s": round(restart_s, 3),
-            "left": "running" if back else "failed",
-        }
-        result["untouched"] = to_roll[n + 1 :]
-        result["changed"] = True
-        return result
+        return stop_here(
+            {
+                "id": i,
+                "reason": reason,
+                "reverted": back,
+                "reverted_to": layout.parse(current[i] or "").get(layout.K_IMAGE),
+                "revert_error": back_reason,
+                "restart_s": round(restart_s, 3),
+                "left": "running" if back else "failed",
+            },
+            n,
+        )
 
     if plan["enable"]:
         host.run(["systemctl", "enable", layout.TARGET] + [layout.unit(i) for i in to_enable])

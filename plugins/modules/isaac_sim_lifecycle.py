@@ -57,8 +57,8 @@ options:
     type: dict
     default: {}
   scripts:
-    description: Content of the host-side scripts (C(isaac-sim-run), C(isaac-sim-ready)), installed in the
-      layout's libexec directory.
+    description: Content of the host-side scripts (C(isaac-sim-run), C(isaac-sim-ready), C(isaac-sim-ports)),
+      installed in the layout's libexec directory.
     type: dict
     default: {}
   managed:
@@ -103,6 +103,7 @@ EXAMPLES = r"""
     scripts:
       isaac-sim-run: "{{ lookup('ansible.builtin.file', 'isaac-sim-run') }}"
       isaac-sim-ready: "{{ lookup('ansible.builtin.file', 'isaac-sim-ready') }}"
+      isaac-sim-ports: "{{ lookup('ansible.builtin.file', 'isaac-sim-ports') }}"
     soak_seconds: 30
 
 - name: Restart instances 0 and 1, one at a time, each soaked 30 s

@@ -50,7 +50,9 @@ def restart_times(stdout: str) -> dict:
     for play in json.loads(stdout)["plays"]:
         for task in play["tasks"]:
             # a role task is named "ROLE : NAME"
-            if not task["task"]["name"].endswith("Restart, wait until ready and soak each instance"):
+            if not task["task"]["name"].endswith(
+                ("Apply the plan to the instances", "Restart each instance as it is, ready and soaked before the next")
+            ):
                 continue
             for host, res in task["hosts"].items():
                 times[host] = [d["restart_s"] for d in res.get("done", [])]

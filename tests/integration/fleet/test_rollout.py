@@ -1,7 +1,8 @@
 """Rolling restarts and upgrades across three hosts of four instances, watched from outside.
 
 Runs in molecule's verify step of molecule/fleet. The tests share the fleet and
-run in file order: a rolling restart, an upgrade that fails at the canary, a
+run in file order: a rolling restart, plain deploys (a new image, a changed setting)
+that fail at the canary, a
 preflight that refuses an unhealthy fleet and one with a host that does not
 answer, a rollout scoped by --limit and
 instance selection, a canary pause nobody answers, and an upgrade approved at
@@ -153,22 +154,28 @@ def test_rolling_restart_keeps_n_minus_1_per_host_and_one_host_at_a_time(fleet):
     assert watcher.most_disturbed_at_once(INSTANCES) == 1
 
 
-def test_upgrade_to_an_image_that_never_gets_ready_stops_at_the_canary_and_reverts_it(fleet):
+def deploy_that_fails_at_the_canary(fleet, extra: dict, env_check: str):
+    """A plain deploy whose change never gets ready: one instance of the first host changes,
+    goes back, everything else keeps its container; a watcher sees >= 3 of 4 on every host."""
     canary, rest = fleet[0], fleet[1:]
     before = {h: containers(h) for h in fleet}
     envs = {h: sh(h, "cat /etc/isaac-sim/instance-1.env") for h in fleet}
-    bad = registry_image(canary, "6.0.1-never-ready")
-    run = playbook("upgrade.yml", {"isaac_sim_image": bad, "isaac_sim_ready_timeout": 15, "isaac_sim_rollout_soak": 3})
+    watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + i for i in range(INSTANCES)])
+    watcher.start()
+    try:
+        run = playbook("deploy.yml", {"isaac_sim_ready_timeout": 15, "isaac_sim_rollout_soak": 3, **extra})
+    finally:
+        watcher.stop()
     out = squash(run.stdout + run.stderr)
     assert run.returncode != 0
-    # the message names the instance and the reason
+    # the message names the host, the instance and the reason
     assert f"Rollout stopped on {canary}: isaac-sim-0: isaac-sim-0 was not ready within 15 s" in out, run.stdout[-4000:]
     assert "reverted: " + canary + ": isaac-sim-0" in out
     assert f"untouched: {canary}: isaac-sim-1, isaac-sim-2, isaac-sim-3" in out
     for h in rest:
         assert f"{h}: every instance (not reached)" in out
     after = {h: containers(h) for h in fleet}
-    # the canary's instance 0 is back on the old image and ready; nothing else was touched
+    # the canary's instance 0 is back on its old settings and ready; nothing else was touched
     assert after[canary]["isaac-sim-0"][1] == before[canary]["isaac-sim-0"][1]
     assert after[canary]["isaac-sim-0"][0] != before[canary]["isaac-sim-0"][0]
     testbed.wait_for(lambda: all_ready(canary), timeout=60, what="the canary ready")
@@ -177,7 +184,17 @@ def test_upgrade_to_an_image_that_never_gets_ready_stops_at_the_canary_and_rever
             if (h, n) != (canary, "isaac-sim-0"):
                 assert after[h][n] == before[h][n], (h, n)
         assert sh(h, "cat /etc/isaac-sim/instance-1.env") == envs[h]
-        assert bad not in sh(h, "cat /etc/isaac-sim/instance-0.env")
+        assert env_check not in sh(h, "cat /etc/isaac-sim/instance-0.env")
+    assert watcher.lowest() == {h: INSTANCES - 1 if h == canary else INSTANCES for h in fleet}, watcher.lowest()
+
+
+def test_a_deploy_of_an_image_that_never_gets_ready_stops_at_the_canary_and_puts_it_back(fleet):
+    bad = registry_image(fleet[0], "6.0.1-never-ready")
+    deploy_that_fails_at_the_canary(fleet, {"isaac_sim_image": bad}, bad)
+
+
+def test_a_deploy_of_a_setting_that_never_gets_ready_stops_at_the_canary_and_puts_it_back(fleet):
+    deploy_that_fails_at_the_canary(fleet, {"isaac_sim_env": {"STANDIN_NEVER_READY": "1"}}, "STANDIN_NEVER_READY")
 
 
 def test_preflight_refuses_an_unhealthy_instance_before_anything_restarts(fleet):
@@ -254,16 +271,23 @@ def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
         seen.update({h: {image for _, image in containers(h).values()} for h in fleet})
         return "yes"
 
-    code, out, answered = playbook_on_a_terminal(
-        "upgrade.yml",
-        {"isaac_sim_image": new, "isaac_sim_rollout_soak": 3, "isaac_sim_rollout_pause_after_canary": True},
-        prompt="Type yes and Enter to go on",
-        answer=approve,
-    )
+    watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + i for i in range(INSTANCES)])
+    watcher.start()
+    try:
+        code, out, answered = playbook_on_a_terminal(
+            "upgrade.yml",
+            {"isaac_sim_image": new, "isaac_sim_rollout_soak": 3, "isaac_sim_rollout_pause_after_canary": True},
+            prompt="Type yes and Enter to go on",
+            answer=approve,
+        )
+    finally:
+        watcher.stop()
     assert answered, out[-4000:]
     assert seen[fleet[0]] == {new} and all(new not in seen[h] for h in fleet[1:]), seen
     assert code == 0, out[-4000:]
     assert "completed: every host rolled" in out
+    # the upgrade is the deploy as a rollout: every host disturbed, never below 3 of 4
+    assert watcher.lowest() == {h: INSTANCES - 1 for h in fleet}, watcher.lowest()
     digest = None
     for h in fleet:
         # the status module shows the new digest on every instance

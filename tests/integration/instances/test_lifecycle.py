@@ -89,3 +89,21 @@ def test_values_typed_on_the_command_line_reach_systemd_and_docker_typed(host):
         restored = testbed.run_playbook(host)
         assert restored.returncode == 0, restored.stdout[-3000:] + restored.stderr
         testbed.all_ready(host)
+
+
+def test_a_port_held_by_another_process_keeps_the_instance_from_starting(host):
+    sh(host, "systemctl stop isaac-sim@2")
+    # a foreign server takes instance 2's signal port while the instance is down
+    sh(host, "nohup python3 -m http.server 49102 >/dev/null 2>&1 & echo $! >/tmp/holder.pid")
+    holder = sh(host, "cat /tmp/holder.pid").stdout.strip()
+    testbed.wait_for(lambda: "49102" in sh(host, "ss -Hltn 'sport = :49102'").stdout, timeout=20, what="the holder")
+    try:
+        assert sh(host, "systemctl start isaac-sim@2", check=False).rc != 0
+        status = sh(host, "systemctl status isaac-sim@2 --no-pager -l -n 20", check=False).stdout
+        assert f"isaac-sim-2 cannot start: port 49102/tcp of its block is held by python3 (pid {holder})" in status
+        assert "isaac_sim_port_bases" in status
+        assert container_id(host, "isaac-sim-2") == ""
+    finally:
+        sh(host, f"kill {holder}", check=False)
+        sh(host, "systemctl reset-failed isaac-sim@2; systemctl start isaac-sim@2")
+    testbed.all_ready(host)

@@ -289,3 +289,41 @@ def test_summary_names_what_was_rolled_reverted_and_untouched():
     assert "b: isaac-sim-0 (not ready) - back on img:1, ready" in lines[1]
     assert "b: isaac-sim-1, isaac-sim-2" in lines[2] and "c: every instance (not reached)" in lines[2]
     assert lines[-1] == "stopped: isaac-sim-0 on b: not ready"
+
+
+def ports_env(image, signal, stream):
+    return env(image, "sha256:x", f"{layout.K_PORT_PREFIX}SIGNAL={signal}\n{layout.K_PORT_PREFIX}STREAM={stream}\n")
+
+
+def test_a_port_layout_change_rolls_in_an_order_where_no_instance_starts_on_a_held_port():
+    # stride 1 -> 2 with stream next to signal: new instance 1 wants ports old 2 and 3 still hold
+    old = {i: {49100 + i, 47998 + i} for i in range(4)}
+    new = {i: {49100 + 2 * i, 49101 + 2 * i} for i in range(4)}
+    steps, notes = lifecycle.port_order(old, new, [0, 1, 2, 3], [])
+    assert steps == [("roll", 2), ("roll", 3), ("roll", 1), ("roll", 0)] and notes == []
+    h = ScriptedHost(4)
+    for i in range(4):
+        h.files[layout.env_file(i)] = (ports_env("reg/isaac-sim:5.0.0", 49100 + i, 47998 + i), 0o644)
+    result = lifecycle.apply(
+        h.host, want({i: ports_env("reg/isaac-sim:5.0.0", 49100 + 2 * i, 49101 + 2 * i) for i in range(4)})
+    )
+    assert [d["id"] for d in result["done"]] == [2, 3, 1, 0] and result["failed"] is None
+    assert result["plan"]["order"] == ["roll 2", "roll 3", "roll 1", "roll 0"]
+
+
+def test_instances_that_swap_ports_are_stopped_first_and_the_plan_says_so():
+    old = {0: {49100}, 1: {49101}}
+    new = {0: {49101}, 1: {49100}}
+    steps, notes = lifecycle.port_order(old, new, [0, 1], [])
+    assert steps == [("stop", [1]), ("roll", 0), ("start", [1])]
+    assert notes == [
+        "isaac-sim-1 stopped before isaac-sim-0 to free port(s) 49101: the host is below N-1 until they "
+        "start again on their new ports"
+    ]
+
+
+def test_a_new_instance_whose_ports_are_still_held_starts_after_the_roll():
+    old = {0: {49100}, 1: set()}
+    new = {0: {49200}, 1: {49100}}
+    steps, _ = lifecycle.port_order(old, new, [0], [1])
+    assert steps == [("roll", 0), ("start", [1])]
