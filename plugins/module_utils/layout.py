@@ -51,6 +51,8 @@ K_READY_TIMEOUT = "ISAAC_SIM_READY_TIMEOUT"
 K_READY_PATTERN = "ISAAC_SIM_READY_PATTERN"
 K_READY_MARKER = "ISAAC_SIM_READY_MARKER"
 K_STOP_TIMEOUT = "ISAAC_SIM_STOP_TIMEOUT"
+K_HEALTH_INTERVAL = "ISAAC_SIM_HEALTH_INTERVAL"
+K_UNHEALTHY_RESTART = "ISAAC_SIM_UNHEALTHY_RESTART"
 K_DOCKER_ARGS = "ISAAC_SIM_DOCKER_ARGS"
 K_APP_ARGS = "ISAAC_SIM_APP_ARGS"
 RESERVED_PREFIX = "ISAAC_SIM_"
@@ -209,6 +211,8 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{K_READY_PATTERN}={quote(plan['ready_pattern'])}",
         f"{K_READY_MARKER}={quote(marker(i))}",
         f"{K_STOP_TIMEOUT}={settings['stop_timeout']}",
+        f"{K_HEALTH_INTERVAL}={settings['health_interval']}",
+        f"{K_UNHEALTHY_RESTART}={settings['unhealthy_restart']}",
         f"{K_DOCKER_ARGS}={quote(join_args(instance['docker_args']))}",
         f"{K_APP_ARGS}={quote(join_args(instance['app_args']))}",
         "# Container environment (passed by name with docker run --env NAME)",

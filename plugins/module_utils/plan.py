@@ -15,8 +15,10 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
     ENV,
     KIT,
+    MIN_MEMORY,
     RELEASES,
     default_image,
+    healthcheck,
     release_of_tag,
 )
 
@@ -29,6 +31,9 @@ SETTINGS = (
     ("stop_timeout", 0, "seconds between SIGTERM and SIGKILL"),
     ("restart_sec", 0, "seconds systemd waits before restarting a failed instance"),
     ("start_limit_burst", 1, "failed starts before systemd gives up"),
+    ("health_interval", 1, "seconds between two health checks"),
+    ("health_retries", 1, "failed health checks before an instance counts as unhealthy"),
+    ("unhealthy_restart", 0, "seconds an unhealthy instance is left before its host restarts it (0: never)"),
 )
 
 # https://github.com/distribution/reference grammar, condensed
@@ -325,6 +330,7 @@ def build(cfg: dict, host: dict) -> dict:
         raise PlanError(errors)
 
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
+    warnings = _needs(release, profile, memory, gpus, host)
     instances = [_instance(sized, profile, i, blocks[i], gpus.get(i)) for i in range(count)]
     return {
         "release": release,
@@ -339,7 +345,34 @@ def build(cfg: dict, host: dict) -> dict:
         "shm_size": sized["shm_size"],
         "settings": {name: as_int(cfg[name]) for name, _, _ in SETTINGS},
         "layout": layout.as_dict(data_root),
+        "warnings": warnings,
     }
+
+
+def _needs(release, profile, memory, gpus, host) -> list:
+    """What a real instance may lack with these settings: said, not refused (hosts differ)."""
+    warnings = []
+    if memory is not None and memory < MIN_MEMORY and release != "2023.1":
+        warnings.append(
+            f"isaac_sim_memory_limit: {human(memory)} per instance is below the {human(MIN_MEMORY)} NVIDIA names as "
+            f"Isaac Sim's minimum; a real instance may be killed for memory while it loads or compiles shaders. "
+            f"Fix: raise isaac_sim_memory_limit (fewer instances per host if the sum does not fit)."
+        )
+    need = profile.get("min_vram_mib")
+    per_gpu = {}
+    for inst, gpu in gpus.items():
+        per_gpu.setdefault(gpu, []).append(inst)
+    for gpu in host.get("gpus") or []:
+        sharing = per_gpu.get(gpu["index"], [])
+        total = gpu.get("memory_total_mib")
+        if need and total and len(sharing) * need > total:
+            warnings.append(
+                f"isaac_sim_instance_count / isaac_sim_gpu_map: GPU {gpu['index']} ({gpu.get('name')}, {total} MiB) "
+                f"carries instances {', '.join(map(str, sharing))}, {len(sharing)} x the {need} MiB of VRAM NVIDIA "
+                f"names as Isaac Sim {release}'s minimum; they may run out of GPU memory. Fix: at most "
+                f"{max(total // need, 1)} instance(s) on it (isaac_sim_gpu_map), or fewer instances."
+            )
+    return warnings
 
 
 def _instance(cfg, profile, i, ports, gpu):
@@ -354,8 +387,13 @@ def _instance(cfg, profile, i, ports, gpu):
         f"--entrypoint={profile['entrypoint']}",
         f"--label={layout.LABEL_INSTANCE}={i}",
     ]
-    env_names = ["ACCEPT_EULA", "PRIVACY_CONSENT"]
-    container_env = {"ACCEPT_EULA": "Y", "PRIVACY_CONSENT": "Y" if cfg.get("privacy_consent") else "N"}
+    docker += [f"--security-opt={opt}" for opt in profile.get("security_opts", [])]
+    env_names = ["ACCEPT_EULA"]
+    container_env = {"ACCEPT_EULA": "Y"}
+    # NVIDIA's convention: PRIVACY_CONSENT=Y opts in; not setting it opts out
+    if cfg.get("privacy_consent"):
+        env_names.append("PRIVACY_CONSENT")
+        container_env["PRIVACY_CONSENT"] = "Y"
     app = []
     for kind, port in ports.items():
         how, setting = profile["ports"][kind][2], profile["ports"][kind][3]
@@ -381,6 +419,15 @@ def _instance(cfg, profile, i, ports, gpu):
     for sub, target in profile["mounts"].items():
         dirs.append(f"{root}/{sub}")
         docker.append(f"--volume={root}/{sub}:{target}:rw")
+    probe = profile.get("health_port")
+    if probe in ports:
+        docker += [
+            f"--health-cmd={healthcheck(cfg['release'], ports[probe])}",
+            f"--health-interval={as_int(cfg['health_interval'])}s",
+            "--health-timeout=10s",
+            f"--health-retries={as_int(cfg['health_retries'])}",
+            f"--health-start-period={as_int(cfg['ready_timeout'])}s",
+        ]
     if gpu is not None:
         docker += ["--runtime=nvidia", f"--gpus=device={gpu}"]
     docker += list(cfg.get("docker_args") or [])

@@ -26,7 +26,8 @@ _ROOT_MOUNTS = {
     "documents": "/root/Documents",
 }
 
-# 5.0 and later run as the image's isaac-sim user (uid 1234, home /isaac-sim).
+# 5.0 and later run as the image's isaac-sim user (uid 1234, home /isaac-sim), with the
+# mounts of NVIDIA's container page (its docs and tools/docker compose recipe).
 _ISAAC_USER_MOUNTS = {
     "cache/main": "/isaac-sim/.cache",
     "cache/computecache": "/isaac-sim/.nv/ComputeCache",
@@ -36,6 +37,10 @@ _ISAAC_USER_MOUNTS = {
     "pkg": "/isaac-sim/.local/share/ov/pkg",
     "documents": "/isaac-sim/Documents",
 }
+
+# 6.x adds the Hub cache (6.0) and the kit cache (NVIDIA's 6.2 recipe); the Hub cache is
+# kept per instance, as NVIDIA's recipe keeps it per stack.
+_ISAAC_USER_MOUNTS_6X = dict(_ISAAC_USER_MOUNTS, **{"cache/kit": "/isaac-sim/kit/cache", "cache/hub": "/var/cache/hub"})
 
 _STREAMING_PORTS_5X = {
     # kind: (protocol, default base, how it is set, setting)
@@ -60,6 +65,10 @@ RELEASES = {
         "ready_pattern": r"App is loaded\.",
         "min_driver": "525.85",
         "env": {},
+        "security_opts": [],
+        "min_vram_mib": None,
+        "log_dir": "/root/.nvidia-omniverse/logs",
+        "health_port": "http",
     },
     "4.x": {
         "default_tag": "4.5.0",
@@ -72,6 +81,10 @@ RELEASES = {
         "ready_pattern": r"App is loaded\.",
         "min_driver": "535.129",
         "env": {},
+        "security_opts": [],
+        "min_vram_mib": 16384,
+        "log_dir": "/root/.nvidia-omniverse/logs",
+        "health_port": "signal",
     },
     "5.x": {
         "default_tag": "5.1.0",
@@ -84,13 +97,17 @@ RELEASES = {
         "ready_pattern": r"App is loaded\.",
         "min_driver": "570.169",
         "env": {},
+        "security_opts": ["no-new-privileges"],
+        "min_vram_mib": 16384,
+        "log_dir": "/isaac-sim/.nvidia-omniverse/logs",
+        "health_port": "signal",
     },
     "6.x": {
         "default_tag": "6.0.1",
         "uid": 1234,
         "gid": 1234,
         "entrypoint": "/isaac-sim/runheadless.sh",
-        "mounts": _ISAAC_USER_MOUNTS,
+        "mounts": _ISAAC_USER_MOUNTS_6X,
         "ports": {
             "signal": ("tcp", 49100, ENV, "ISAACSIM_SIGNAL_PORT"),
             "stream": ("udp", 47998, ENV, "ISAACSIM_STREAM_PORT"),
@@ -101,11 +118,30 @@ RELEASES = {
         "ready_pattern": r"App is loaded\.",
         "min_driver": "570.169",
         "env": {},
+        "security_opts": ["no-new-privileges"],
+        "min_vram_mib": 16384,
+        "log_dir": "/isaac-sim/.nvidia-omniverse/logs",
+        "health_port": "signal",
     },
 }
 
 DEFAULT_RELEASE = "6.x"
+# NVIDIA's minimum system memory for Isaac Sim 4.5 to 6.x (its requirements page): a memory
+# limit below it may get a real instance killed while it compiles shaders.
+MIN_MEMORY = 32 * 1024**3
 NGC_REPOSITORY = "nvcr.io/nvidia/isaac-sim"
+
+
+def healthcheck(release: str, port: int) -> str:
+    """The container healthcheck: NVIDIA's own (AppReady in the newest kit log, as its 6.x
+    image and compose recipe check it) and the instance's port answering a request within 5 s
+    (a hung app keeps its socket open but answers nothing)."""
+    logs = RELEASES[release]["log_dir"]
+    probe = f"exec 3<>/dev/tcp/127.0.0.1/{port} && printf 'GET / HTTP/1.0\\r\\n\\r\\n' >&3 && read -r -n1 -t5 _ <&3"
+    return (
+        f'latest=$(ls -t {logs}/Kit/*/*/kit_*.log 2>/dev/null | head -1) && [ -n "$latest" ] '
+        f'&& grep -q AppReady "$latest" && bash -c "{probe}"'
+    )
 
 
 def default_image(release: str) -> str:

@@ -56,7 +56,7 @@ options:
   memory_limit:
     description: Memory limit per container, in Docker's size format.
     type: str
-    default: 8g
+    default: 32g
   shm_size:
     description: Shared memory size per container.
     type: str
@@ -114,6 +114,18 @@ options:
     description: Failed starts after which systemd stops restarting an instance.
     type: raw
     default: 5
+  health_interval:
+    description: Seconds between two health checks of an instance.
+    type: raw
+    default: 30
+  health_retries:
+    description: Failed health checks in a row before an instance counts as unhealthy.
+    type: raw
+    default: 3
+  unhealthy_restart:
+    description: Seconds an instance may stay unhealthy before its host restarts it; 0 never restarts it.
+    type: raw
+    default: 300
   image_pull:
     description: The role's C(isaac_sim_image_pull); an NGC image that will be pulled needs a registry key.
     type: str
@@ -192,7 +204,7 @@ def main():
             gpu_enabled=dict(type="bool", default=True),
             gpu_map=dict(type="dict", default={}),
             gpu_exclusive=dict(type="bool", default=False),
-            memory_limit=dict(type="str", default="8g"),
+            memory_limit=dict(type="str", default="32g"),
             shm_size=dict(type="str", default="2g"),
             data_root=dict(type="path", default="/var/lib/isaac-sim"),
             public_address=dict(type="str"),
@@ -207,6 +219,9 @@ def main():
             stop_timeout=dict(type="raw", default=60),
             restart_sec=dict(type="raw", default=10),
             start_limit_burst=dict(type="raw", default=5),
+            health_interval=dict(type="raw", default=30),
+            health_retries=dict(type="raw", default=3),
+            unhealthy_restart=dict(type="raw", default=300),
             image_pull=dict(type="str", default="missing"),
             registry_login=dict(type="bool", default=False),
             check_host_ports=dict(type="bool", default=True),
@@ -258,6 +273,8 @@ def main():
 
     existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], layout.TARGET + ".wants"))
     stale = [i for i in existing if i not in result["ids"]]
+    for warning in result["warnings"]:
+        module.warn(warning)
     module.exit_json(changed=False, plan=result, stale_ids=stale, host=host)
 
 

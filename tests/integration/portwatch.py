@@ -16,6 +16,8 @@ def answers(address: str, port: int) -> bool:
     try:
         with socket.create_connection((address, port), timeout=0.5) as conn:
             conn.settimeout(0.5)
+            # a request first, as a client (or the healthcheck) sends one: the stand-in answers it at once
+            conn.sendall(b"GET / HTTP/1.0\r\n\r\n")
             return conn.recv(64).startswith(b"isaac-sim-standin")
     except OSError:
         return False

@@ -107,3 +107,23 @@ def test_a_port_held_by_another_process_keeps_the_instance_from_starting(host):
         sh(host, f"kill {holder}", check=False)
         sh(host, "systemctl reset-failed isaac-sim@2; systemctl start isaac-sim@2")
     testbed.all_ready(host)
+
+
+def test_a_hung_instance_turns_unhealthy_and_its_host_restarts_it(host):
+    def health():
+        return testbed.by_name(testbed.info(host))["isaac-sim-2"]["health"]
+
+    testbed.wait_for(lambda: health() == "healthy", timeout=60, what="isaac-sim-2 healthy")
+    before = unit_show(host, "isaac-sim@2.service")
+    old = container_id(host, "isaac-sim-2")
+    since = sh(host, "date +%s").stdout.strip()
+    # the app hangs: its ports stay open and nothing answers
+    sh(host, "docker exec isaac-sim-2 touch /tmp/standin-hang")
+    testbed.wait_for(lambda: health() == "unhealthy", timeout=60, what="isaac-sim-2 reported unhealthy")
+    # restarted by the host itself (no Ansible run), after 8 s unhealthy
+    testbed.wait_for(lambda: container_id(host, "isaac-sim-2") not in ("", old), timeout=90, what="a new isaac-sim-2")
+    testbed.all_ready(host, [2])
+    assert int(unit_show(host, "isaac-sim@2.service")["NRestarts"]) == int(before["NRestarts"]) + 1
+    journal = sh(host, f"journalctl -u isaac-sim@2 --since @{since} --no-pager").stdout
+    assert "isaac-sim-2 unhealthy for" in journal and "stopping it so systemd restarts it" in journal
+    testbed.wait_for(lambda: health() == "healthy", timeout=60, what="the new isaac-sim-2 healthy")

@@ -74,6 +74,9 @@ def _plan(**over):
         "stop_timeout": 5,
         "restart_sec": "2",
         "start_limit_burst": "3",
+        "health_interval": 30,
+        "health_retries": 3,
+        "unhealthy_restart": 300,
     }
     cfg.update(over)
     return plan.build(cfg, {"memory_bytes": 64 * 1024**3})

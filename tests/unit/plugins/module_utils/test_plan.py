@@ -30,6 +30,9 @@ def cfg(**over):
         "stop_timeout": 60,
         "restart_sec": 10,
         "start_limit_burst": 5,
+        "health_interval": 30,
+        "health_retries": 3,
+        "unhealthy_restart": 300,
     }
     base.update(over)
     return base
@@ -198,7 +201,15 @@ def test_release_of_tag():
 
 def test_values_given_on_the_command_line_are_numbers_in_the_plan():
     result = plan.build(cfg(ready_timeout="20", stop_timeout="20", restart_sec="5", start_limit_burst="3"), HOST)
-    assert result["settings"] == {"ready_timeout": 20, "stop_timeout": 20, "restart_sec": 5, "start_limit_burst": 3}
+    assert result["settings"] == {
+        "ready_timeout": 20,
+        "stop_timeout": 20,
+        "restart_sec": 5,
+        "start_limit_burst": 3,
+        "health_interval": 30,
+        "health_retries": 3,
+        "unhealthy_restart": 300,
+    }
 
 
 def test_sizes_become_one_docker_word():
@@ -237,3 +248,40 @@ def test_an_ngc_image_to_pull_needs_the_registry_key():
     assert plan.build(cfg(), HOST)
     assert plan.build(cfg(image_pull="never"), dict(HOST, image_present=False))
     assert plan.build(cfg(image="registry.local/isaac-sim:6.0.1"), dict(HOST, image_present=False))
+
+
+def test_containers_follow_nvidias_recipe():
+    inst = plan.build(cfg(), HOST)["instances"][0]
+    assert "--security-opt=no-new-privileges" in inst["docker_args"]
+    mounts = [a for a in inst["docker_args"] if a.startswith("--volume=")]
+    # 6.x keeps the kit cache and the Hub cache too, per instance
+    assert "--volume=/var/lib/isaac-sim/instance-0/cache/kit:/isaac-sim/kit/cache:rw" in mounts
+    assert "--volume=/var/lib/isaac-sim/instance-0/cache/hub:/var/cache/hub:rw" in mounts
+    # no consent: PRIVACY_CONSENT is not set at all (NVIDIA: opting out is not setting it)
+    assert "PRIVACY_CONSENT" not in inst["container_env"] and "--env=PRIVACY_CONSENT" not in inst["docker_args"]
+    consenting = plan.build(cfg(privacy_consent=True), HOST)["instances"][0]
+    assert consenting["container_env"]["PRIVACY_CONSENT"] == "Y"
+
+
+def test_settings_below_the_release_needs_are_said():
+    big = dict(HOST, memory_bytes=512 * GIB, gpu_count=1, gpus=[H100])
+    quiet = plan.build(cfg(memory_limit="32g", gpu_enabled=True), big)
+    assert quiet["warnings"] == []
+    small = plan.build(cfg(memory_limit="8g", instance_count=6, gpu_enabled=True), big)
+    assert small["warnings"][0].startswith("isaac_sim_memory_limit: 8.0 GiB per instance is below the 32.0 GiB")
+    assert "GPU 0 (NVIDIA H100 80GB HBM3, 81559 MiB) carries instances 0, 1, 2, 3, 4, 5" in small["warnings"][1]
+    assert "at most 4 instance(s)" in small["warnings"][1]
+
+
+H100 = {"index": 0, "name": "NVIDIA H100 80GB HBM3", "memory_total_mib": 81559, "driver": "580.159.04"}
+
+
+def test_the_healthcheck_is_nvidias_plus_the_port_answering():
+    inst = plan.build(cfg(health_interval="5", health_retries=2), HOST)["instances"][1]
+    cmd = next(a for a in inst["docker_args"] if a.startswith("--health-cmd="))
+    assert "ls -t /isaac-sim/.nvidia-omniverse/logs/Kit/*/*/kit_*.log" in cmd and "grep -q AppReady" in cmd
+    assert "/dev/tcp/127.0.0.1/49101" in cmd
+    assert {"--health-interval=5s", "--health-retries=2", "--health-start-period=300s"} <= set(inst["docker_args"])
+    old = plan.build(cfg(release="2023.1", image="nvcr.io/nvidia/isaac-sim:2023.1.1"), HOST)["instances"][0]
+    assert "/root/.nvidia-omniverse/logs/Kit" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
+    assert "/dev/tcp/127.0.0.1/8211" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
