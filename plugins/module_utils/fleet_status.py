@@ -6,7 +6,8 @@ Whatever the number of instances, one status costs:
   - one `systemctl show` for all units,
   - two Docker API calls (containers, images),
   - one GPU query (NVML in-process, or one nvidia-smi),
-  - one `journalctl`, only when log lines are asked for.
+  - one `journalctl`, only when log lines are asked for (bounded to the lines
+    asked; read again only for units a chattier one crowded out).
 Everything else is read from files: the env files the role writes
 (/etc/isaac-sim/instance-N.env), the ready markers of the readiness gate
 (/run/isaac-sim/instance-N.ready) and /proc.
@@ -274,6 +275,8 @@ def build(
                 "active_since": int(now - (monotonic_now - active_enter / 1e6)) if active and active_enter else None,
                 "container": container,
                 "uptime_s": (container or {}).get("uptime_s"),
+                # the container's healthcheck: healthy, unhealthy, starting, or none
+                "health": (container or {}).get("health") or "none",
                 "release": release,
                 "image": env.get(layout.K_IMAGE) or (container or {}).get("image"),
                 "image_id": (container or {}).get("image_id") or env.get(layout.K_IMAGE_ID),

@@ -40,6 +40,7 @@ MARKER_RE = re.compile(r"^instance-(\d+)\.ready$")
 # env-file keys: the unit, the scripts and the status module read these
 K_INSTANCE = "ISAAC_SIM_INSTANCE"
 K_CONTAINER = "ISAAC_SIM_CONTAINER"
+K_UNIT = "ISAAC_SIM_UNIT"
 K_RELEASE = "ISAAC_SIM_RELEASE"
 K_IMAGE = "ISAAC_SIM_IMAGE"
 K_IMAGE_ID = "ISAAC_SIM_IMAGE_ID"
@@ -196,6 +197,7 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"# Isaac Sim instance {i}, read by {unit(i)}.",
         f"{K_INSTANCE}={i}",
         f"{K_CONTAINER}={quote(container(i))}",
+        f"{K_UNIT}={quote(unit(i))}",
         f"{K_RELEASE}={quote(plan['release'])}",
         f"{K_IMAGE}={quote(plan['image'])}",
         f"{K_IMAGE_ID}={quote(image_id)}",

@@ -50,7 +50,7 @@ def states(host: Host, ids) -> dict:
     if not ids:
         return {}
     props = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"
-    _, out, _ = host.run(["systemctl", "show", "-p", props] + [layout.unit(i) for i in ids])
+    _rc, out, _err = host.run(["systemctl", "show", "-p", props] + [layout.unit(i) for i in ids])
     found = {}
     for block in re.split(r"\n\s*\n", out.strip()):
         fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
@@ -67,7 +67,9 @@ def serving(state: dict) -> bool:
 def _gate_reason(host: Host, i: int, since: float) -> str:
     """The readiness gate's own words about why the start failed, with the container's last
     lines the gate quoted ("| ..."), else systemd's result."""
-    _, out, _ = host.run(["journalctl", "-u", layout.unit(i), "--since", f"@{int(since)}", "-o", "cat", "--no-pager"])
+    _rc, out, _err = host.run(
+        ["journalctl", "-u", layout.unit(i), "--since", f"@{int(since)}", "-o", "cat", "--no-pager"]
+    )
     lines = [line.strip() for line in out.splitlines()]
     for n in range(len(lines) - 1, -1, -1):
         if _GATE_WORDS.search(lines[n]) and not lines[n].startswith("|"):
@@ -90,7 +92,7 @@ def restart(host: Host, i: int) -> tuple:
     """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it."""
     _prepare_start(host, [i], states(host, [i]))
     start, since = host.now(), host.wall()
-    rc, _, _ = host.run(["systemctl", "restart", layout.unit(i)])
+    rc, _out, _err = host.run(["systemctl", "restart", layout.unit(i)])
     seconds = host.now() - start
     if rc != 0:
         return False, _gate_reason(host, i, since - 1), seconds
@@ -147,11 +149,11 @@ def pinned(host: Host, text: str) -> str:
     ref, image_id = env.get(layout.K_IMAGE, ""), env.get(layout.K_IMAGE_ID, "")
     if not image_id.startswith("sha256:"):
         return text
-    rc, out, _ = host.run(["docker", "image", "inspect", "-f", "{{.Id}}", ref])
+    rc, out, _err = host.run(["docker", "image", "inspect", "-f", "{{.Id}}", ref])
     if rc == 0 and out.strip() == image_id:
         return text
     line = f"{layout.K_IMAGE}={layout.quote(image_id)}"
-    return re.sub(rf"^{layout.K_IMAGE}=.*$", lambda _: line, text, count=1, flags=re.M)
+    return re.sub(rf"^{layout.K_IMAGE}=.*$", lambda _match: line, text, count=1, flags=re.M)
 
 
 def stop(host: Host, ids) -> None:
@@ -267,7 +269,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
     to_start = [i for i in desired if not serving(state[i])]
     to_roll = [i for i in desired if serving(state[i]) and (i in new_env or shared)]
     to_enable = [i for i in desired if not _enabled(state[i])]
-    _, target_state, _ = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
+    _rc, target_state, _err = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
     target_enabled = target_state.strip() == "enabled"
     steps, notes = port_order(
         {i: ports_of(current[i]) for i in desired}, {i: ports_of(desired[i]) for i in desired}, to_roll, to_start
@@ -369,7 +371,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
             )
             continue
         put_back(i)
-        back, back_reason, _ = restart(host, i)
+        back, back_reason, _seconds = restart(host, i)
         return stop_here(
             {
                 "id": i,
@@ -427,7 +429,7 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False) -> dict:
         # the tag may have moved since the instance started: back to the image it ran
         if pinned(host, text) != text:
             host.write(layout.env_file(i), pinned(host, text), host.mode(layout.env_file(i)) or 0o600)
-        back, back_reason, _ = restart(host, i)
+        back, back_reason, _seconds = restart(host, i)
         result["failed"] = {
             "id": i,
             "reason": reason,

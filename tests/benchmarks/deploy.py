@@ -1,4 +1,4 @@
-#!/usr/bin/env python3
+#!/usr/bin/env python
 """Benchmark: deploy 1 host x 4 instances with the image already on the host.
 
 Prints the cold deploy time, the idempotent re-run time, its ratio to a no-op
@@ -38,12 +38,12 @@ def main():
         noop.write_text(NOOP_PLAY)
         deploy = ROOT / "playbooks" / "deploy.yml"
         cold, cold_changed = timed_play(inv, deploy, HOST)
-        reruns = [timed_play(inv, deploy, HOST) for _ in range(args.runs)]
-        noops = [timed_play(inv, noop, HOST)[0] for _ in range(args.runs)]
+        reruns = [timed_play(inv, deploy, HOST) for _n in range(args.runs)]
+        noops = [timed_play(inv, noop, HOST)[0] for _n in range(args.runs)]
 
-    rerun = statistics.median(t for t, _ in reruns)
+    rerun = statistics.median(t for t, _value in reruns)
     base = statistics.median(noops)
-    changed = max(c for _, c in reruns)
+    changed = max(c for _key, c in reruns)
     print("deploy benchmark: 1 host x 4 instances, stand-in image already on the host")
     print(f"cold deploy:           {cold:7.1f} s  ({cold_changed} changed)")
     print(f"idempotent re-run:     {rerun:7.1f} s  (median of {args.runs})")

@@ -1,4 +1,4 @@
-#!/usr/bin/env python3
+#!/usr/bin/env python
 """Benchmark: a fleet-wide rolling restart of H = 3 and H = 6 hosts x 4 instances.
 
 Prints, for each H:
@@ -61,12 +61,15 @@ def restart_times(stdout: str) -> dict:
 
 def measure(h: int, ready_delay: int) -> dict:
     names = [f"isaacsim-bench-{i + 1}" for i in range(h)]
-    with bench_host(names) as (inv, _):
+    with bench_host(names) as (inv, _tmp):
         extra = {"isaac_sim_env": {"STANDIN_READY_DELAY": str(ready_delay)}} if ready_delay else {}
         timed_play(inv, ROOT / "playbooks" / "deploy.yml", names[0], ["-e", json.dumps(extra)] if extra else [])
         addresses = {
             n: subprocess.run(
-                ["docker", "inspect", "-f", "{{.NetworkSettings.IPAddress}}", n], capture_output=True, text=True
+                ["docker", "inspect", "-f", "{{.NetworkSettings.IPAddress}}", n],
+                capture_output=True,
+                text=True,
+                check=True,
             ).stdout.strip()
             for n in names
         }

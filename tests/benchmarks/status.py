@@ -1,4 +1,4 @@
-#!/usr/bin/env python3
+#!/usr/bin/env python
 """Benchmark: what one isaac_sim_info call costs on a host of N = 1, 4 and 8 instances.
 
 Prints, for each N:
@@ -60,7 +60,7 @@ cmds, runs = json.loads(sys.argv[1]), int(sys.argv[2])
 out = {}
 for name, cmd in cmds.items():
     times = []
-    for _ in range(runs):
+    for _n in range(runs):
         t = time.perf_counter()
         subprocess.run(cmd, shell=True, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         times.append(time.perf_counter() - t)
@@ -165,8 +165,8 @@ def main():
                 module_play.write_text(MODULE_PLAY)
                 naive_play.write_text(NAIVE_PLAY.replace("range(N)", "range(4)"))
                 plays = {
-                    "module": statistics.median(timed_play(inv, module_play, HOST)[0] for _ in range(3)),
-                    "naive": statistics.median(timed_play(inv, naive_play, HOST)[0] for _ in range(3)),
+                    "module": statistics.median(timed_play(inv, module_play, HOST)[0] for _n in range(3)),
+                    "naive": statistics.median(timed_play(inv, naive_play, HOST)[0] for _n in range(3)),
                 }
 
     print("status benchmark: isaac_sim_info on one host, stand-in instances, no GPU")
@@ -182,8 +182,8 @@ def main():
             f"{t['bare'] * 1000:8.0f}ms {t['module'] / t['bare']:6.2f}x {t['ping'] * 1000:5.0f}ms"
             f" {own * 1000:10.0f}ms {own / t['bare']:5.2f}x  {', '.join(spawned)}"
         )
-    print(f"docker API calls per module call: {', '.join(str(c['docker_api_calls']) for _, _, c, _ in rows)}")
-    grows = len({len(s) for _, s, _, _ in rows}) > 1
+    print(f"docker API calls per module call: {', '.join(str(c['docker_api_calls']) for _n, _t, c, _s in rows)}")
+    grows = len({len(s) for _n, s, _c, _t in rows}) > 1
     print(f"spawns grow with N: {'YES' if grows else 'no'}")
     print(
         f"N=4 playbook, median of 3: module {plays['module']:.1f} s, naive per-instance {plays['naive']:.1f} s, "

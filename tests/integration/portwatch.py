@@ -48,8 +48,8 @@ class Watcher(threading.Thread):
 
     def lowest(self) -> dict:
         """The fewest instances seen answering on each host."""
-        return {h: min(s[h] for _, s in self.samples) for h in self.addresses}
+        return {h: min(s[h] for _key, s in self.samples) for h in self.addresses}
 
     def most_disturbed_at_once(self, full: int) -> int:
         """The most hosts seen with fewer than `full` instances answering in one sample."""
-        return max(sum(1 for v in s.values() if v < full) for _, s in self.samples)
+        return max(sum(1 for v in s.values() if v < full) for _key, s in self.samples)

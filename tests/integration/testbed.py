@@ -79,7 +79,7 @@ def run_playbook(
     if check:
         cmd.append("--check")
     env = dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
-    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT)
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT, check=False)
     if f"{name(host)} " not in result.stdout.split("PLAY RECAP", 1)[-1]:
         raise AssertionError(f"the playbook did not run on {name(host)}:\n{result.stdout[-2000:]}{result.stderr}")
     return result
@@ -93,7 +93,7 @@ def info(host, check=False, **params) -> dict:
     if check:
         cmd.append("--check")
     env = dict(os.environ, ANSIBLE_LOAD_CALLBACK_PLUGINS="1", ANSIBLE_STDOUT_CALLBACK="json")
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120, cwd=ROOT, check=False)
     try:
         result = json.loads(out.stdout)["plays"][0]["tasks"][0]["hosts"][name(host)]
     except (ValueError, KeyError, IndexError) as exc:
@@ -140,6 +140,13 @@ def instance_ready(host, i: int) -> bool:
 def all_ready(host, ids=None, timeout=180):
     for i in range(INSTANCES) if ids is None else ids:
         wait_for(lambda i=i: instance_ready(host, i), timeout=timeout, what=f"isaac-sim@{i} ready")
+
+
+def registry_image(host, tag: str) -> str:
+    """The deployed image's repository (the local registry standing in for NGC) with another tag."""
+    env = sh(host, "cat /etc/isaac-sim/instance-0.env").stdout
+    current = next(line for line in env.splitlines() if line.startswith("ISAAC_SIM_IMAGE="))
+    return current.split("=", 1)[1].strip('"').rsplit(":", 1)[0] + f":{tag}"
 
 
 def snapshot(host) -> str:

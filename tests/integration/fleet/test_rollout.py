@@ -81,6 +81,7 @@ def playbook(name: str, extra: dict | None = None, limit: str | None = None) -> 
         timeout=1500,
         cwd=ROOT,
         stdin=subprocess.DEVNULL,
+        check=False,
     )
 
 
@@ -114,7 +115,7 @@ def playbook_on_a_terminal(name: str, extra: dict, prompt: str, answer) -> tuple
             os.kill(pid, 9)
     finally:
         os.close(fd)
-    _, status = os.waitpid(pid, 0)
+    _first, status = os.waitpid(pid, 0)
     return os.waitstatus_to_exitcode(status), out.decode(errors="replace"), answered
 
 
@@ -268,7 +269,7 @@ def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
 
     def approve():
         # at the prompt the canary runs the new image and no other host was touched yet
-        seen.update({h: {image for _, image in containers(h).values()} for h in fleet})
+        seen.update({h: {image for _key, image in containers(h).values()} for h in fleet})
         return "yes"
 
     watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + i for i in range(INSTANCES)])

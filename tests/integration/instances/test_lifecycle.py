@@ -127,3 +127,24 @@ def test_a_hung_instance_turns_unhealthy_and_its_host_restarts_it(host):
     journal = sh(host, f"journalctl -u isaac-sim@2 --since @{since} --no-pager").stdout
     assert "isaac-sim-2 unhealthy for" in journal and "stopping it so systemd restarts it" in journal
     testbed.wait_for(lambda: health() == "healthy", timeout=60, what="the new isaac-sim-2 healthy")
+
+
+def test_a_port_layout_change_rolls_without_an_instance_starting_on_a_held_port(host):
+    # stride 1 -> 2 with the stream port next to the signal port: new instance 1 wants
+    # 49102-49103, which old instances 2 and 3 still hold until they are rolled
+    layout = {"isaac_sim_port_bases": {"signal": 49100, "stream": 49101}, "isaac_sim_port_stride": 2}
+    try:
+        run = testbed.run_playbook(host, layout)
+        assert run.returncode == 0, run.stdout[-3000:] + run.stderr
+        # the order that frees each port before it is taken again
+        order = f"rolled: {testbed.name(host)}: isaac-sim-2, isaac-sim-3, isaac-sim-1, isaac-sim-0"
+        assert order in " ".join(run.stdout.split()), run.stdout[-3000:]
+        testbed.all_ready(host)
+        for i in range(INSTANCES):
+            ports = sh(host, f"ss -Hltnp 'sport = :{49100 + 2 * i}'").stdout
+            assert '"python3",pid=' in ports, (i, ports)
+        assert "cannot start: port" not in sh(host, "journalctl -u 'isaac-sim@*' --since -5min --no-pager").stdout
+    finally:
+        restored = testbed.run_playbook(host)
+        assert restored.returncode == 0, restored.stdout[-3000:] + restored.stderr
+        testbed.all_ready(host)

@@ -10,13 +10,7 @@ import urllib.request
 
 import pytest
 import testbed
-from testbed import INSTANCES, sh
-
-
-def registry_image(host, tag):
-    env = sh(host, "cat /etc/isaac-sim/instance-0.env").stdout
-    current = next(line for line in env.splitlines() if line.startswith("ISAAC_SIM_IMAGE="))
-    return current.split("=", 1)[1].strip('"').rsplit(":", 1)[0] + f":{tag}"
+from testbed import INSTANCES, registry_image, sh
 
 
 @pytest.fixture()

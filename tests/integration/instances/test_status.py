@@ -14,7 +14,6 @@ from pathlib import Path
 import pytest
 import testbed
 from browser import chromium, console_errors
-from test_releases import registry_image
 from testbed import INSTANCES, all_ready, by_name, container_id, sh, unit_show, wait_for
 
 OUTPUT = testbed.ROOT / "tests" / "output"
@@ -191,11 +190,11 @@ def check_dashboard(page: Path, expected: dict, shot: Path):
 
 
 def test_dashboard_in_headless_chromium(host, tmp_path):
-    _, out = dashboard(host, tmp_path)
+    _first, out = dashboard(host, tmp_path)
     expected = {i["id"]: i for i in testbed.info(host)["instances"]}
     found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard.png")
     assert len(found["links"]) == INSTANCES  # the web viewer of each 6.x instance
-    assert {kind for _, kind, _ in found["addresses"]} == {"signal", "stream"}
+    assert {kind for _addr, kind, _port in found["addresses"]} == {"signal", "stream"}
     assert found["frames"] == []  # 6.x serves no browser client of its own
 
 
@@ -203,11 +202,11 @@ def test_dashboard_embeds_the_2023_1_browser_client(host, tmp_path):
     try:
         ok(
             testbed.run_playbook(
-                host, {"isaac_sim_release": "2023.1", "isaac_sim_image": registry_image(host, "2023.1.1")}
+                host, {"isaac_sim_release": "2023.1", "isaac_sim_image": testbed.registry_image(host, "2023.1.1")}
             )
         )
         all_ready(host)
-        _, out = dashboard(host, tmp_path)
+        _first, out = dashboard(host, tmp_path)
         expected = {i["id"]: i for i in testbed.info(host)["instances"]}
         found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard-2023.1.png")
         assert sorted(found["frames"]) == sorted(rec["urls"]["webrtc_client"] for rec in expected.values())

@@ -113,7 +113,8 @@ class ScriptedHost:
                 blocks.append(f"Id={layout.unit(i)}\n" + "".join(f"{k}={v}\n" for k, v in u.items() if k[0].isupper()))
             return 0, "\n".join(blocks), ""
         if argv[:2] in (["systemctl", "restart"], ["systemctl", "start"]):
-            ok = all([self._start(i) for i in ids])
+            started = [self._start(i) for i in ids]  # every one, not up to the first failure
+            ok = all(started)
             return (0, "", "") if ok else (1, "", "Job for isaac-sim@.service failed")
         if argv[:2] == ["systemctl", "stop"] or argv[:3] == ["systemctl", "disable", "--now"]:
             for i in ids:
@@ -325,5 +326,5 @@ def test_instances_that_swap_ports_are_stopped_first_and_the_plan_says_so():
 def test_a_new_instance_whose_ports_are_still_held_starts_after_the_roll():
     old = {0: {49100}, 1: set()}
     new = {0: {49200}, 1: {49100}}
-    steps, _ = lifecycle.port_order(old, new, [0], [1])
+    steps, _rest = lifecycle.port_order(old, new, [0], [1])
     assert steps == [("roll", 0), ("start", [1])]

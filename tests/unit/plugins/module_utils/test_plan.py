@@ -41,7 +41,8 @@ def cfg(**over):
 HOST = {"memory_bytes": 64 * GIB, "gpu_count": 0, "ports_held": [], "image_present": True}
 
 
-def errors_of(c, host=HOST):
+def errors_of(c, host=None):
+    host = HOST if host is None else host
     with pytest.raises(plan.PlanError) as exc:
         plan.build(c, host)
     return exc.value.errors

@@ -1,60 +1,25 @@
-"""isaac_sim_info's logic on outputs recorded from a test host.
+"""isaac_sim_info's logic (module_utils/fleet_status.py) on outputs recorded from a test host."""
 
-Recorded (tests/unit/recorded) from the molecule default host with four 6.x
-stand-in instances, instance 3 stopped and a stray `isaac-sim-9` container
-started by hand: `systemctl show` (systemd 252), the Docker API's container
-and image lists (Docker 20.10, API 1.41), an env file, and a reverse JSON
-journal read. The nvidia-smi XML comes from the stand-in nvidia-smi fixture,
-which prints nvidia-smi's layout (no GPU was at hand to record a real one).
-"""
+from __future__ import annotations
 
 import json
-from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.filter.systemd_env_quote import systemd_env_quote
 from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, gpu_usage
-
-REC = Path(__file__).parent / "recorded"
-NOW = 1795354574  # `date +%s` on the host right after the recording
-
-
-def recorded(name):
-    return (REC / name).read_text()
-
-
-def containers():
-    return fleet_status.parse_containers(
-        json.loads(recorded("docker-containers.json")), json.loads(recorded("docker-images.json")), NOW
-    )
-
-
-def env(i):
-    text = recorded("instance-2.env")
-    if i == 2:
-        return fleet_status.parse_env_file(text)
-    return fleet_status.parse_env_file(
-        text.replace("49102", str(49100 + i)).replace("48000", str(47998 + i)).replace("8212", str(8210 + i))
-    )
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import (
+    NOW,
+    RecordedDocker,
+    build_records,
+    containers,
+    env,
+    no_nvml,
+    recorded,
+)
 
 
 def records(**kw):
-    units = fleet_status.parse_systemctl_show(recorded("systemctl-show.txt"))
-    markers = {0: NOW - 200, 1: NOW - 195, 2: NOW - 190}
-    args = dict(
-        envs={i: env(i) for i in range(4)},
-        units=units,
-        containers=containers(),
-        markers=markers,
-        gpu=None,
-        pid_containers={},
-        default_address="10.9.9.9",
-        now=NOW,
-        monotonic_now=11900.0,
-    )
-    args.update(kw)
-    return {r["name"]: r for r in fleet_status.build(**args)}
+    return {r["name"]: r for r in build_records(**kw)}
 
 
 def test_systemctl_show_one_block_per_unit():
@@ -198,135 +163,6 @@ def test_gpu_memory_is_summed_per_container():
     assert records()["isaac-sim-1"]["gpu_memory_used_mib"] is None  # no GPU read at all
 
 
-def test_smi_xml_gives_gpus_in_index_order_with_processes():
-    gpu = gpu_usage.parse_smi_xml(recorded("standin-nvidia-smi-q-x.xml"))
-    assert gpu["driver"] == "570.172.08"
-    assert [g["index"] for g in gpu["gpus"]] == [0, 1]
-    assert gpu["gpus"][0]["memory_total_mib"] == 46068 and gpu["gpus"][0]["memory_used_mib"] == 9220
-    assert {(p["gpu"], p["pid"], p["used_mib"]) for p in gpu["processes"]} == {
-        (0, 4242, 9120),
-        (0, 99, 100),
-        (1, 777, 512),
-    }
-
-
-def test_smi_xml_recorded_on_a_real_h100():
-    """nvidia-smi -q -x from an H100 (driver 580.159.04) while one process held 4 GiB (tests/hardware/gpu_check.py)."""
-    usage = gpu_usage.parse_smi_xml(recorded("h100-nvidia-smi-q-x.xml"))
-    assert usage["driver"] == "580.159.04"
-    assert usage["gpus"] == [
-        {
-            "index": 0,
-            "name": "NVIDIA H100 80GB HBM3",
-            "uuid": "GPU-7c29f82e-cc0f-6e84-d164-aa52ca7577e0",
-            "memory_total_mib": 81559,
-            "memory_used_mib": 4715,
-        }
-    ]
-    assert usage["processes"] == [{"gpu": 0, "pid": 470, "type": "C", "used_mib": 4706}]
-
-
-def recorded_nvml(calls):
-    """nvidia-ml-py's calls (pynvml names), answering with fixed values of the shape pynvml returns."""
-    return SimpleNamespace(
-        nvmlInit=lambda: calls.append("init"),
-        nvmlShutdown=lambda: calls.append("shutdown"),
-        nvmlSystemGetDriverVersion=lambda: b"570.172.08",
-        nvmlDeviceGetCount=lambda: 1,
-        nvmlDeviceGetHandleByIndex=lambda i: i,
-        nvmlDeviceGetName=lambda h: "NVIDIA H100 80GB HBM3",
-        nvmlDeviceGetUUID=lambda h: "GPU-abc",
-        nvmlDeviceGetMemoryInfo=lambda h: SimpleNamespace(total=85520809984, used=10 * 1024**3, free=0),
-        nvmlDeviceGetComputeRunningProcesses=lambda h: [
-            SimpleNamespace(pid=10, usedGpuMemory=2 * 1024**3),
-            SimpleNamespace(pid=11, usedGpuMemory=None),
-        ],
-        nvmlDeviceGetGraphicsRunningProcesses=lambda h: [SimpleNamespace(pid=10, usedGpuMemory=3 * 1024**3)],
-    )
-
-
-def test_nvml_path_merges_compute_and_graphics_lists():
-    calls = []
-    nvml = recorded_nvml(calls)
-    usage, error = gpu_usage.read("auto", run=None, import_nvml=lambda: nvml)
-    assert error is None and usage["source"] == "nvml" and usage["driver"] == "570.172.08"
-    assert usage["gpus"] == [
-        {
-            "index": 0,
-            "name": "NVIDIA H100 80GB HBM3",
-            "uuid": "GPU-abc",
-            "memory_total_mib": 81559,
-            "memory_used_mib": 10240,
-        }
-    ]
-    procs = {p["pid"]: p for p in usage["processes"]}
-    assert procs[10] == {"gpu": 0, "pid": 10, "type": "C+G", "used_mib": 3072}
-    assert procs[11]["used_mib"] is None
-    assert calls == ["init", "shutdown"]
-
-
-def test_nvml_memory_leaves_out_what_the_driver_reserves():
-    """Seen on an H100 (driver 580.159.04): v1 'used' includes the reserved 480 MiB, v2 does not."""
-    reserved, mib = 480 * 1024**2, 1024**2
-
-    def memory_info(handle, version=None):
-        if version is None:
-            return SimpleNamespace(total=81559 * mib, used=reserved, free=81559 * mib - reserved)
-        assert version == 0x02000028
-        return SimpleNamespace(total=81559 * mib, reserved=reserved, used=0, free=81559 * mib - reserved)
-
-    nvml = recorded_nvml([])
-    nvml.nvmlMemory_v2 = 0x02000028
-    nvml.nvmlDeviceGetMemoryInfo = memory_info
-    assert gpu_usage.from_nvml(nvml)["gpus"][0]["memory_used_mib"] == 0
-
-    def v2_missing(handle, version=None):
-        if version is not None:
-            raise RuntimeError("NVMLError_FunctionNotFound")
-        return memory_info(handle)
-
-    nvml.nvmlDeviceGetMemoryInfo = v2_missing
-    assert gpu_usage.from_nvml(nvml)["gpus"][0]["memory_used_mib"] == 480
-
-
-def no_nvml():
-    raise ImportError("No module named 'pynvml'")
-
-
-def test_falls_back_to_nvidia_smi_without_nvml_bindings():
-    spawned = []
-
-    def run(argv):
-        spawned.append(argv)
-        return 0, recorded("standin-nvidia-smi-q-x.xml"), ""
-
-    usage, error = gpu_usage.read("auto", run, no_nvml)
-    assert usage["source"] == "nvidia-smi" and error is None
-    assert spawned == [["nvidia-smi", "-q", "-x"]]
-
-
-def test_no_gpu_says_why_and_none_spawns_nothing():
-    usage, error = gpu_usage.read("auto", lambda argv: (6, "No devices were found", ""), no_nvml)
-    assert usage is None and "nvidia-ml-py" in error and "No devices were found" in error
-    assert gpu_usage.read("none", run=None, import_nvml=None) == (None, None)
-    assert gpu_usage.read("nvml", run=None, import_nvml=no_nvml)[0] is None
-
-
-def test_container_of_pid_reads_cgroup_v1_and_v2(tmp_path):
-    cid = "ab" * 32
-    for pid, text in (
-        (1, f"0::/system.slice/docker-{cid}.scope\n"),
-        (2, f"12:memory:/docker/{cid}\n"),
-        (3, "0::/init.scope\n"),
-    ):
-        (tmp_path / str(pid)).mkdir()
-        (tmp_path / str(pid) / "cgroup").write_text(text)
-    assert gpu_usage.container_of_pid(1, str(tmp_path)) == cid
-    assert gpu_usage.container_of_pid(2, str(tmp_path)) == cid
-    assert gpu_usage.container_of_pid(3, str(tmp_path)) is None
-    assert gpu_usage.container_of_pid(4, str(tmp_path)) is None
-
-
 def test_journal_tail_keeps_the_last_lines_oldest_first_and_stops_early():
     lines = recorded("journal-reverse.jsonl").splitlines()
     tails = fleet_status.take_journal_tail(iter(lines), [3], 3)
@@ -350,17 +186,60 @@ def test_journal_tail_of_a_quiet_unit_is_empty():
     assert tails[2] == [] and len(tails[3]) == 2
 
 
-class CountingDocker:
-    def __init__(self):
-        self.calls = 0
+def test_journal_argv_bounds_the_read_to_the_lines_asked():
+    argv = fleet_status.journal_argv([0, 3], 10)
+    assert argv[0] == "journalctl" and "--reverse" in argv and "--output=json" in argv
+    assert "--lines=10" in argv
+    assert argv[-4:] == ["-u", "isaac-sim@0.service", "-u", "isaac-sim@3.service"]
 
-    def containers(self, prefix):
-        self.calls += 1
-        return json.loads(recorded("docker-containers.json"))
 
-    def images(self):
-        self.calls += 1
-        return json.loads(recorded("docker-images.json"))
+class Journal:
+    """journalctl over a list of entries, newest first, honouring --lines and -u."""
+
+    def __init__(self, entries):
+        self.entries = entries
+        self.reads = []
+
+    def run(self, argv):
+        limit = int(next(a for a in argv if a.startswith("--lines="))[len("--lines=") :])
+        units = {argv[n + 1] for n, a in enumerate(argv) if a == "-u"}
+        self.reads.append((sorted(units), limit))
+        found = [e for e in self.entries if units & {e.get(k) for k in ("_SYSTEMD_UNIT", "UNIT", "COREDUMP_UNIT")}]
+        return 0, "".join(json.dumps(e) + "\n" for e in found[:limit]), ""
+
+
+def entry(i, message):
+    return {"_SYSTEMD_UNIT": f"isaac-sim@{i}.service", "MESSAGE": message}
+
+
+def test_journal_is_read_once_when_every_unit_has_its_lines():
+    journal = Journal([entry(n % 2, f"line {n}") for n in range(100)])
+    tails, error = fleet_status.read_journal_tails(journal.run, [0, 1], 3)
+    assert error is None and journal.reads == [([f"isaac-sim@{i}.service" for i in (0, 1)], 6)]
+    assert tails == {0: ["line 4", "line 2", "line 0"], 1: ["line 5", "line 3", "line 1"]}
+
+
+def test_a_chatty_unit_does_not_crowd_out_a_quiet_one():
+    # unit 0 wrote 50 lines since unit 1's last two
+    journal = Journal([entry(0, f"chatty {n}") for n in range(50)] + [entry(1, "quiet b"), entry(1, "quiet a")])
+    tails, error = fleet_status.read_journal_tails(journal.run, [0, 1], 3)
+    assert error is None
+    assert tails[0] == ["chatty 2", "chatty 1", "chatty 0"]
+    assert tails[1] == ["quiet a", "quiet b"]  # all it has
+    assert journal.reads == [(["isaac-sim@0.service", "isaac-sim@1.service"], 6), (["isaac-sim@1.service"], 3)]
+
+
+def test_entries_no_unit_keeps_widen_the_window_until_the_end():
+    other = {"COREDUMP_UNIT": "isaac-sim@0.service", "_SYSTEMD_UNIT": "systemd-coredump@1.service", "MESSAGE": "core"}
+    journal = Journal([other] * 4 + [entry(0, "last"), entry(0, "first")])
+    tails, error = fleet_status.read_journal_tails(journal.run, [0], 2)
+    assert error is None and tails[0] == ["first", "last"]
+    assert [limit for _units, limit in journal.reads] == [2, 4, 8]
+
+
+def test_journal_failure_is_reported():
+    tails, error = fleet_status.read_journal_tails(lambda argv: (1, "", "Failed to add filter\n"), [0], 5)
+    assert tails == {} and error == "journalctl failed: Failed to add filter"
 
 
 @pytest.mark.parametrize("n", [1, 4, 8])
@@ -375,27 +254,27 @@ def test_cost_does_not_grow_with_instances(tmp_path, n):
         spawned.append(argv[0])
         if argv[0] == "systemctl":
             return 0, recorded("systemctl-show.txt"), ""
+        if argv[0] == "journalctl":
+            return 0, recorded("journal-reverse.jsonl"), ""
         return 0, recorded("standin-nvidia-smi-q-x.xml"), ""
 
-    def stream(argv, consume):
-        spawned.append(argv[0])
-        return consume(iter(recorded("journal-reverse.jsonl").splitlines()))
-
-    docker = CountingDocker()
+    docker = RecordedDocker()
     result = fleet_status.gather(
-        run, stream, docker, no_nvml, config_dir=str(config), run_dir=str(tmp_path / "run"), log_lines=5
+        run, None, docker, no_nvml, config_dir=str(config), run_dir=str(tmp_path / "run"), log_lines=5
     )
     assert len([r for r in result["instances"] if r["configured"]]) == n
     assert sorted(spawned) == ["journalctl", "nvidia-smi", "systemctl"]
     assert docker.calls == 2
     assert result["deployed"] and result["summary"]["configured"] == n
+    three = next(r for r in result["instances"] if r["id"] == 3)
+    assert three["logs"][-1] == "Stopped isaac-sim@3.service - Isaac Sim instance 3."
 
 
 def test_a_host_without_the_collection_is_not_deployed(tmp_path):
     result = fleet_status.gather(
         lambda argv: (0, "", ""),
         None,
-        CountingDocker(),
+        RecordedDocker(),
         no_nvml,
         config_dir=str(tmp_path),
         run_dir=str(tmp_path),

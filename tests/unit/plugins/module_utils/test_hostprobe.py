@@ -1,17 +1,21 @@
+"""What the plan is checked against on a host (module_utils/hostprobe.py), over a fake /proc."""
+
+from __future__ import annotations
+
 import os
-from pathlib import Path
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import hostprobe
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import recorded
 
 # recorded from a test host running isaac-sim-0 (6.x) and an nginx on 49101
 TCP = """  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode
    0: 00000000:BFCC 00000000:0000 0A 00000000:00000000 00:00000000 00000000  1234        0 41001 1 0000000000000000 100 0 0 10 0
    1: 00000000:BFCD 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 41002 1 0000000000000000 100 0 0 10 0
    2: 0100007F:1F90 0100007F:A2B4 01 00000000:00000000 00:00000000 00000000     0        0 41003 1 0000000000000000 20 4 30 10 -1
-"""
+"""  # noqa: E501 - /proc/net/tcp as the kernel writes it
 UDP = """   sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode ref pointer drops
   100: 00000000:BB7E 00000000:0000 07 00000000:00000000 00:00000000 00000000  1234        0 41004 2 0000000000000000 0
-"""
+"""  # noqa: E501
 CONTAINER = "3f1c" + "0" * 60
 
 
@@ -36,7 +40,7 @@ def fake_proc(tmp_path):
 
 def test_listening_sockets_skip_connections(tmp_path):
     socks = hostprobe.listening_sockets(fake_proc(tmp_path))
-    assert sorted((p, port) for p, port, _ in socks) == [("tcp", 49100), ("tcp", 49101), ("udp", 47998)]
+    assert sorted(sock[:2] for sock in socks) == [("tcp", 49100), ("tcp", 49101), ("udp", 47998)]
 
 
 def test_ports_held_tells_ours_from_foreign(tmp_path):
@@ -76,7 +80,7 @@ def test_gpu_list():
 
 
 def test_gpu_list_recorded_on_a_real_h100():
-    out = (Path(__file__).parent / "recorded" / "h100-nvidia-smi-query-gpu.csv").read_text()
+    out = recorded("h100-nvidia-smi-query-gpu.csv")
     assert hostprobe.parse_gpu_list(out) == [
         {"index": 0, "name": "NVIDIA H100 80GB HBM3", "memory_total_mib": 81559, "driver": "580.159.04"}
     ]

@@ -1,3 +1,7 @@
+"""Merging settings into daemon.json (module_utils/daemon_json.py)."""
+
+from __future__ import annotations
+
 import json
 
 import pytest
@@ -8,7 +12,7 @@ RUNTIME = {"runtimes": {"nvidia": {"path": "nvidia-container-runtime", "args": [
 
 def test_keeps_keys_it_does_not_own():
     current = '{"log-driver": "local", "runtimes": {"crun": {"path": "/usr/bin/crun"}}}'
-    changed, _, after = daemon_json.plan(current, RUNTIME, "/etc/docker/daemon.json")
+    changed, _before, after = daemon_json.plan(current, RUNTIME, "/etc/docker/daemon.json")
     assert changed
     data = json.loads(after)
     assert data["log-driver"] == "local"
@@ -17,7 +21,7 @@ def test_keeps_keys_it_does_not_own():
 
 
 def test_second_run_changes_nothing_whatever_the_formatting():
-    _, _, after = daemon_json.plan(None, RUNTIME, "p")
+    after = daemon_json.plan(None, RUNTIME, "p")[2]
     assert daemon_json.plan(after, RUNTIME, "p")[0] is False
     compact = json.dumps(json.loads(after), separators=(",", ":"))
     assert daemon_json.plan(compact, RUNTIME, "p")[0] is False
@@ -30,7 +34,7 @@ def test_missing_file_is_created():
 
 
 def test_lists_are_replaced_not_appended():
-    changed, _, after = daemon_json.plan('{"insecure-registries": ["a"]}', {"insecure-registries": ["b"]}, "p")
+    changed, _before, after = daemon_json.plan('{"insecure-registries": ["a"]}', {"insecure-registries": ["b"]}, "p")
     assert json.loads(after)["insecure-registries"] == ["b"]
 
 

@@ -1,3 +1,7 @@
+"""The instances' persistent directories (module_utils/dirs.py)."""
+
+from __future__ import annotations
+
 import os
 import stat
 

@@ -1,27 +1,11 @@
-"""The fleet report, its table and the Prometheus text, over results built from recorded outputs."""
+"""The fleet report, its table and the Prometheus text (module_utils/fleet_report.py), over recorded results."""
+
+from __future__ import annotations
 
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_report, fleet_status
-from test_fleet_status import NOW, containers, env, recorded
-
-
-def host_result(**kw):
-    units = fleet_status.parse_systemctl_show(recorded("systemctl-show.txt"))
-    instances = fleet_status.build(
-        {i: env(i) for i in range(4)},
-        units,
-        containers(),
-        {0: NOW - 200, 1: NOW - 195, 2: NOW - 190},
-        None,
-        {},
-        default_address="10.0.0.1",
-        now=NOW,
-        monotonic_now=11900.0,
-    )
-    result = {"deployed": True, "instances": instances, "summary": fleet_status.summarize(instances), "errors": []}
-    result.update(kw)
-    return result
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_report
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import host_result
 
 
 def test_report_counts_the_fleet_and_marks_unreachable_hosts():

@@ -1,0 +1,114 @@
+"""What the unit tests share: outputs recorded on real hosts, and a way to run a module.
+
+Recorded (tests/unit/recorded) from the molecule default host with four 6.x
+stand-in instances, instance 3 stopped and a stray `isaac-sim-9` container
+started by hand: `systemctl show` (systemd 252), the Docker API's container
+and image lists (Docker 20.10, API 1.41), an env file, and a reverse JSON
+journal read. standin-nvidia-smi-q-x.xml comes from the stand-in nvidia-smi
+fixture, which prints nvidia-smi's layout; the h100-* files were recorded on an
+NVIDIA H100 80GB HBM3 with driver 580.159.04 (tests/hardware/gpu_check.py).
+
+Tests import this module by its collection name
+(ansible_collections.isaacsim.fleet.tests.unit.helpers), which works under
+both `ansible-test units` and plain pytest (tests/conftest.py).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from ansible.module_utils import basic
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status
+
+REC = Path(__file__).resolve().parent / "recorded"
+NOW = 1795354574  # `date +%s` on the host right after the recording
+MONOTONIC_NOW = 11900.0
+RECORDED_MARKERS = {0: NOW - 200, 1: NOW - 195, 2: NOW - 190}
+
+
+def recorded(name: str) -> str:
+    return (REC / name).read_text()
+
+
+def containers() -> dict:
+    return fleet_status.parse_containers(
+        json.loads(recorded("docker-containers.json")), json.loads(recorded("docker-images.json")), NOW
+    )
+
+
+def env(i: int) -> dict:
+    """Instance i's env file: the recorded instance-2.env with i's port block."""
+    text = recorded("instance-2.env")
+    if i == 2:
+        return fleet_status.parse_env_file(text)
+    return fleet_status.parse_env_file(
+        text.replace("49102", str(49100 + i)).replace("48000", str(47998 + i)).replace("8212", str(8210 + i))
+    )
+
+
+def build_records(**kw) -> list:
+    """fleet_status.build over the recordings; keyword arguments replace its inputs."""
+    args = dict(
+        envs={i: env(i) for i in range(4)},
+        units=fleet_status.parse_systemctl_show(recorded("systemctl-show.txt")),
+        containers=containers(),
+        markers=dict(RECORDED_MARKERS),
+        gpu=None,
+        pid_containers={},
+        default_address="10.9.9.9",
+        now=NOW,
+        monotonic_now=MONOTONIC_NOW,
+    )
+    args.update(kw)
+    return fleet_status.build(**args)
+
+
+def host_result(**kw) -> dict:
+    """One host's isaac_sim_info result built from the recordings."""
+    instances = build_records(default_address="10.0.0.1")
+    result = {"deployed": True, "instances": instances, "summary": fleet_status.summarize(instances), "errors": []}
+    result.update(kw)
+    return result
+
+
+def no_nvml():
+    raise ImportError("No module named 'pynvml'")
+
+
+class RecordedDocker:
+    """The Docker API's answers as recorded, counting the calls."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def containers(self, prefix):
+        self.calls += 1
+        return json.loads(recorded("docker-containers.json"))
+
+    def images(self):
+        self.calls += 1
+        return json.loads(recorded("docker-images.json"))
+
+
+try:
+    from ansible.module_utils.testing import patch_module_args  # ansible-core 2.19 and later
+except ImportError:  # older ansible-core: set the arguments the way AnsibleModule reads them
+    from contextlib import contextmanager
+    from unittest import mock
+
+    @contextmanager
+    def patch_module_args(args=None):
+        data = json.dumps({"ANSIBLE_MODULE_ARGS": args or {}}).encode()
+        with mock.patch.object(basic, "_ANSIBLE_ARGS", data):
+            yield
+
+
+def run_module(main, args: dict, capsys) -> dict:
+    """Run a module's main() with these arguments; its result, with "failed" set when it failed."""
+    with patch_module_args(args), pytest.raises(SystemExit) as exc:
+        main()
+    result = json.loads(capsys.readouterr().out)
+    assert result.get("failed", False) is (exc.value.code != 0), result
+    return result

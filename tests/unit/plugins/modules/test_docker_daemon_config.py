@@ -1,0 +1,39 @@
+"""The docker_daemon_config module on a daemon.json in a temporary directory."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+
+from ansible_collections.isaacsim.fleet.plugins.modules import docker_daemon_config
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import run_module
+
+RUNTIME = {"runtimes": {"nvidia": {"path": "nvidia-container-runtime", "args": []}}}
+
+
+def test_merges_writes_once_and_keeps_other_keys(tmp_path, capsys):
+    path = tmp_path / "docker" / "daemon.json"
+    path.parent.mkdir()
+    path.write_text('{"log-driver": "local"}')
+    result = run_module(docker_daemon_config.main, {"path": str(path), "settings": RUNTIME}, capsys)
+    assert result["changed"] and result["config"]["log-driver"] == "local"
+    assert json.loads(path.read_text())["runtimes"]["nvidia"]["path"] == "nvidia-container-runtime"
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o644
+    again = run_module(docker_daemon_config.main, {"path": str(path), "settings": RUNTIME}, capsys)
+    assert again["changed"] is False
+
+
+def test_check_mode_shows_the_diff_and_writes_nothing(tmp_path, capsys):
+    path = tmp_path / "daemon.json"
+    args = {"path": str(path), "settings": RUNTIME, "_ansible_check_mode": True, "_ansible_diff": True}
+    result = run_module(docker_daemon_config.main, args, capsys)
+    assert result["changed"] and result["diff"]["before"] == "" and "nvidia" in result["diff"]["after"]
+    assert not path.exists()
+
+
+def test_a_file_that_is_not_json_is_left_alone(tmp_path, capsys):
+    path = tmp_path / "daemon.json"
+    path.write_text("{broken")
+    result = run_module(docker_daemon_config.main, {"path": str(path), "settings": RUNTIME}, capsys)
+    assert result["failed"] and path.read_text() == "{broken"
