@@ -88,11 +88,19 @@ def _prepare_start(host: Host, ids, state: dict):
     host.run(["systemctl", "reset-failed"] + [layout.unit(i) for i in ids])
 
 
-def restart(host: Host, i: int) -> tuple:
-    """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it."""
+def restart(host: Host, i: int, between=None) -> tuple:
+    """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it.
+
+    between: called while the instance is stopped (its container gone), before it starts again.
+    """
     _prepare_start(host, [i], states(host, [i]))
     start, since = host.now(), host.wall()
-    rc, _out, _err = host.run(["systemctl", "restart", layout.unit(i)])
+    if between is None:
+        rc, _out, _err = host.run(["systemctl", "restart", layout.unit(i)])
+    else:
+        host.run(["systemctl", "stop", layout.unit(i)])
+        between()
+        rc, _out, _err = host.run(["systemctl", "start", layout.unit(i)])
     seconds = host.now() - start
     if rc != 0:
         return False, _gate_reason(host, i, since - 1), seconds
@@ -193,6 +201,12 @@ class _Files:
                 self.host.remove(path)
             else:
                 self.host.write(path, text, mode)
+
+
+def user_of(text) -> str:
+    """The container user an env file runs its instance as (docker's --user), "" if none."""
+    args = layout.split_args(layout.parse(text or "").get(layout.K_DOCKER_ARGS, ""))
+    return next((a.split("=", 1)[1] for a in args if a.startswith("--user=")), "")
 
 
 def ports_of(text) -> set:
@@ -318,6 +332,13 @@ def apply(host: Host, want: dict, check=False) -> dict:
 
     stopped = []  # serving instances stopped to free ports, not started again yet
 
+    def handover(i):
+        """With a new container user (4.x root -> 5.x uid 1234), what the old one wrote is handed
+        over while the instance is down: after its last write, before the new user's first."""
+        if current[i] is None or user_of(current[i]) == user_of(desired[i]) or not want.get("reown"):
+            return None
+        return lambda: want["reown"](i)
+
     def stop_here(failed, n):
         """The failure ends the apply: instances stopped for ports come back as they were."""
         if stopped:
@@ -336,6 +357,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
             for i in what:
                 if i in new_env:
                     files.write(layout.env_file(i), desired[i], want["env_mode"])
+                if handover(i):
+                    handover(i)()
             stopped[:] = [i for i in stopped if i not in what]
             for i, (ok, reason) in start(host, what).items():
                 if ok:
@@ -359,7 +382,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
         i = what
         if i in new_env:
             files.write(layout.env_file(i), desired[i], want["env_mode"])
-        ok, reason, restart_s = restart(host, i)
+        ok, reason, restart_s = restart(host, i, handover(i))
         soak_start = host.now()
         if ok:
             ok, reason = soak(host, i, want.get("soak", 0))

@@ -276,14 +276,16 @@ def main():
 
         def prepare():
             dirs.apply(dir_changes, uid, gid, 0o750)
-            # a release whose container user differs (4.x root -> 5.x uid 1234) must be able to
-            # write what the old one left there: caches are kept and handed over, not wiped
-            for path, what in dir_changes:
-                if what == "owner":
-                    for root, subdirs, names in os.walk(path):
-                        for name in subdirs + names:
-                            os.lchown(os.path.join(root, name), uid, gid)
             applied.append(True)
+
+        def reown(i):
+            """Hand instance i's caches, logs and data to the new container user: kept, not wiped."""
+            for root, subdirs, names in os.walk(layout.data_dir(i, want["data_root"])):
+                os.lchown(root, uid, gid)
+                for name in names + [d for d in subdirs if os.path.islink(os.path.join(root, d))]:
+                    os.lchown(os.path.join(root, name), uid, gid)
+
+        want["reown"] = reown
 
         want["prepare"] = prepare
         diff = _diff(host, want["files"]) if module._diff else None

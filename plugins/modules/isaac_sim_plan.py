@@ -68,7 +68,7 @@ options:
     type: path
     default: /var/lib/isaac-sim
   public_address:
-    description: Address clients use to reach the streams.
+    description: Address clients use to reach the streams; empty means the host's default IPv4.
     type: str
   ready_pattern:
     description: Regular expression of the ready line; the release's own when empty.
@@ -192,7 +192,7 @@ host:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import hostprobe, layout, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, hostprobe, layout, plan
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, default_image
 
 
@@ -236,6 +236,8 @@ def main():
     )
     p = module.params
     cfg = {k: p[k] for k in p}
+    # empty: the source address of the host's default route, as the status module finds it
+    cfg["public_address"] = p["public_address"] or fleet_status.default_ipv4()
 
     host = {"memory_bytes": hostprobe.memory_bytes(), "gpu_count": 0, "gpus": [], "ports_held": []}
     # a missing binary would end the module with a raw OSError; the plan says it in words instead

@@ -99,8 +99,13 @@ def test_a_port_held_by_another_process_keeps_the_instance_from_starting(host):
     testbed.wait_for(lambda: "49102" in sh(host, "ss -Hltn 'sport = :49102'").stdout, timeout=20, what="the holder")
     try:
         assert sh(host, "systemctl start isaac-sim@2", check=False).rc != 0
-        status = sh(host, "systemctl status isaac-sim@2 --no-pager -l -n 20", check=False).stdout
-        assert f"isaac-sim-2 cannot start: port 49102/tcp of its block is held by python3 (pid {holder})" in status
+        said = f"isaac-sim-2 cannot start: port 49102/tcp of its block is held by python3 (pid {holder})"
+
+        def read_status():
+            return sh(host, "systemctl status isaac-sim@2 --no-pager -l -n 20", check=False).stdout
+
+        # systemctl status shows the journal's last lines, once journald has them
+        status = testbed.wait_for(lambda: said in read_status() and read_status(), timeout=20, what="the reason")
         assert "isaac_sim_port_bases" in status
         assert container_id(host, "isaac-sim-2") == ""
     finally:

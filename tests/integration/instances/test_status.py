@@ -41,7 +41,9 @@ def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
         assert inst["state"] == "ready" and inst["ready"] is True and inst["ready_since"]
         assert inst["active_state"] == "active" and inst["sub_state"] == "running" and inst["enabled"] is True
         assert inst["container"]["id"] == container_id(host, f"isaac-sim-{i}")
-        assert inst["container"]["state"] == "running" and inst["container"]["health"] == "none"
+        # the release's healthcheck: NVIDIA's AppReady check and the signal port answering
+        assert inst["container"]["state"] == "running" and inst["container"]["health"] == "healthy"
+        assert inst["health"] == "healthy"
         assert 0 <= inst["uptime_s"] < 24 * 3600
         assert inst["digest"] == digest.stdout.strip().split("@", 1)[1]
         assert inst["ports"] == {"signal": 49100 + i, "stream": 47998 + i, "web_viewer": 8210 + i}

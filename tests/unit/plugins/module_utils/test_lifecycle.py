@@ -328,3 +328,30 @@ def test_a_new_instance_whose_ports_are_still_held_starts_after_the_roll():
     new = {0: {49200}, 1: {49100}}
     steps, _rest = lifecycle.port_order(old, new, [0], [1])
     assert steps == [("roll", 0), ("start", [1])]
+
+
+def user_env(image, user):
+    return env(image, "sha256:x", f"{layout.K_DOCKER_ARGS}={layout.quote(layout.join_args(['--user=' + user]))}\n")
+
+
+def test_a_new_container_user_gets_the_caches_while_the_instance_is_down():
+    h = ScriptedHost(2)
+    for i in range(2):
+        h.files[layout.env_file(i)] = (user_env("reg/isaac-sim:4.5.0", "0:0"), 0o644)
+    handed = []
+
+    def reown(i):
+        handed.append(i)
+        h.log.append(f"reown {i}")
+
+    new = {i: user_env("reg/isaac-sim:5.1.0", "1234:1234") for i in range(2)}
+    result = lifecycle.apply(h.host, want(new, reown=reown))
+    assert result["failed"] is None and handed == [0, 1]
+    # stopped, handed over, started: never while the old user can still write
+    first = h.log.index("reown 0")
+    assert h.log[first - 1] == "systemctl stop isaac-sim@0.service"
+    assert h.log[first + 1] == "systemctl start isaac-sim@0.service"
+    # the same user keeps the plain restart
+    same = ScriptedHost(1)
+    lifecycle.apply(same.host, want({0: NEW}, reown=reown))
+    assert handed == [0, 1] and same.commands("restart") == ["systemctl restart isaac-sim@0.service"]
