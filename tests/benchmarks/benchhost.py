@@ -23,7 +23,8 @@ KEY_VAR = ["-e", json.dumps({"isaac_sim_registry_password": KEY})]
 
 
 def run(cmd, **kw):
-    return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, check=False, **kw)
+    kw.setdefault("check", False)
+    return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, **kw)
 
 
 def timed_play(inventory, playbook, host, extra=(), env=None):

@@ -112,3 +112,37 @@ def run_module(main, args: dict, capsys) -> dict:
     result = json.loads(capsys.readouterr().out)
     assert result.get("failed", False) is (exc.value.code != 0), result
     return result
+
+
+def plan_config(**over) -> dict:
+    """The isaac_sim role's variables as the plan takes them: four 6.x instances without GPUs."""
+    base = {
+        "release": "6.x",
+        "image": "nvcr.io/nvidia/isaac-sim:6.0.1",
+        "instance_count": 4,
+        "max_instances": 8,
+        "port_bases": {},
+        "port_stride": 1,
+        "gpu_enabled": False,
+        "gpu_map": {},
+        "gpu_exclusive": False,
+        "memory_limit": "8g",
+        "shm_size": "2g",
+        "data_root": "/var/lib/isaac-sim",
+        "public_address": "10.0.0.5",
+        "accept_eula": True,
+        "privacy_consent": False,
+        "env": {},
+        "secret_env_names": [],
+        "docker_args": [],
+        "app_args": [],
+        "ready_timeout": 300,
+        "stop_timeout": 60,
+        "restart_sec": 10,
+        "start_limit_burst": 5,
+        "health_interval": 30,
+        "health_retries": 3,
+        "unhealthy_restart": 300,
+    }
+    base.update(over)
+    return base

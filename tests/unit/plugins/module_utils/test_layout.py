@@ -2,6 +2,7 @@
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, plan
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 
 HARD = [
     "plain",
@@ -50,34 +51,19 @@ def test_names_and_paths():
 
 
 def _plan(**over):
-    cfg = {
-        "release": "6.x",
-        "image": "reg/isaac-sim:6.0.1",
-        "instance_count": 2,
-        "max_instances": 8,
-        "port_bases": {},
-        "port_stride": 1,
-        "gpu_enabled": False,
-        "gpu_map": {},
-        "gpu_exclusive": False,
-        "memory_limit": "1 GB",
-        "shm_size": "256m",
-        "data_root": "/var/lib/isaac-sim",
-        "public_address": "10.0.0.5",
-        "accept_eula": True,
-        "privacy_consent": False,
-        "env": {"TRICKY": 'a "b" $c\nd'},
-        "secret_env_names": ["NGC_KEY"],
-        "docker_args": ["--label=team=a b"],
-        "app_args": [],
-        "ready_timeout": "20",
-        "stop_timeout": 5,
-        "restart_sec": "2",
-        "start_limit_burst": "3",
-        "health_interval": 30,
-        "health_retries": 3,
-        "unhealthy_restart": 300,
-    }
+    cfg = plan_config(
+        image="reg/isaac-sim:6.0.1",
+        instance_count=2,
+        memory_limit="1 GB",
+        shm_size="256m",
+        env={"TRICKY": 'a "b" $c\nd'},
+        secret_env_names=["NGC_KEY"],
+        docker_args=["--label=team=a b"],
+        ready_timeout="20",
+        stop_timeout=5,
+        restart_sec="2",
+        start_limit_burst="3",
+    )
     cfg.update(over)
     return plan.build(cfg, {"memory_bytes": 64 * 1024**3})
 

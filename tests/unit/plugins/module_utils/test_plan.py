@@ -1,41 +1,13 @@
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils import plan
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, release_of_tag
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 
 GIB = 1024**3
 
 
 def cfg(**over):
-    base = {
-        "release": "6.x",
-        "image": "nvcr.io/nvidia/isaac-sim:6.0.1",
-        "instance_count": 4,
-        "max_instances": 8,
-        "port_bases": {},
-        "port_stride": 1,
-        "gpu_enabled": False,
-        "gpu_map": {},
-        "gpu_exclusive": False,
-        "memory_limit": "8g",
-        "shm_size": "2g",
-        "data_root": "/var/lib/isaac-sim",
-        "public_address": "10.0.0.5",
-        "accept_eula": True,
-        "privacy_consent": False,
-        "env": {},
-        "secret_env_names": [],
-        "docker_args": [],
-        "app_args": [],
-        "ready_timeout": 300,
-        "stop_timeout": 60,
-        "restart_sec": 10,
-        "start_limit_burst": 5,
-        "health_interval": 30,
-        "health_retries": 3,
-        "unhealthy_restart": 300,
-    }
-    base.update(over)
-    return base
+    return plan_config(**over)
 
 
 HOST = {"memory_bytes": 64 * GIB, "gpu_count": 0, "ports_held": [], "image_present": True}
