@@ -79,8 +79,9 @@ def _gate_reason(host: Host, i: int, since: float) -> str:
     return f"the unit did not start (ActiveState={state.get('ActiveState')}, Result={state.get('Result')})"
 
 
-def _prepare_start(host: Host, ids, state: dict):
-    for i in ids:
+def _prepare_start(host: Host, ids, state: dict, renew=None):
+    """Stop the instances of `renew` (all by default) that are stuck activating, reset every counter."""
+    for i in ids if renew is None else [i for i in ids if i in renew]:
         if state.get(i, {}).get("ActiveState") == "activating":
             # a restart would cancel the pending start job and fail; stop it first
             host.run(["systemctl", "stop", layout.unit(i)])
@@ -109,12 +110,16 @@ def restart(host: Host, i: int, between=None) -> tuple:
     return True, None, seconds
 
 
-def start(host: Host, ids) -> dict:
-    """{id: (ok, reason)}: start instances that are not serving, all at once; each ends ready or failed."""
+def start(host: Host, ids, renew=()) -> dict:
+    """{id: (ok, reason)}: start instances that are not serving, all at once; each ends ready or failed.
+
+    An instance already activating (coming back after a Docker restart, say) is waited for, unless
+    it is in `renew` (its settings changed): then its start job, on the old settings, is stopped first.
+    """
     ids = list(ids)
     if not ids:
         return {}
-    _prepare_start(host, ids, states(host, ids))
+    _prepare_start(host, ids, states(host, ids), renew=set(renew))
     since = host.wall()
     host.run(["systemctl", "start"] + [layout.unit(i) for i in ids])
     after = states(host, ids)
@@ -360,7 +365,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
                 if handover(i):
                     handover(i)()
             stopped[:] = [i for i in stopped if i not in what]
-            for i, (ok, reason) in start(host, what).items():
+            for i, (ok, reason) in start(host, what, renew=set(new_env) | (set(what) if shared else set())).items():
                 if ok:
                     result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
                     continue

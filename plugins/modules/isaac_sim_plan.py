@@ -182,11 +182,11 @@ stale_ids:
   sample: [2, 3]
 host:
   description: What was found on the host - memory, GPUs, ports held, whether the image is there (and its id),
-    whether the metrics timer is installed.
+    whether the metrics timer is installed, how many instances serve now.
   returned: success
   type: dict
   sample: {memory_bytes: 68719476736, gpu_count: 2, gpus: [], ports_held: [], image_present: true,
-           image_id: "sha256:9c15...", metrics_timer: false}
+           image_id: "sha256:9c15...", metrics_timer: false, serving: 4}
 """
 
 import os
@@ -257,6 +257,13 @@ def main():
         rc, out, _err = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", image])
         host["image_present"], host["image_id"] = rc == 0, out.strip() if rc == 0 else None
     host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
+    # instances serving now: a Docker restart on this host waits for the canary batches
+    systemctl = module.get_bin_path("systemctl")
+    host["serving"] = 0
+    if systemctl:
+        argv = [systemctl, "list-units", layout.UNIT_GLOB, "--state=active", "--plain", "--no-legend"]
+        rc, out, _err = module.run_command(argv)
+        host["serving"] = len([line for line in out.splitlines() if line.strip()]) if rc == 0 else 0
 
     if p["check_host_ports"] and p["release"] in RELEASES:
         profile = RELEASES[p["release"]]["ports"]

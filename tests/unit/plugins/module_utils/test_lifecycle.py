@@ -245,12 +245,21 @@ def test_scale_down_goes_first_and_keeps_data_unless_purge():
     assert "rm /var/lib/isaac-sim/instance-3" in h.log
 
 
-def test_an_instance_stuck_activating_is_stopped_then_started():
+def test_an_instance_stuck_activating_on_old_settings_is_stopped_then_started():
     h = ScriptedHost(2)
+    h.units[1].update(ActiveState="activating", SubState="start-post")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: NEW}))
+    assert result["plan"]["start"] == [1] and result["failed"] is None
+    assert h.log.index("systemctl stop isaac-sim@1.service") < h.log.index("systemctl start isaac-sim@1.service")
+
+
+def test_an_instance_coming_back_on_its_settings_is_waited_for_not_stopped():
+    h = ScriptedHost(2)
+    # as after a Docker restart: the unit is starting again on the settings it has
     h.units[1].update(ActiveState="activating", SubState="start-post")
     result = lifecycle.apply(h.host, want({0: OLD, 1: OLD}))
     assert result["plan"]["start"] == [1] and result["failed"] is None
-    assert h.log.index("systemctl stop isaac-sim@1.service") < h.log.index("systemctl start isaac-sim@1.service")
+    assert "systemctl stop isaac-sim@1.service" not in h.log and "systemctl start isaac-sim@1.service" in h.log
 
 
 def test_check_mode_reports_and_changes_nothing():
