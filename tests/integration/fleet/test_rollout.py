@@ -5,7 +5,8 @@ run in file order: a rolling restart, plain deploys (a new image, a changed sett
 that fail at the canary, a
 preflight that refuses an unhealthy fleet and one with a host that does not
 answer, a rollout scoped by --limit and
-instance selection, a canary pause nobody answers, and an upgrade approved at
+instance selection, a canary pause nobody answers, a Docker settings change that
+restarts Docker one host at a time, and an upgrade approved at
 the canary prompt that goes through.
 """
 
@@ -261,6 +262,44 @@ def test_canary_pause_with_nobody_to_answer_stops_after_the_canary(fleet):
     for h in rest:
         assert after[h] == before[h], h
         assert f"{h}: every instance (not reached)" in out
+
+
+def docker_started(host: str) -> str:
+    return sh(host, "systemctl show -p ActiveEnterTimestampMonotonic --value docker.service").strip()
+
+
+def test_a_docker_settings_change_restarts_docker_one_host_at_a_time(fleet):
+    canary, rest = fleet[0], fleet[1:]
+    options = json.loads(sh(canary, "cat /etc/docker/daemon.json"))
+    change = {"docker_engine_daemon_options": {**options, "max-concurrent-downloads": 5}}
+    started = {h: docker_started(h) for h in fleet}
+    before = {h: containers(h) for h in fleet}
+    # stopped after the canary: only the canary's Docker restarted; the others keep theirs noted
+    first = playbook("deploy.yml", {**change, "isaac_sim_rollout_pause_after_canary": True})
+    assert first.returncode != 0 and "not approved" in squash(first.stdout + first.stderr), first.stdout[-4000:]
+    assert docker_started(canary) != started[canary]
+    testbed.wait_for(lambda: all_ready(canary), timeout=120, what="the canary ready after its Docker restart")
+    for h in rest:
+        assert docker_started(h) == started[h], h
+        assert containers(h) == before[h], h
+        assert '"max-concurrent-downloads": 5' in sh(h, "cat /etc/docker/daemon.json")
+        assert "restarts in the next canary batch" in sh(h, "cat /etc/docker/restart-pending")
+    # the next deploy finds the noted restarts and does them, one host at a time
+    watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + i for i in range(INSTANCES)])
+    watcher.start()
+    try:
+        second = playbook("deploy.yml", change)
+    finally:
+        watcher.stop()
+    assert second.returncode == 0, second.stdout[-4000:] + second.stderr
+    for h in rest:
+        assert docker_started(h) != started[h], h
+        assert sh(h, "test -e /etc/docker/restart-pending && echo noted || echo done").strip() == "done"
+        assert all_ready(h)
+    # a Docker restart takes its whole host down: never more than one host at a time
+    assert watcher.most_disturbed_at_once(INSTANCES) == 1
+    assert all(watcher.lowest()[h] < INSTANCES for h in rest), watcher.lowest()
+    assert watcher.lowest()[canary] == INSTANCES
 
 
 def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
