@@ -23,8 +23,8 @@ KEY_VAR = ["-e", json.dumps({"isaac_sim_registry_password": KEY})]
 
 
 def run(cmd, **kw):
-    kw.setdefault("check", False)
-    return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, **kw)
+    check = kw.pop("check", False)
+    return subprocess.run(cmd, cwd=ROOT, env=kw.pop("env", ENV), text=True, capture_output=True, check=check, **kw)
 
 
 def timed_play(inventory, playbook, host, extra=(), env=None):
