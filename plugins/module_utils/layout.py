@@ -30,6 +30,8 @@ LABEL_INSTANCE = "org.isaacsim.fleet.instance"
 RUN_SCRIPT = "isaac-sim-run"
 READY_SCRIPT = "isaac-sim-ready"
 PORTS_SCRIPT = "isaac-sim-ports"
+# isaac-sim-run's exit status when a port of the block is held by another process
+PORTS_HELD_STATUS = 76
 SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT)
 
 UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
@@ -249,8 +251,9 @@ EnvironmentFile={env}
 SyslogIdentifier={CONTAINER_PREFIX}%i
 # A container left by a crash or an unclean reboot would block the name.
 ExecStartPre=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
-# Kit moves to another port when its own is taken: refuse instead, naming the holder.
-ExecStartPre={LIBEXEC_DIR}/{PORTS_SCRIPT}
+# isaac-sim-run refuses to start while a port of the block is held (Kit would move to
+# another port) and exits {PORTS_HELD_STATUS}: not retried, so systemctl status keeps saying why.
+RestartPreventExitStatus={PORTS_HELD_STATUS}
 ExecStart={LIBEXEC_DIR}/{RUN_SCRIPT}
 ExecStartPost={LIBEXEC_DIR}/{READY_SCRIPT}
 # the container may have exited already (an app that quit): not an error

@@ -88,6 +88,6 @@ def test_unit_numbers_are_numbers_whatever_was_given():
     assert "StartLimitBurst=3\n" in unit
     assert "StartLimitIntervalSec=156\n" in unit  # 3 * (2 + 20 + 30)
     assert "RestartSec=2\n" in unit and "TimeoutStartSec=50\n" in unit and "TimeoutStopSec=35\n" in unit
-    assert "Restart=always\n" in unit
+    assert "Restart=always\n" in unit and "RestartPreventExitStatus=76\n" in unit
     assert "ExecStop=-/usr/bin/docker stop" in unit
     assert "EnvironmentFile=/etc/isaac-sim/instance-%i.env\n" in unit
