@@ -5,8 +5,12 @@
 from __future__ import annotations
 
 
-def endpoints(release: str, ports: dict, host: str) -> dict:
-    """{name: address} for one instance's port block."""
+def endpoints(release: str, ports: dict, host: str, served=()) -> dict:
+    """{name: address} for one instance's port block.
+
+    served: the ports of the block a companion listens on; a port kept for a companion (the 6.x
+    web viewer's) is reported only when one does, so no URL names a port nothing listens on.
+    """
     out = {}
     if release == "2023.1":
         out["webrtc_client"] = f"http://{host}:{ports['http']}/streaming/webrtc-client?server={host}"
@@ -15,7 +19,7 @@ def endpoints(release: str, ports: dict, host: str) -> dict:
         # what the Isaac Sim WebRTC Streaming Client asks for
         out["signal"] = f"{host}:{ports['signal']}"
         out["stream"] = f"{host}:{ports['stream']}/udp"
-        if "web_viewer" in ports:
+        if "web_viewer" in ports and ports["web_viewer"] in set(served):
             out["web_viewer"] = f"http://{host}:{ports['web_viewer']}/"
         if "http" in ports:
             out["api"] = f"http://{host}:{ports['http']}/"
@@ -25,7 +29,8 @@ def endpoints(release: str, ports: dict, host: str) -> dict:
 def summary_lines(plan: dict, host: str) -> list:
     lines = []
     for inst in plan["instances"]:
-        eps = endpoints(plan["release"], inst["ports"], host)
+        served = [port for c in inst.get("companions", []) for port in c["ports"].values()]
+        eps = endpoints(plan["release"], inst["ports"], host, served)
         gpu = "-" if inst.get("gpu") is None else inst["gpu"]
         lines.append(f"{inst['name']} gpu={gpu} " + " ".join(f"{k}={v}" for k, v in eps.items()))
     return lines

@@ -124,6 +124,20 @@ def table(report: dict) -> list:
                     i["primary_url"],
                 )
             )
+            # each companion on a line of its own under its instance: 2/ros-bridge
+            for c in i.get("companions") or []:
+                rows.append(
+                    (
+                        h["host"],
+                        f"{i['id']}/{c['name']}",
+                        c["state"] + ("" if c.get("configured") else " (stray)"),
+                        "yes" if c["ready"] else "no",
+                        duration(c.get("uptime_s")),
+                        str(c.get("restarts", 0)),
+                        "-",
+                        " ".join(f"{p['port']}/{p['proto']}" for p in c.get("ports") or []) or "-",
+                    )
+                )
     widths = [max(len(r[c]) for r in rows) for c in range(len(TABLE_COLUMNS) - 1)]
     lines = ["  ".join(cell.ljust(widths[c]) for c, cell in enumerate(r[:-1])) + "  " + r[-1] for r in rows]
     s = report["summary"]

@@ -51,11 +51,31 @@ _CONTAINER_NAME = layout.CONTAINER_RE
 unit_name = layout.unit
 
 
-def systemctl_show_argv(ids) -> list:
-    """One call: the configured units by name (loaded or not) and every loaded instance."""
+COMPANION_UNIT_GLOB = "isaac-sim-*@*.service"
+
+
+def systemctl_show_argv(ids, companions=()) -> list:
+    """One call: the configured units by name (loaded or not), every loaded instance, and the
+    companions' units ([(id, name)] configured, and every loaded one)."""
+    named = [layout.companion_unit(i, name) for i, name in companions]
     return (
-        ["systemctl", "show", "--no-pager", "-p", ",".join(UNIT_PROPERTIES)] + [unit_name(i) for i in ids] + [UNIT_GLOB]
+        ["systemctl", "show", "--no-pager", "-p", ",".join(UNIT_PROPERTIES)]
+        + [unit_name(i) for i in ids]
+        + [UNIT_GLOB]
+        + named
+        + [COMPANION_UNIT_GLOB]
     )
+
+
+def parse_companion_units(text: str) -> dict:
+    """{(instance id, companion name): {property: value}} from the same `systemctl show` output."""
+    units = {}
+    for block in re.split(r"\n\s*\n", text.strip()):
+        props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+        match = layout.COMPANION_UNIT_RE.match(props.get("Id", ""))
+        if match:
+            units[(int(match.group(2)), match.group(1))] = props
+    return units
 
 
 def parse_systemctl_show(text: str) -> dict:
@@ -87,6 +107,31 @@ def read_env_files(config_dir: str) -> tuple:
         except OSError as exc:
             errors.append(f"cannot read {path}: {exc.strerror} (the module needs root: become: true)")
     return found, errors
+
+
+def read_companion_env_files(config_dir: str) -> dict:
+    """{(instance id, companion name): env} for every instance-N.NAME.env the role wrote."""
+    found = {}
+    for path in glob.glob(os.path.join(config_dir, "instance-*.*.env")):
+        match = layout.COMPANION_ENV_RE.match(os.path.basename(path))
+        if not match:
+            continue
+        try:
+            with open(path) as fh:
+                found[(int(match.group(1)), match.group(2))] = parse_env_file(fh.read())
+        except OSError:
+            continue
+    return found
+
+
+def read_companion_markers(run_dir: str) -> set:
+    """{(instance id, companion name)} whose readiness gate left its marker."""
+    found = set()
+    for path in glob.glob(os.path.join(run_dir, "instance-*.*.ready")):
+        match = re.match(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.ready$", os.path.basename(path))
+        if match:
+            found.add((int(match.group(1)), match.group(2)))
+    return found
 
 
 def read_ready_markers(run_dir: str) -> dict:
@@ -126,6 +171,7 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
             continue
         name = _CONTAINER_NAME.match(names[0]).group(1)
         label = (c.get("Labels") or {}).get(layout.LABEL_INSTANCE)
+        companion = (c.get("Labels") or {}).get(layout.LABEL_COMPANION)
         created = c.get("Created")
         running = c.get("State") == "running"
         out[name] = {
@@ -141,6 +187,7 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
             "image_id": c.get("ImageID"),
             "digest": digests.get(c.get("ImageID")),
             "labelled_instance": int(label) if label and label.isdigit() else None,
+            "companion": companion,
         }
     return out
 
@@ -203,16 +250,24 @@ def build(
     now: float | None = None,
     monotonic_now: float | None = None,
     only: list | None = None,
+    companion_envs: dict | None = None,
+    companion_units: dict | None = None,
+    companion_markers: set | None = None,
 ) -> list:
     """Instance records, configured first, then strays, sorted by instance number.
 
-    pid_containers maps a GPU process's pid to its container id (or None).
+    pid_containers maps a GPU process's pid to its container id (or None). The companions
+    ({(id, name): env}, {(id, name): unit}, markers) are listed under their instance.
     """
     now = time.time() if now is None else now
     monotonic_now = time.monotonic() if monotonic_now is None else monotonic_now
     configured = set(envs)
     by_id = {}
+    comp_containers = {}
     for name, c in containers.items():
+        if c.get("companion") and c.get("labelled_instance") is not None:
+            comp_containers[(c["labelled_instance"], c["companion"])] = c
+            continue
         suffix = name[len(layout.CONTAINER_PREFIX) :]
         key = int(suffix) if suffix.isdigit() else name
         by_id[key] = c
@@ -249,7 +304,14 @@ def build(
         ports = ports_of(env)
         release = env.get(layout.K_RELEASE)
         address = address_override or env.get(layout.K_PUBLIC_ADDRESS) or default_address
-        urls = endpoints(release, ports, address) if release and ports else {}
+        served = [
+            int(spec.split("/", 1)[1])
+            for (j, _name), comp_env in (companion_envs or {}).items()
+            if j == key
+            for spec in comp_env.get(layout.K_PORTS, "").split()
+            if "/" in spec and spec.split("/", 1)[1].isdigit()
+        ]
+        urls = endpoints(release, ports, address, served) if release and ports else {}
         procs = gpu_by_container.get((container or {}).get("id"), [])
         gpu_index = env.get(layout.K_GPU, "")
         active_enter = _int((unit or {}).get("ActiveEnterTimestampMonotonic"))
@@ -288,9 +350,51 @@ def build(
                 "gpu_memory_used_mib": sum(p["used_mib"] or 0 for p in procs) if procs else (0 if gpu else None),
                 "gpu_processes": procs,
                 "limits": parse_limits(env.get(layout.K_DOCKER_ARGS, "")),
+                "companions": companion_records(
+                    key, companion_envs or {}, companion_units or {}, comp_containers, companion_markers or set()
+                )
+                if isinstance(key, int)
+                else [],
             }
         )
     return records
+
+
+def companion_records(i, envs: dict, units: dict, containers: dict, markers: set) -> list:
+    """The companions of instance i: configured ones (env file) and any unit or container of one."""
+    names = sorted(
+        {n for (j, n) in list(envs) + list(containers) if j == i}
+        | {n for (j, n), u in units.items() if j == i and u.get("ActiveState") not in ("inactive", "")}
+    )
+    out = []
+    for name in names:
+        env, unit, container = envs.get((i, name)), units.get((i, name)), containers.get((i, name))
+        ready = bool(
+            env is not None
+            and (i, name) in markers
+            and (unit or {}).get("ActiveState") == "active"
+            and (container or {}).get("state") == "running"
+        )
+        own = [spec.split("/", 1) for spec in (env or {}).get(layout.K_PORTS, "").split() if "/" in spec]
+        out.append(
+            {
+                "name": name,
+                "unit": layout.companion_unit(i, name),
+                "container_name": layout.companion_container(i, name),
+                "configured": env is not None,
+                "state": state_of(unit, container, ready),
+                "ready": ready,
+                "active_state": (unit or {}).get("ActiveState"),
+                "enabled": (unit or {}).get("UnitFileState") == "enabled",
+                "restarts": _int((unit or {}).get("NRestarts")),
+                "image": (env or {}).get(layout.K_IMAGE) or (container or {}).get("image"),
+                "health": (container or {}).get("health") or "none",
+                "uptime_s": (container or {}).get("uptime_s"),
+                "container": container,
+                "ports": [{"proto": proto, "port": int(port)} for proto, port in own if port.isdigit()],
+            }
+        )
+    return out
 
 
 def summarize(records: list) -> dict:
@@ -408,8 +512,10 @@ def gather(
     errors += env_errors
     deployed = bool(envs) or os.path.exists(unit_path)
 
-    rc, out, err = run(systemctl_show_argv(sorted(envs)))
+    companion_envs = read_companion_env_files(config_dir)
+    rc, out, err = run(systemctl_show_argv(sorted(envs), sorted(companion_envs)))
     units = parse_systemctl_show(out) if rc == 0 else {}
+    companion_units = parse_companion_units(out) if rc == 0 else {}
     if rc != 0:
         errors.append(f"systemctl show failed: {err.strip()}")
 
@@ -435,6 +541,9 @@ def gather(
         default_address=address,
         address_override=public_address,
         only=only,
+        companion_envs=companion_envs,
+        companion_units=companion_units,
+        companion_markers=read_companion_markers(run_dir),
     )
     with_units = [r["id"] for r in records if r["unit"]]
     if log_lines and with_units:

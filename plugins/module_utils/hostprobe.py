@@ -12,6 +12,8 @@ import glob
 import os
 import re
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
+
 _TCP_LISTEN = "0A"
 _UDP_UNCONNECTED = "07"
 
@@ -133,3 +135,23 @@ def existing_instances(config_dir, wants_dir):
         if match:
             ids.add(int(match.group(1)))
     return sorted(ids)
+
+
+def existing_companions(config_dir) -> dict:
+    """{instance: [companion names]} of the companion env files this collection wrote."""
+    found = {}
+    for path in glob.glob(os.path.join(config_dir, "instance-*.*.env")):
+        match = layout.COMPANION_ENV_RE.match(os.path.basename(path))
+        if match:
+            found.setdefault(int(match.group(1)), []).append(match.group(2))
+    return {i: sorted(names) for i, names in sorted(found.items())}
+
+
+def companion_templates(unit_dir) -> list:
+    """Names of the companion unit templates (isaac-sim-NAME@.service) in unit_dir."""
+    names = []
+    for path in glob.glob(os.path.join(unit_dir, layout.COMPANION_TEMPLATE_GLOB)):
+        match = layout.COMPANION_TEMPLATE_RE.match(os.path.basename(path))
+        if match:
+            names.append(match.group(1))
+    return sorted(names)

@@ -26,6 +26,7 @@ TARGET = "isaac-sim.target"
 UNIT_GLOB = "isaac-sim@*.service"
 CONTAINER_PREFIX = "isaac-sim-"
 LABEL_INSTANCE = "org.isaacsim.fleet.instance"
+LABEL_COMPANION = "org.isaacsim.fleet.companion"
 # host-side scripts, installed in LIBEXEC_DIR
 RUN_SCRIPT = "isaac-sim-run"
 READY_SCRIPT = "isaac-sim-ready"
@@ -38,6 +39,14 @@ UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
 ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env$")
 MARKER_RE = re.compile(r"^instance-(\d+)\.ready$")
+# companions: a unit template per companion, one unit per instance (isaac-sim-viewer@2.service)
+COMPANION_NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
+COMPANION_TEMPLATE_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@\.service$")
+COMPANION_UNIT_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@(\d+)\.service$")
+COMPANION_ENV_RE = re.compile(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.env$")
+COMPANION_TEMPLATE_GLOB = "isaac-sim-*@.service"
+# names a companion may not take: the collection's own units and scripts
+RESERVED_COMPANIONS = ("metrics", "run", "ready", "ports", "status")
 
 # env-file keys: the unit, the scripts and the status module read these
 K_INSTANCE = "ISAAC_SIM_INSTANCE"
@@ -58,6 +67,9 @@ K_HEALTH_INTERVAL = "ISAAC_SIM_HEALTH_INTERVAL"
 K_UNHEALTHY_RESTART = "ISAAC_SIM_UNHEALTHY_RESTART"
 K_DOCKER_ARGS = "ISAAC_SIM_DOCKER_ARGS"
 K_APP_ARGS = "ISAAC_SIM_APP_ARGS"
+K_COMPANION = "ISAAC_SIM_COMPANION"
+# given to a companion's container: its instance's public address
+K_HOST = "ISAAC_SIM_HOST"
 RESERVED_PREFIX = "ISAAC_SIM_"
 
 
@@ -79,6 +91,30 @@ def marker(i: int, run_dir: str = RUN_DIR) -> str:
 
 def data_dir(i: int, data_root: str = DATA_ROOT) -> str:
     return os.path.join(data_root, f"instance-{i}")
+
+
+def companion_template(name: str) -> str:
+    return f"isaac-sim-{name}@.service"
+
+
+def companion_unit(i: int, name: str) -> str:
+    return f"isaac-sim-{name}@{i}.service"
+
+
+def companion_container(i: int, name: str) -> str:
+    return f"{CONTAINER_PREFIX}{i}-{name}"
+
+
+def companion_env_file(i: int, name: str, config_dir: str = CONFIG_DIR) -> str:
+    return os.path.join(config_dir, f"instance-{i}.{name}.env")
+
+
+def companion_marker(i: int, name: str, run_dir: str = RUN_DIR) -> str:
+    return os.path.join(run_dir, f"instance-{i}.{name}.ready")
+
+
+def companion_data_dir(i: int, name: str, data_root: str = DATA_ROOT) -> str:
+    return os.path.join(data_dir(i, data_root), "companions", name)
 
 
 def instance_id(pattern: re.Pattern, name: str):
@@ -206,7 +242,11 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
     ]
     lines += [f"{K_PORT_PREFIX}{kind.upper()}={port}" for kind, port in instance["ports"].items()]
     protocols = instance.get("protocols", {})
-    ports = " ".join(f"{protocols.get(kind, 'tcp')}/{port}" for kind, port in instance["ports"].items())
+    # checked free at start (isaac-sim-ports): the ports the app itself opens, not a companion's
+    listens = instance.get("listens", list(instance["ports"]))
+    ports = " ".join(
+        f"{protocols.get(kind, 'tcp')}/{port}" for kind, port in instance["ports"].items() if kind in listens
+    )
     lines.append(f"{K_PORTS}={quote(ports)}")
     lines += [
         f"{K_GPU}={'' if instance.get('gpu') is None else instance['gpu']}",
@@ -226,29 +266,41 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
     return "\n".join(lines) + "\n"
 
 
-def render_unit(settings: dict, managed: str) -> str:
-    """The template unit isaac-sim@.service. Everything per instance comes from its env file."""
-    burst = settings["start_limit_burst"]
-    interval = burst * (settings["restart_sec"] + settings["ready_timeout"] + 30)
-    env = env_file("%i")
-    return f"""# {managed}
-# One Isaac Sim container per instance: systemctl start isaac-sim@2
-# The instance's settings live in {env}.
-[Unit]
-Description=Isaac Sim instance %i
-Requires=docker.service
-After=docker.service network-online.target
-Wants=network-online.target
-PartOf={TARGET}
-AssertPathExists={env}
-# Wide enough that {burst} failed starts, each up to the ready deadline apart, still count.
-StartLimitIntervalSec={interval}
-StartLimitBurst={burst}
+def render_companion_env(companion: dict, plan: dict, managed: str) -> str:
+    """The env file of one companion of one instance (a planned companion, see plan.py)."""
+    settings = plan["settings"]
+    i, name = companion["instance"], companion["name"]
+    own = " ".join(f"{companion['protocols'][p]}/{companion['ports'][p]}" for p in companion["own_ports"])
+    lines = [
+        f"# {managed}",
+        f"# Companion {name} of Isaac Sim instance {i}, read by {companion_unit(i, name)}.",
+        f"{K_INSTANCE}={i}",
+        f"{K_COMPANION}={quote(name)}",
+        f"{K_CONTAINER}={quote(companion_container(i, name))}",
+        f"{K_UNIT}={quote(companion_unit(i, name))}",
+        f"{K_IMAGE}={quote(companion['image'])}",
+        f"{K_PORTS}={quote(own)}",
+        f"{K_READY_TIMEOUT}={companion['ready_timeout']}",
+        # no ready line: ready once the container runs (and is healthy, with a healthcheck)
+        f"{K_READY_PATTERN}=",
+        f"{K_READY_MARKER}={quote(companion_marker(i, name))}",
+        f"{K_STOP_TIMEOUT}={companion['stop_timeout']}",
+        f"{K_HEALTH_INTERVAL}={companion['health_interval']}",
+        f"{K_UNHEALTHY_RESTART}={settings['unhealthy_restart'] if companion['health_interval'] else 0}",
+        f"{K_DOCKER_ARGS}={quote(join_args(companion['docker_args']))}",
+        f"{K_APP_ARGS}={quote(join_args(companion['app_args']))}",
+        "# Container environment (passed by name with docker run --env NAME)",
+    ]
+    lines += [f"{key}={quote(value)}" for key, value in companion["container_env"].items()]
+    return "\n".join(lines) + "\n"
 
-[Service]
+
+def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout) -> str:
+    """The [Service] section shared by instances and companions: everything from the env file."""
+    return f"""[Service]
 Type=simple
 EnvironmentFile={env}
-SyslogIdentifier={CONTAINER_PREFIX}%i
+SyslogIdentifier={name}
 # A container left by a crash or an unclean reboot would block the name.
 ExecStartPre=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
 # isaac-sim-run refuses to start while a port of the block is held (Kit would move to
@@ -261,14 +313,75 @@ ExecStop=-/usr/bin/docker stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}
 ExecStopPost=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
 ExecStopPost=-/bin/rm -f ${{{K_READY_MARKER}}}
 # Any exit, status 0 included, is restarted (6.x quits when a stream session ends);
-# only systemctl stop keeps an instance down.
+# only systemctl stop keeps it down.
 Restart=always
-RestartSec={settings["restart_sec"]}
-TimeoutStartSec={settings["ready_timeout"] + 30}
-TimeoutStopSec={settings["stop_timeout"] + 30}
+RestartSec={restart_sec}
+TimeoutStartSec={ready_timeout + 30}
+TimeoutStopSec={stop_timeout + 30}
+"""
 
+
+def _start_limit(settings: dict, ready_timeout: int) -> str:
+    burst = settings["start_limit_burst"]
+    interval = burst * (settings["restart_sec"] + ready_timeout + 30)
+    return f"""# Wide enough that {burst} failed starts, each up to the ready deadline apart, still count.
+StartLimitIntervalSec={interval}
+StartLimitBurst={burst}
+"""
+
+
+def render_unit(settings: dict, managed: str) -> str:
+    """The template unit isaac-sim@.service. Everything per instance comes from its env file."""
+    env = env_file("%i")
+    return f"""# {managed}
+# One Isaac Sim container per instance: systemctl start isaac-sim@2
+# The instance's settings live in {env}.
+[Unit]
+Description=Isaac Sim instance %i
+Requires=docker.service
+After=docker.service network-online.target
+Wants=network-online.target
+PartOf={TARGET}
+AssertPathExists={env}
+{_start_limit(settings, settings["ready_timeout"])}
+{_service(env, CONTAINER_PREFIX + "%i", settings["restart_sec"], settings["ready_timeout"], settings["stop_timeout"])}
 [Install]
 WantedBy={TARGET}
+"""
+
+
+def render_companion_unit(companion: dict, settings: dict, managed: str) -> str:
+    """The template unit of one companion, isaac-sim-NAME@.service: a unit per instance that
+    starts once its instance is ready (After= its unit, whose start ends at the readiness gate),
+    stops with it (BindsTo=), restarts with it (PartOf=) and is started by it (WantedBy=)."""
+    name = companion["name"]
+    env = companion_env_file("%i", name)
+    owner = unit("%i")
+    return f"""# {managed}
+# Companion {name} of each Isaac Sim instance: systemctl status {companion_unit("%i", name)}
+# The companion's settings for instance %i live in {env}.
+[Unit]
+Description=Isaac Sim instance %i: companion {name}
+BindsTo={owner}
+After={owner}
+PartOf={owner}
+AssertPathExists={env}
+# No start limit: when its instance restarts, systemd (252) counts the start that waits for the
+# companion to finish stopping once per step of the stop, and would leave it failed for good.
+# RestartSec paces a companion that crash-loops; its instance keeps its own limit.
+StartLimitIntervalSec=0
+
+{
+        _service(
+            env,
+            companion_container("%i", name),
+            settings["restart_sec"],
+            companion["ready_timeout"],
+            companion["stop_timeout"],
+        )
+    }
+[Install]
+WantedBy={owner}
 """
 
 

@@ -44,39 +44,77 @@ class Host:
         self.exists, self.sleep, self.now, self.wall = exists, sleep, now, wall
 
 
-def states(host: Host, ids) -> dict:
-    """{id: {ActiveState, SubState, NRestarts, Result, UnitFileState}} in one systemctl call."""
-    ids = list(ids)
-    if not ids:
+PROPS = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"
+
+
+def show(host: Host, units) -> dict:
+    """{unit: {property: value}} for the given units in one systemctl call ({} for a unit not shown)."""
+    units = list(units)
+    if not units:
         return {}
-    props = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"
-    _rc, out, _err = host.run(["systemctl", "show", "-p", props] + [layout.unit(i) for i in ids])
+    _rc, out, _err = host.run(["systemctl", "show", "-p", PROPS] + units)
     found = {}
     for block in re.split(r"\n\s*\n", out.strip()):
         fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-        i = layout.instance_id(layout.UNIT_RE, fields.get("Id", ""))
-        if i is not None:
-            found[i] = fields
-    return {i: found.get(i, {}) for i in ids}
+        if fields.get("Id"):
+            found[fields["Id"]] = fields
+    return {u: found.get(u, {}) for u in units}
+
+
+def states(host: Host, ids) -> dict:
+    """{id: {ActiveState, SubState, NRestarts, Result, UnitFileState}} in one systemctl call."""
+    ids = list(ids)
+    shown = show(host, [layout.unit(i) for i in ids])
+    return {i: shown[layout.unit(i)] for i in ids}
+
+
+def companion_units(companions: dict, ids=None) -> list:
+    """Units of the companions {id: [names]} of the instances `ids` (all by default)."""
+    return [
+        layout.companion_unit(i, name)
+        for i, names in sorted(companions.items())
+        if ids is None or i in ids
+        for name in names
+    ]
 
 
 def serving(state: dict) -> bool:
     return state.get("ActiveState") == "active"
 
 
-def _gate_reason(host: Host, i: int, since: float) -> str:
+def _gate_reason(host: Host, unit: str, since: float) -> str:
     """The readiness gate's own words about why the start failed, with the container's last
     lines the gate quoted ("| ..."), else systemd's result."""
-    _rc, out, _err = host.run(
-        ["journalctl", "-u", layout.unit(i), "--since", f"@{int(since)}", "-o", "cat", "--no-pager"]
-    )
+    _rc, out, _err = host.run(["journalctl", "-u", unit, "--since", f"@{int(since)}", "-o", "cat", "--no-pager"])
     lines = [line.strip() for line in out.splitlines()]
     for n in range(len(lines) - 1, -1, -1):
         if _GATE_WORDS.search(lines[n]) and not lines[n].startswith("|"):
             quoted = [q[1:].strip() for q in lines[n + 1 :] if q.startswith("|") and not _GATE_WORDS.search(q)]
             return lines[n] + (f" (last lines: {' / '.join(quoted[-3:])})" if quoted else "")
-    state = states(host, [i])[i]
+    state = show(host, [unit])[unit]
     return f"the unit did not start (ActiveState={state.get('ActiveState')}, Result={state.get('Result')})"
+
+
+def companions_up(host: Host, companions: dict) -> dict:
+    """{id: reason or None}: start the companions {id: [names]} of instances that are ready, all
+    together (each one's start ends at its own readiness gate); None when all of an instance's are up."""
+    units = companion_units(companions)
+    out = {i: None for i in companions}
+    if not units:
+        return out
+    since = host.wall()
+    # a deliberate start must not count against the crash-loop limit
+    host.run(["systemctl", "reset-failed"] + units)
+    host.run(["systemctl", "start"] + units)
+    shown = show(host, units)
+    for i, names in sorted(companions.items()):
+        for name in names:
+            unit = layout.companion_unit(i, name)
+            if out[i] is None and not (serving(shown[unit]) and host.exists(layout.companion_marker(i, name))):
+                out[i] = f"its companion {layout.companion_container(i, name)} did not start: " + _gate_reason(
+                    host, unit, since - 1
+                )
+    return out
 
 
 def _prepare_start(host: Host, ids, state: dict, renew=None):
@@ -89,29 +127,32 @@ def _prepare_start(host: Host, ids, state: dict, renew=None):
     host.run(["systemctl", "reset-failed"] + [layout.unit(i) for i in ids])
 
 
-def restart(host: Host, i: int, between=None) -> tuple:
-    """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it.
+def restart(host: Host, i: int, between=None, companions=()) -> tuple:
+    """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it,
+    then the instance's companions (names), each up and ready.
 
     between: called while the instance is stopped (its container gone), before it starts again.
     """
     _prepare_start(host, [i], states(host, [i]))
     start, since = host.now(), host.wall()
     if between is None:
+        # PartOf= restarts the companions that run; companions_up starts the others
         rc, _out, _err = host.run(["systemctl", "restart", layout.unit(i)])
     else:
         host.run(["systemctl", "stop", layout.unit(i)])
         between()
         rc, _out, _err = host.run(["systemctl", "start", layout.unit(i)])
-    seconds = host.now() - start
     if rc != 0:
-        return False, _gate_reason(host, i, since - 1), seconds
+        return False, _gate_reason(host, layout.unit(i), since - 1), host.now() - start
     if not host.exists(layout.marker(i)):
-        return False, "the unit is active but the readiness gate left no ready marker", seconds
-    return True, None, seconds
+        return False, "the unit is active but the readiness gate left no ready marker", host.now() - start
+    reason = companions_up(host, {i: list(companions)})[i]
+    return reason is None, reason, host.now() - start
 
 
-def start(host: Host, ids, renew=()) -> dict:
-    """{id: (ok, reason)}: start instances that are not serving, all at once; each ends ready or failed.
+def start(host: Host, ids, renew=(), companions=None) -> dict:
+    """{id: (ok, reason)}: start instances that are not serving, all at once; each ends ready or failed,
+    then the companions ({id: [names]}) of those that are ready.
 
     An instance already activating (coming back after a Docker restart, say) is waited for, unless
     it is in `renew` (its settings changed): then its start job, on the old settings, is stopped first.
@@ -128,7 +169,11 @@ def start(host: Host, ids, renew=()) -> dict:
         if serving(after[i]) and host.exists(layout.marker(i)):
             out[i] = (True, None)
         else:
-            out[i] = (False, _gate_reason(host, i, since - 1))
+            out[i] = (False, _gate_reason(host, layout.unit(i), since - 1))
+    ready = {i: list((companions or {}).get(i, ())) for i in ids if out[i][0]}
+    for i, reason in companions_up(host, ready).items():
+        if reason:
+            out[i] = (False, reason)
     return out
 
 
@@ -174,15 +219,18 @@ def stop(host: Host, ids) -> None:
         host.run(["systemctl", "stop"] + [layout.unit(i) for i in ids])
 
 
-def remove(host: Host, ids, purge=False, data_root=layout.DATA_ROOT) -> None:
-    """Stop, disable and forget instances; their caches, logs and data stay unless purge."""
+def remove(host: Host, ids, purge=False, data_root=layout.DATA_ROOT, companions=None) -> None:
+    """Stop, disable and forget instances and their companions ({id: [names]}); their caches, logs
+    and data stay unless purge."""
     ids = list(ids)
     if not ids:
         return
-    units = [layout.unit(i) for i in ids]
+    units = companion_units(companions or {}, ids) + [layout.unit(i) for i in ids]
     host.run(["systemctl", "disable", "--now"] + units)
     for i in ids:
         host.remove(layout.env_file(i))
+        for name in (companions or {}).get(i, ()):
+            host.remove(layout.companion_env_file(i, name))
         if purge:
             host.remove(layout.data_dir(i, data_root))
     host.run(["systemctl", "reset-failed"] + units)
@@ -270,40 +318,90 @@ def _enabled(state: dict) -> bool:
     return state.get("UnitFileState") in ("enabled", "enabled-runtime", "static", "indirect")
 
 
+def _instance_files(i: int, want: dict) -> dict:
+    """{path: text, or None for a file to remove}: the env files of instance i and of its companions."""
+    files = {layout.env_file(i): want["instances"][i]}
+    wanted = (want.get("companions") or {}).get(i, {})
+    for name, text in wanted.items():
+        files[layout.companion_env_file(i, name)] = text
+    for name in (want.get("companions_found") or {}).get(i, ()):
+        if name not in wanted:
+            files[layout.companion_env_file(i, name)] = None
+    return files
+
+
+def _names(files: dict, i: int) -> list:
+    """The companions an instance's file set has (those with a text)."""
+    names = []
+    for path, text in files.items():
+        match = layout.COMPANION_ENV_RE.match(path.rsplit("/", 1)[-1])
+        if text is not None and match and int(match.group(1)) == i:
+            names.append(match.group(2))
+    return sorted(names)
+
+
 def apply(host: Host, want: dict, check=False) -> dict:
     """Bring the host to `want`, never taking more than one serving instance down at a time.
 
-    want: {"files": {path: (text, mode)} shared by every instance (units, scripts),
-           "instances": {id: env text}, "env_mode": int, "remove": [ids], "purge": bool,
-           "data_root": str, "soak": seconds, "defer_running": bool}
-    With defer_running, a host where a serving instance would restart is left as it is
-    (deferred=True): the caller rolls it later, in canary batches.
+    want: {"files": {path: (text, mode), or (None, None) to remove} shared by every instance
+           (units, scripts), "instances": {id: env text}, "companions": {id: {name: env text}},
+           "companions_found": {id: [names]} (on the host now), "env_mode": int, "remove": [ids],
+           "purge": bool, "data_root": str, "soak": seconds, "defer_running": bool}
+    An instance changes when its env file or one of its companions' does; it changes with its
+    companions, as one. With defer_running, a host where a serving instance would restart is
+    left as it is (deferred=True): the caller rolls it later, in canary batches.
     """
-    desired = dict(sorted(want["instances"].items()))
+    desired = {i: _instance_files(i, want) for i in sorted(want["instances"])}
+    found = want.get("companions_found") or {}
     gone = sorted(want.get("remove") or [])
     state = states(host, list(desired) + gone)
-    shared = {p: f for p, f in want.get("files", {}).items() if host.read(p) != f[0] or host.mode(p) != f[1]}
-    current = {i: host.read(layout.env_file(i)) for i in desired}
-    new_env = {i: text for i, text in desired.items() if current[i] != text}
+    all_files = want.get("files", {})
+    shared = {p: f for p, f in all_files.items() if f[0] is not None and (host.read(p) != f[0] or host.mode(p) != f[1])}
+    stale = [p for p, f in all_files.items() if f[0] is None and host.read(p) is not None]
+    current = {i: {path: host.read(path) for path in files} for i, files in desired.items()}
+    changed_ids = {i for i in desired if current[i] != desired[i]}
+    wanted_companions = {i: _names(files, i) for i, files in desired.items()}
+    comp_state = show(host, companion_units(wanted_companions))
     to_start = [i for i in desired if not serving(state[i])]
-    to_roll = [i for i in desired if serving(state[i]) and (i in new_env or shared)]
+    to_roll = [i for i in desired if serving(state[i]) and (i in changed_ids or shared)]
     to_enable = [i for i in desired if not _enabled(state[i])]
+    enable_companions = [
+        (i, n)
+        for i, names in wanted_companions.items()
+        if i not in changed_ids
+        for n in names
+        if not _enabled(comp_state.get(layout.companion_unit(i, n), {}))
+    ]
+    # a companion down beside a serving instance that does not change: started, the instance left alone
+    revive = {
+        i: [n for n in names if not serving(comp_state.get(layout.companion_unit(i, n), {}))]
+        for i, names in wanted_companions.items()
+        if i not in to_start and i not in to_roll
+    }
+    revive = {i: names for i, names in revive.items() if names}
     _rc, target_state, _err = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
     target_enabled = target_state.strip() == "enabled"
+    main_env = {i: layout.env_file(i) for i in desired}
     steps, notes = port_order(
-        {i: ports_of(current[i]) for i in desired}, {i: ports_of(desired[i]) for i in desired}, to_roll, to_start
+        {i: ports_of(current[i][main_env[i]]) for i in desired},
+        {i: ports_of(desired[i][main_env[i]]) for i in desired},
+        to_roll,
+        to_start,
     )
     plan = {
-        "files": sorted(shared),
+        "files": sorted(shared) + sorted(stale),
         "start": to_start,
         "roll": to_roll,
         "remove": gone,
-        "enable": to_enable + ([] if target_enabled else [layout.TARGET]),
+        "enable": to_enable
+        + ([] if target_enabled else [layout.TARGET])
+        + [layout.companion_unit(i, n) for i, n in enable_companions],
+        "companions": {i: [layout.companion_unit(i, n) for n in names] for i, names in revive.items()},
         "order": [f"{kind} {' '.join(map(str, what)) if isinstance(what, list) else what}" for kind, what in steps],
         "notes": notes,
     }
     result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
-    changed = bool(shared or to_start or to_roll or gone or plan["enable"])
+    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive)
     if check or not changed:
         result["changed"] = changed
         return result
@@ -315,7 +413,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
         want["prepare"]()
     files = _Files(host)
     # scale-down first: it frees the ports and GPUs of the instances that go
-    remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT))
+    remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT), found)
     result["removed"] = gone
     for path, (text, mode) in shared.items():
         files.write(path, text, mode)
@@ -323,13 +421,32 @@ def apply(host: Host, want: dict, check=False) -> dict:
     if units_changed:
         host.run(["systemctl", "daemon-reload"])
 
+    def put(i, texts, mode_of):
+        """Instance i's file set as `texts`; companions that leave are disabled and stopped
+        while their unit file is still there, companions that come are enabled."""
+        before = _names({p: host.read(p) for p in texts}, i)
+        after = _names(texts, i)
+        leaving = [layout.companion_unit(i, n) for n in before if n not in after]
+        if leaving:
+            host.run(["systemctl", "disable", "--now"] + leaving)
+        for path, text in texts.items():
+            if text is None:
+                host.remove(path)
+            elif host.read(path) != text:
+                files.write(path, text, mode_of(path))
+        if after:
+            host.run(["systemctl", "enable"] + [layout.companion_unit(i, n) for n in after])
+
+    def write_new(i):
+        put(i, desired[i], lambda _path: want["env_mode"])
+
     def put_back(i):
-        """Previous settings of instance i (and the shared files), pinned to the previous image."""
-        env_path = layout.env_file(i)
-        if current[i] is None:
-            host.remove(env_path)
-        elif host.read(env_path) != current[i]:
-            host.write(env_path, pinned(host, current[i]), files.before.get(env_path, (None, want["env_mode"]))[1])
+        """Previous settings of instance i and its companions (and the shared files), pinned to the
+        previous image. Companions that came with the change leave while their unit file is there."""
+        old = {
+            path: (pinned(host, text) if path == main_env[i] and text else text) for path, text in current[i].items()
+        }
+        put(i, old, lambda path: files.before.get(path, (None, want["env_mode"]))[1] or want["env_mode"])
         if shared:
             files.restore(sorted(shared))
             if units_changed:
@@ -340,14 +457,15 @@ def apply(host: Host, want: dict, check=False) -> dict:
     def handover(i):
         """With a new container user (4.x root -> 5.x uid 1234), what the old one wrote is handed
         over while the instance is down: after its last write, before the new user's first."""
-        if current[i] is None or user_of(current[i]) == user_of(desired[i]) or not want.get("reown"):
+        old_env = current[i][main_env[i]]
+        if old_env is None or user_of(old_env) == user_of(desired[i][main_env[i]]) or not want.get("reown"):
             return None
         return lambda: want["reown"](i)
 
     def stop_here(failed, n):
         """The failure ends the apply: instances stopped for ports come back as they were."""
         if stopped:
-            start(host, stopped)
+            start(host, stopped, companions={i: _names(current[i], i) for i in stopped})
         later = [w for kind, w in steps[n + 1 :] if kind == "roll"]
         result.update(failed=failed, untouched=[i for i in later if i not in stopped] + stopped, changed=True)
         return result
@@ -360,24 +478,27 @@ def apply(host: Host, want: dict, check=False) -> dict:
         if kind == "start":
             # not serving: nothing to keep up, so all of them at once
             for i in what:
-                if i in new_env:
-                    files.write(layout.env_file(i), desired[i], want["env_mode"])
+                if i in changed_ids:
+                    write_new(i)
                 if handover(i):
                     handover(i)()
             stopped[:] = [i for i in stopped if i not in what]
-            for i, (ok, reason) in start(host, what, renew=set(new_env) | (set(what) if shared else set())).items():
+            renew = set(changed_ids) | (set(what) if shared else set())
+            outcome = start(host, what, renew=renew, companions={i: wanted_companions[i] for i in what})
+            for i, (ok, reason) in outcome.items():
                 if ok:
                     result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
                     continue
                 stop(host, [i])
+                was_new = current[i][main_env[i]] is None
                 put_back(i)
                 return stop_here(
                     {
                         "id": i,
                         "reason": reason,
                         # a new instance has nothing to go back to; it is stopped
-                        "reverted": None if current[i] is None else True,
-                        "reverted_to": None if current[i] is None else layout.parse(current[i]).get(layout.K_IMAGE),
+                        "reverted": None if was_new else True,
+                        "reverted_to": None if was_new else layout.parse(current[i][main_env[i]]).get(layout.K_IMAGE),
                         "revert_error": None,
                         "left": "stopped",
                     },
@@ -385,27 +506,27 @@ def apply(host: Host, want: dict, check=False) -> dict:
                 )
             continue
         i = what
-        if i in new_env:
-            files.write(layout.env_file(i), desired[i], want["env_mode"])
-        ok, reason, restart_s = restart(host, i, handover(i))
+        if i in changed_ids:
+            write_new(i)
+        ok, reason, restart_s = restart(host, i, handover(i), wanted_companions[i])
         soak_start = host.now()
         if ok:
             ok, reason = soak(host, i, want.get("soak", 0))
         soak_s = host.now() - soak_start
         if ok:
-            action = "apply" if i in new_env else "restart"
+            action = "apply" if i in changed_ids else "restart"
             result["done"].append(
                 {"id": i, "action": action, "restart_s": round(restart_s, 3), "soak_s": round(soak_s, 3)}
             )
             continue
         put_back(i)
-        back, back_reason, _seconds = restart(host, i)
+        back, back_reason, _seconds = restart(host, i, companions=_names(current[i], i))
         return stop_here(
             {
                 "id": i,
                 "reason": reason,
                 "reverted": back,
-                "reverted_to": layout.parse(current[i] or "").get(layout.K_IMAGE),
+                "reverted_to": layout.parse(current[i][main_env[i]] or "").get(layout.K_IMAGE),
                 "revert_error": back_reason,
                 "restart_s": round(restart_s, 3),
                 "left": "running" if back else "failed",
@@ -413,14 +534,33 @@ def apply(host: Host, want: dict, check=False) -> dict:
             n,
         )
 
+    if revive:
+        for i, reason in companions_up(host, revive).items():
+            if reason:
+                result.update(
+                    failed={"id": i, "reason": reason, "reverted": None, "left": "running"},
+                    changed=True,
+                )
+                return result
+            result["done"].append({"id": i, "action": "companions", "restart_s": 0.0, "soak_s": 0.0})
     if plan["enable"]:
-        host.run(["systemctl", "enable", layout.TARGET] + [layout.unit(i) for i in to_enable])
+        host.run(
+            ["systemctl", "enable", layout.TARGET]
+            + [layout.unit(i) for i in to_enable]
+            + [layout.companion_unit(i, n) for i, n in enable_companions]
+        )
+    # companion templates no instance uses any more: their units are gone, so now the files
+    for path in stale:
+        host.remove(path)
+    if stale:
+        host.run(["systemctl", "daemon-reload"])
     result["changed"] = True
     return result
 
 
-def restart_each(host: Host, ids, soak_seconds: float, check=False) -> dict:
-    """A rolling restart of a host: each instance in turn restarted, ready and soaked.
+def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=None) -> dict:
+    """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
+    companions ({id: [names]}).
 
     An instance that fails is restarted once more with the same settings (there is
     nothing older to go back to) and the restart stops there.
@@ -440,7 +580,8 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False) -> dict:
             }
             result["untouched"] = ids[n + 1 :]
             return result
-        ok, reason, restart_s = restart(host, i)
+        names = (companions or {}).get(i, ())
+        ok, reason, restart_s = restart(host, i, companions=names)
         soak_start = host.now()
         if ok:
             ok, reason = soak(host, i, soak_seconds)
@@ -457,7 +598,7 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False) -> dict:
         # the tag may have moved since the instance started: back to the image it ran
         if pinned(host, text) != text:
             host.write(layout.env_file(i), pinned(host, text), host.mode(layout.env_file(i)) or 0o600)
-        back, back_reason, _seconds = restart(host, i)
+        back, back_reason, _seconds = restart(host, i, companions=names)
         result["failed"] = {
             "id": i,
             "reason": reason,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
     ENV,
     KIT,
@@ -173,6 +173,41 @@ def _check_ports(release, blocks, bases, stride, held):
     return errors
 
 
+def _check_companion_ports(specs, blocks, stride, held) -> list:
+    """Errors for companion ports outside the port range, on another instance's or companion's
+    port, or held by a process that is not ours."""
+    errors = []
+    taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    for spec in specs:
+        for port_name, (proto, base) in companions.own_ports(spec).items():
+            where = f"{companions.VAR}[{spec['name']}].ports.{port_name}"
+            for i in blocks:
+                if not companions.wanted_on(spec, i):
+                    continue
+                port = base + i * stride
+                if not PORT_MIN <= port <= PORT_MAX:
+                    errors.append(
+                        f"{where}: instance {i}'s port {port} is outside {PORT_MIN}-{PORT_MAX}. Fix: choose a base "
+                        f"between {PORT_MIN} and {PORT_MAX} - (isaac_sim_instance_count - 1) * isaac_sim_port_stride."
+                    )
+                    continue
+                if port in taken:
+                    errors.append(
+                        f"{where}: instance {i}'s port {port} is also {taken[port]}'s port. Fix: move the base "
+                        f"{base} at least isaac_sim_instance_count * isaac_sim_port_stride ({len(blocks) * stride}) "
+                        "away from every other base."
+                    )
+                    continue
+                taken[port] = f"instance {i} companion {spec['name']} {port_name}"
+                owner = held.get((proto, port))
+                if owner is not None and not owner.get("ours"):
+                    errors.append(
+                        f"{where}: instance {i}'s port {port}/{proto} is already held on this host by "
+                        f"{owner.get('process') or 'another process'}. Fix: stop that process, or move the base."
+                    )
+    return errors
+
+
 def assign_gpus(count, gpu_count, gpu_map, exclusive):
     """({instance: gpu index}, errors). Round-robin unless the map says otherwise."""
     errors = []
@@ -309,7 +344,13 @@ def build(cfg: dict, host: dict) -> dict:
     bases = cfg.get("port_bases") or {}
     stride = cfg.get("port_stride", 1)
     blocks = port_blocks(release, max(count, 0), {k: v for k, v in bases.items() if k in profile["ports"]}, stride)
-    held = {(p["proto"], p["port"]): p for p in host.get("ports_held", [])}
+    # a port can be held twice (our viewer on the host's address, another process on 0.0.0.0):
+    # the foreign holder is the one that counts
+    held = {}
+    for p in host.get("ports_held", []):
+        key = (p["proto"], p["port"])
+        if key not in held or held[key].get("ours"):
+            held[key] = p
     errors += _check_ports(release, blocks, bases, stride, held)
 
     gpus = {}
@@ -326,12 +367,56 @@ def build(cfg: dict, host: dict) -> dict:
             "isaac_sim_gpu_map: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove the map."
         )
 
+    comp_specs = cfg.get("companions") or []
+    viewer_image = cfg.get("web_viewer_image") or ""
+    if viewer_image and "web_viewer" in profile["ports"]:
+        if parse_image(viewer_image) is None:
+            errors.append(
+                f"isaac_sim_web_viewer_image: {viewer_image!r} is not a valid image reference. "
+                "Fix: give the reference playbooks/web_viewer_image.yml built, "
+                "e.g. registry.lab:5000/isaac-sim/web-viewer:2.1.5."
+            )
+        if any(isinstance(c, dict) and c.get("name") == companions.VIEWER for c in comp_specs):
+            errors.append(
+                f"isaac_sim_companions: the name {companions.VIEWER} is the built-in web viewer's "
+                "(isaac_sim_web_viewer_image). Fix: rename that companion."
+            )
+        comp_specs = [companions.web_viewer(viewer_image, as_int(cfg["health_interval"]))] + list(comp_specs)
+    # {kind: True when the instance itself listens there} (web_viewer is kept for a companion)
+    release_ports = {kind: spec[2] is not None for kind, spec in profile["ports"].items()}
+    errors += companions.check(
+        comp_specs, release_ports, max(as_int(cfg["max_instances"]) or 0, 1), cfg.get("gpu_enabled")
+    )
+    if not errors:
+        errors += _check_companion_ports(comp_specs, blocks, stride, held)
+
     if errors:
         raise PlanError(errors)
 
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
     warnings = _needs(release, profile, memory, gpus, host)
     instances = [_instance(sized, profile, i, blocks[i], gpus.get(i)) for i in range(count)]
+    for inst in instances:
+        inst["companions"] = []
+        for spec in comp_specs:
+            if not companions.wanted_on(spec, inst["id"]):
+                continue
+            planned, comp_errors = companions.for_instance(
+                spec,
+                inst["id"],
+                inst["ports"],
+                inst["gpu"],
+                stride,
+                cfg.get("public_address") or "",
+                (profile["uid"], profile["gid"]),
+                data_root,
+                release_ports,
+            )
+            errors += comp_errors
+            inst["companions"].append(planned)
+            inst["dirs"] += planned["dirs"]
+    if errors:
+        raise PlanError(sorted(set(errors), key=errors.index))
     return {
         "release": release,
         "image": image,
@@ -345,6 +430,21 @@ def build(cfg: dict, host: dict) -> dict:
         "shm_size": sized["shm_size"],
         "settings": {name: as_int(cfg[name]) for name, _lowest, _what in SETTINGS},
         "layout": layout.as_dict(data_root),
+        # one unit template per companion name, with the timeouts it is started and stopped with
+        "companion_units": [
+            {
+                "name": spec["name"],
+                "ready_timeout": next(
+                    (c["ready_timeout"] for inst in instances for c in inst["companions"] if c["name"] == spec["name"]),
+                    companions.DEFAULT_READY_TIMEOUT,
+                ),
+                "stop_timeout": next(
+                    (c["stop_timeout"] for inst in instances for c in inst["companions"] if c["name"] == spec["name"]),
+                    companions.DEFAULT_STOP_TIMEOUT,
+                ),
+            }
+            for spec in comp_specs
+        ],
         "warnings": warnings,
     }
 
@@ -437,6 +537,8 @@ def _instance(cfg, profile, i, ports, gpu):
         "name": layout.container(i),
         "ports": ports,
         "protocols": {kind: profile["ports"][kind][0] for kind in ports},
+        # the ports Isaac Sim itself opens (web_viewer is kept for a companion)
+        "listens": [kind for kind in ports if profile["ports"][kind][2] is not None],
         "gpu": gpu,
         "root": root,
         "dirs": dirs,

@@ -226,6 +226,14 @@ instances:
       description: Memory, shm and GPU limits from its docker arguments.
       type: dict
       sample: {"memory": "8g", "shm_size": "2g", "gpus": "device=0"}
+    companions:
+      description: The instance's companions (its web viewer, and those of C(isaac_sim_companions)) - name,
+        unit, container_name, configured, state, ready, active_state, enabled, restarts, image, health, uptime_s,
+        container and ports. Their containers are never reported as strays.
+      type: list
+      elements: dict
+      sample: [{"name": "viewer", "unit": "isaac-sim-viewer@2.service", "state": "ready", "ready": true,
+                "health": "healthy", "restarts": 0, "ports": [{"proto": "tcp", "port": 8212}]}]
     logs:
       description: The last O(log_lines) journal lines, oldest first.
       returned: when O(log_lines) > 0

@@ -210,8 +210,20 @@ def _want(module, host):
             module.fail_json(msg=f"scripts: {name} is missing. Fix: pass the role's files/{name}.")
         text = p["scripts"][name]
         files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o755)
+    for unit in plan.get("companion_units", []):
+        files[os.path.join(layout.UNIT_DIR, layout.companion_template(unit["name"]))] = (
+            layout.render_companion_unit(unit, plan["settings"], p["managed"]),
+            0o644,
+        )
+    # templates of companions the plan no longer has: removed once their units are gone
+    for name in hostprobe.companion_templates(layout.UNIT_DIR):
+        files.setdefault(os.path.join(layout.UNIT_DIR, layout.companion_template(name)), (None, None))
     instances = {
         inst["id"]: layout.render_env(inst, plan, p["image_id"], p["secret_env"], p["managed"])
+        for inst in plan["instances"]
+    }
+    companions = {
+        inst["id"]: {c["name"]: layout.render_companion_env(c, plan, p["managed"]) for c in inst.get("companions", [])}
         for inst in plan["instances"]
     }
     gone = []
@@ -221,6 +233,8 @@ def _want(module, host):
     return {
         "files": files,
         "instances": instances,
+        "companions": companions,
+        "companions_found": hostprobe.existing_companions(layout.CONFIG_DIR),
         "env_mode": env_mode,
         "remove": gone,
         "purge": p["purge"],
@@ -267,6 +281,7 @@ def main():
     p = module.params
     host = _host(module)
     out = dict(changed=False, done=[], failed_instance=None, untouched=[])
+    found = hostprobe.existing_companions(layout.CONFIG_DIR)
 
     if p["action"] == "apply":
         want = _want(module, host)
@@ -304,13 +319,13 @@ def main():
         if diff:
             out["diff"] = diff
     elif p["action"] == "restart":
-        result = lifecycle.restart_each(host, p["ids"], p["soak_seconds"], check=module.check_mode)
+        result = lifecycle.restart_each(host, p["ids"], p["soak_seconds"], check=module.check_mode, companions=found)
     elif module.check_mode:
         result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
         out["changed"] = bool(p["ids"])
     elif p["action"] == "start":
         result = {"done": [], "failed": None, "untouched": []}
-        for i, (ok, reason) in lifecycle.start(host, p["ids"]).items():
+        for i, (ok, reason) in lifecycle.start(host, p["ids"], companions=found).items():
             if ok:
                 result["done"].append({"id": i, "action": "start"})
             elif result["failed"] is None:
@@ -320,7 +335,7 @@ def main():
         if p["action"] == "stop":
             lifecycle.stop(host, p["ids"])
         else:
-            lifecycle.remove(host, p["ids"], p["purge"], p["data_root"])
+            lifecycle.remove(host, p["ids"], p["purge"], p["data_root"], companions=found)
         result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
         out["changed"] = bool(p["ids"])
 

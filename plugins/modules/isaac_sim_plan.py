@@ -100,6 +100,24 @@ options:
     type: list
     elements: str
     default: []
+  companions:
+    description:
+      - Containers that belong to each instance (a viewer, a ROS 2 bridge, a recorder), each a unit of its own
+        started once its instance is ready and stopped and restarted with it. Each item has C(name) and
+        C(image), and may have C(command), C(entrypoint), C(env), C(ports) (name to a base port, placed
+        per instance like the instance's own, or the name of a port the release reserves for companions such as
+        C(web_viewer)), C(volumes), C(healthcheck), C(gpu), C(user), C(instances), C(ready_timeout),
+        C(stop_timeout) and C(docker_args). See the isaac_sim role's README.
+    type: list
+    elements: raw
+    default: []
+  web_viewer_image:
+    description:
+      - NVIDIA's web viewer image (built once by P(isaacsim.fleet.web_viewer_image#role)); for 6.x each instance
+        gets it as its companion C(viewer) on the block's C(web_viewer) port. Empty - no viewer, and no web viewer
+        URL is reported.
+    type: str
+    default: ""
   ready_timeout:
     description: Seconds an instance may take to print its ready line.
     type: raw
@@ -192,7 +210,7 @@ host:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, hostprobe, layout, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, fleet_status, hostprobe, layout, plan
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, default_image
 
 
@@ -229,6 +247,8 @@ def main():
             image_pull=dict(type="str", default="missing"),
             registry_login=dict(type="bool", default=False),
             check_host_ports=dict(type="bool", default=True),
+            companions=dict(type="list", elements="raw", default=[]),
+            web_viewer_image=dict(type="str", default=""),
             config_dir=dict(type="path", default="/etc/isaac-sim"),
             systemd_dir=dict(type="path", default="/etc/systemd/system"),
         ),
@@ -256,6 +276,18 @@ def main():
     if docker and image:
         rc, out, _err = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", image])
         host["image_present"], host["image_id"] = rc == 0, out.strip() if rc == 0 else None
+    # companion images not on the host yet: the role pulls them with the instance's image
+    host["companion_images_missing"] = []
+    wanted_images = [c.get("image") for c in p["companions"] if isinstance(c, dict) and c.get("image")]
+    if p["web_viewer_image"] and p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]:
+        wanted_images.insert(0, p["web_viewer_image"])
+    for ref in dict.fromkeys(str(r) for r in wanted_images):
+        present = False
+        if docker:
+            rc, _out, _err = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", ref])
+            present = rc == 0
+        if not present:
+            host["companion_images_missing"].append(ref)
     host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
     # instances serving now: a Docker restart on this host waits for the canary batches
     systemctl = module.get_bin_path("systemctl")
@@ -269,6 +301,9 @@ def main():
         profile = RELEASES[p["release"]]["ports"]
         blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), p["port_bases"], max(p["port_stride"], 1))
         wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
+        for spec in p["companions"] if isinstance(p["companions"], list) else []:
+            for proto, base in companions.own_ports(spec if isinstance(spec, dict) else {}).values():
+                wanted |= {(proto, base + i * max(p["port_stride"], 1)) for i in blocks}
 
         def our_ids():
             if not docker:

@@ -140,8 +140,14 @@ def test_status_playbook_prints_the_table_and_writes_json(host, tmp_path, ip):
     table = (out / "status.txt").read_text().splitlines()
     assert table[0].split() == ["HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL"]
     rows = [line.split() for line in table[1:-1]]
+    # each instance, then its web viewer on a line of its own
     assert [(r[0], r[1], r[2], r[3], r[-1]) for r in rows] == [
-        (testbed.name(host), str(i), "ready", "yes", f"{ip}:{49100 + i}") for i in range(INSTANCES)
+        row
+        for i in range(INSTANCES)
+        for row in (
+            (testbed.name(host), str(i), "ready", "yes", f"{ip}:{49100 + i}"),
+            (testbed.name(host), f"{i}/viewer", "ready", "yes", f"{8210 + i}/tcp"),
+        )
     ]
     assert table[0] in run.stdout  # also printed by the play
     report = json.loads((out / "status.json").read_text())

@@ -82,16 +82,22 @@ def test_more_instances_than_gpus(host):
 
 
 def test_a_port_held_by_another_process(host):
-    sh(host, "systemd-run --unit=port-squatter python3 -m http.server 8213")
+    # the signal port a fifth instance would get (every port of the four is held by them and their viewers)
+    sh(host, "systemd-run --unit=port-squatter python3 -m http.server 49104")
 
     def listening():
-        return sh(host, "ss -Hltn 'sport = :8213'").stdout.strip()
+        return sh(host, "ss -Hltn 'sport = :49104'").stdout.strip()
 
     testbed.wait_for(listening, timeout=20, what="squatter")
     try:
-        assert_rejected(host, {}, "port 8213/tcp is already held on this host by python3", "isaac_sim_port_bases")
+        assert_rejected(
+            host,
+            {"isaac_sim_instance_count": 5},
+            "port 49104/tcp is already held on this host by python3",
+            "isaac_sim_port_bases",
+        )
     finally:
-        sh(host, "systemctl stop port-squatter", check=False)
+        sh(host, "systemctl stop port-squatter; systemctl reset-failed port-squatter", check=False)
 
 
 def test_check_mode_on_a_fresh_host_reports_changes_and_changes_nothing(tmp_path):

@@ -17,8 +17,11 @@ def test_endpoints_5x_have_the_api_port():
 
 
 def test_endpoints_6x():
-    eps = endpoints.endpoints("6.x", {"signal": 49101, "stream": 47999, "web_viewer": 8211}, "gpu-3")
+    block = {"signal": 49101, "stream": 47999, "web_viewer": 8211}
+    eps = endpoints.endpoints("6.x", block, "gpu-3", served=[8211])
     assert eps == {"signal": "gpu-3:49101", "stream": "gpu-3:47999/udp", "web_viewer": "http://gpu-3:8211/"}
+    # no viewer listens on the block's web-viewer port: no URL names it
+    assert "web_viewer" not in endpoints.endpoints("6.x", block, "gpu-3")
 
 
 def test_summary_lines_one_per_instance():

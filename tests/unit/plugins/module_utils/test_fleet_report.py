@@ -60,3 +60,22 @@ def test_prometheus_label_values_are_escaped():
     result = host_result()
     result["instances"][0]["image"] = 'reg/x:"quoted"\\'
     assert 'image="reg/x:\\"quoted\\"\\\\"' in fleet_report.prometheus(result)
+
+
+def test_table_lists_each_companion_under_its_instance():
+    result = host_result()
+    result["instances"][1]["companions"] = [
+        {
+            "name": "viewer",
+            "state": "ready",
+            "ready": True,
+            "configured": True,
+            "uptime_s": 65,
+            "restarts": 1,
+            "ports": [{"proto": "tcp", "port": 8211}],
+        },
+    ]
+    lines = fleet_report.table(fleet_report.build({"gpu-node-1": result}, ["gpu-node-1"]))
+    rows = [line.split() for line in lines[1:-1]]
+    assert [r[1] for r in rows] == ["0", "1", "1/viewer", "2", "3", "9"]
+    assert rows[2] == ["gpu-node-1", "1/viewer", "ready", "yes", "1m05s", "1", "-", "8211/tcp"]

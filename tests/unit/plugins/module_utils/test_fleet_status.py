@@ -32,7 +32,16 @@ def test_systemctl_show_one_block_per_unit():
 def test_systemctl_show_asks_once_for_configured_and_loaded_units():
     argv = fleet_status.systemctl_show_argv([0, 1, 7])
     assert argv[:2] == ["systemctl", "show"]
-    assert argv[-4:] == ["isaac-sim@0.service", "isaac-sim@1.service", "isaac-sim@7.service", "isaac-sim@*.service"]
+    assert argv[-5:] == [
+        "isaac-sim@0.service",
+        "isaac-sim@1.service",
+        "isaac-sim@7.service",
+        "isaac-sim@*.service",
+        "isaac-sim-*@*.service",
+    ]
+    # the companions' units in the same call, by name and by pattern
+    argv = fleet_status.systemctl_show_argv([2], [(2, "viewer")])
+    assert argv[-3:] == ["isaac-sim@*.service", "isaac-sim-viewer@2.service", "isaac-sim-*@*.service"]
     assert "NRestarts" in argv[argv.index("-p") + 1]
 
 
@@ -52,11 +61,10 @@ def test_ready_instance_has_urls_ports_and_limits():
     assert r["ports"] == {"signal": 49102, "stream": 48000, "web_viewer": 8212}
     # the address the instance was deployed with wins over the host default
     assert r["public_address"] == "172.17.0.2"
-    assert r["urls"] == {
-        "signal": "172.17.0.2:49102",
-        "stream": "172.17.0.2:48000/udp",
-        "web_viewer": "http://172.17.0.2:8212/",
-    }
+    # no viewer beside it: the block's web-viewer port is not reported
+    assert r["urls"] == {"signal": "172.17.0.2:49102", "stream": "172.17.0.2:48000/udp"}
+    with_viewer = records(companion_envs={(2, "viewer"): {"ISAAC_SIM_PORTS": "tcp/8212"}})["isaac-sim-2"]
+    assert with_viewer["urls"]["web_viewer"] == "http://172.17.0.2:8212/"
     assert r["limits"] == {"memory": "1g", "shm_size": "256m"}
     assert r["enabled"] and r["restarts"] == 0 and r["release"] == "6.x"
     assert r["active_since"] == int(NOW - (11900.0 - 11695.598676))
@@ -289,3 +297,45 @@ def test_a_host_without_the_collection_is_not_deployed(tmp_path):
 def test_default_ipv4_is_an_address():
     parts = fleet_status.default_ipv4().split(".")
     assert len(parts) == 4 and all(p.isdigit() for p in parts)
+
+
+def test_companions_show_under_their_instance_never_as_strays():
+    text = (
+        "Id=isaac-sim-viewer@1.service\nLoadState=loaded\nActiveState=active\nSubState=running\n"
+        "UnitFileState=enabled\nNRestarts=2\n\n"
+        "Id=isaac-sim-rec@1.service\nLoadState=loaded\nActiveState=failed\nSubState=failed\nUnitFileState=enabled\n"
+    )
+    units = fleet_status.parse_companion_units(text)
+    assert set(units) == {(1, "viewer"), (1, "rec")}
+    listed = [
+        {
+            "Id": "c" * 64,
+            "Names": ["/isaac-sim-1-viewer"],
+            "State": "running",
+            "Status": "Up 5 minutes (healthy)",
+            "Created": NOW - 300,
+            "Image": "reg/viewer:1",
+            "ImageID": "sha256:v",
+            "Labels": {"org.isaacsim.fleet.instance": "1", "org.isaacsim.fleet.companion": "viewer"},
+        }
+    ]
+    found = dict(containers(), **fleet_status.parse_containers(listed, [], NOW))
+    records = build_records(
+        containers=found,
+        companion_envs={
+            (1, "viewer"): {"ISAAC_SIM_IMAGE": "reg/viewer:1", "ISAAC_SIM_PORTS": "tcp/8211"},
+            (1, "rec"): {"ISAAC_SIM_IMAGE": "reg/rec:1", "ISAAC_SIM_PORTS": ""},
+        },
+        companion_units=units,
+        companion_markers={(1, "viewer")},
+    )
+    assert not any(r["name"] == "isaac-sim-1-viewer" for r in records)
+    assert fleet_status.summarize(records)["stray"] == sum(1 for r in build_records() if r["stray"])
+    inst = next(r for r in records if r["id"] == 1)
+    by_name = {c["name"]: c for c in inst["companions"]}
+    viewer, rec = by_name["viewer"], by_name["rec"]
+    assert viewer["state"] == "ready" and viewer["health"] == "healthy" and viewer["restarts"] == 2
+    assert viewer["unit"] == "isaac-sim-viewer@1.service" and viewer["ports"] == [{"proto": "tcp", "port": 8211}]
+    assert viewer["uptime_s"] == 300
+    assert rec["state"] == "failed" and not rec["ready"] and rec["configured"]
+    assert next(r for r in records if r["id"] == 0)["companions"] == []

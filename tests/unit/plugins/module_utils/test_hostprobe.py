@@ -96,3 +96,22 @@ def test_existing_instances(tmp_path):
     (conf / "instance-x.env").write_text("")
     os.symlink("/nowhere", wants / "isaac-sim@5.service")
     assert hostprobe.existing_instances(str(conf), str(wants)) == [0, 1, 3, 5]
+
+
+def test_existing_companions_and_their_templates(tmp_path):
+    conf, units = tmp_path / "etc", tmp_path / "units"
+    conf.mkdir()
+    units.mkdir()
+    for name in (
+        "instance-0.env",
+        "instance-0.viewer.env",
+        "instance-0.ros-bridge.env",
+        "instance-3.viewer.env",
+        "instance-1.Bad.env",
+        "notes.env",
+    ):
+        (conf / name).write_text("")
+    for name in ("isaac-sim@.service", "isaac-sim-viewer@.service", "isaac-sim-metrics.service", "isaac-sim.target"):
+        (units / name).write_text("")
+    assert hostprobe.existing_companions(str(conf)) == {0: ["ros-bridge", "viewer"], 3: ["viewer"]}
+    assert hostprobe.companion_templates(str(units)) == ["viewer"]

@@ -41,6 +41,9 @@ class ScriptedHost:
             self.files[GATE] = ("gate v1\n", 0o755)
         self.target = "enabled" if running else "disabled"
         self.markers = {i for i in range(n) if running}
+        # companions: {(id, name): unit state}; ready markers {(id, name)}
+        self.comps = {}
+        self.comp_markers = set()
         self.tags = tags or {"reg/isaac-sim:5.0.0": "sha256:old"}
         self.clock = 1000.0
         self.log = []
@@ -51,7 +54,8 @@ class ScriptedHost:
             self.write,
             self.remove,
             lambda p: self.files.get(p, (None, None))[1],
-            lambda p: any(p == layout.marker(i) for i in self.markers),
+            lambda p: any(p == layout.marker(i) for i in self.markers)
+            or any(p == layout.companion_marker(i, n) for i, n in self.comp_markers),
             self.sleep,
             lambda: self.clock,
             lambda: 1795000000 + self.clock,
@@ -92,9 +96,58 @@ class ScriptedHost:
         self.markers.add(i)
         return True
 
+    def comp(self, i, name):
+        return self.comps.setdefault(
+            (i, name), {"ActiveState": "inactive", "SubState": "dead", "NRestarts": 0, "UnitFileState": "disabled"}
+        )
+
+    def _start_comp(self, i, name):
+        """A companion starts when its instance serves and its image is not a broken one."""
+        c = self.comp(i, name)
+        text = self.files.get(layout.companion_env_file(i, name), ("", 0))[0] or ""
+        if self.units.get(i, {}).get("ActiveState") == "active" and "broken" not in text and text:
+            c.update(ActiveState="active", SubState="running")
+            self.comp_markers.add((i, name))
+            return True
+        c.update(ActiveState="failed", SubState="failed")
+        self.comp_markers.discard((i, name))
+        self.journal.setdefault(layout.companion_unit(i, name), []).append(
+            f"{layout.companion_container(i, name)} stopped before it was ready"
+        )
+        return False
+
+    def _stop_comps(self, i):
+        """BindsTo=: an instance that stops takes its companions down."""
+        for (j, name), c in self.comps.items():
+            if j == i and c["ActiveState"] == "active":
+                c.update(ActiveState="inactive", SubState="dead")
+                self.comp_markers.discard((j, name))
+
     def run(self, argv):
         self.log.append(" ".join(argv))
         ids = [layout.instance_id(layout.UNIT_RE, a) for a in argv if layout.instance_id(layout.UNIT_RE, a) is not None]
+        comps = [
+            (int(m.group(2)), m.group(1)) for m in (layout.COMPANION_UNIT_RE.match(a) for a in argv) if m is not None
+        ]
+        if comps and argv[:2] == ["systemctl", "show"]:
+            blocks = [
+                f"Id={layout.companion_unit(i, n)}\n" + "".join(f"{k}={v}\n" for k, v in self.comp(i, n).items())
+                for i, n in comps
+            ]
+            return 0, "\n".join(blocks), ""
+        if comps and argv[:2] == ["systemctl", "start"]:
+            started = [self._start_comp(i, n) for i, n in comps]  # every one, as systemd does
+            ok = all(started)
+            return (0, "", "") if ok else (1, "", "Job failed")
+        if comps and argv[:2] == ["systemctl", "enable"]:
+            for i, n in comps:
+                self.comp(i, n)["UnitFileState"] = "enabled"
+        if comps and argv[:3] == ["systemctl", "disable", "--now"]:
+            for i, n in comps:
+                self.comp(i, n).update(ActiveState="inactive", SubState="dead", UnitFileState="disabled")
+                self.comp_markers.discard((i, n))
+        if argv[0] == "journalctl" and layout.COMPANION_UNIT_RE.match(argv[2]):
+            return 0, "\n".join(self.journal.get(argv[2], [])), ""
         if argv[:2] == ["systemctl", "show"] and layout.TARGET in argv:
             return 0, self.target + "\n", ""
         if argv[:2] == ["systemctl", "show"]:
@@ -113,11 +166,15 @@ class ScriptedHost:
                 blocks.append(f"Id={layout.unit(i)}\n" + "".join(f"{k}={v}\n" for k, v in u.items() if k[0].isupper()))
             return 0, "\n".join(blocks), ""
         if argv[:2] in (["systemctl", "restart"], ["systemctl", "start"]):
+            if argv[1] == "restart":
+                for i in ids:
+                    self._stop_comps(i)
             started = [self._start(i) for i in ids]  # every one, not up to the first failure
             ok = all(started)
             return (0, "", "") if ok else (1, "", "Job for isaac-sim@.service failed")
         if argv[:2] == ["systemctl", "stop"] or argv[:3] == ["systemctl", "disable", "--now"]:
             for i in ids:
+                self._stop_comps(i)
                 self.units[i].update(ActiveState="inactive", SubState="dead")
                 self.markers.discard(i)
                 if argv[1] == "disable":
@@ -364,3 +421,161 @@ def test_a_new_container_user_gets_the_caches_while_the_instance_is_down():
     same = ScriptedHost(1)
     lifecycle.apply(same.host, want({0: NEW}, reown=reown))
     assert handed == [0, 1] and same.commands("restart") == ["systemctl restart isaac-sim@0.service"]
+
+
+# --- companions: an instance and its companions change as one ---
+
+VIEWER_UNIT = "/etc/systemd/system/isaac-sim-viewer@.service"
+VIEWER = f"{layout.K_IMAGE}={layout.quote('reg/viewer:1')}\n"
+VIEWER_2 = f"{layout.K_IMAGE}={layout.quote('reg/viewer:2')}\n"
+BROKEN = f"{layout.K_IMAGE}={layout.quote('reg/viewer:broken')}\n"
+
+
+def with_viewer(n=2, running=True):
+    """A host whose instances each run the viewer companion."""
+    h = ScriptedHost(n, running=running)
+    if running:
+        h.files[VIEWER_UNIT] = ("viewer unit v1\n", 0o644)
+        for i in range(n):
+            h.files[layout.companion_env_file(i, "viewer")] = (VIEWER, 0o644)
+            h.comps[(i, "viewer")] = {
+                "ActiveState": "active",
+                "SubState": "running",
+                "NRestarts": 0,
+                "UnitFileState": "enabled",
+            }
+            h.comp_markers.add((i, "viewer"))
+    return h
+
+
+def viewer_want(instances, comps, found=None, files=None, **over):
+    shared = files or {
+        UNIT_FILE: ("unit v1\n", 0o644),
+        GATE: ("gate v1\n", 0o755),
+        VIEWER_UNIT: ("viewer unit v1\n", 0o644),
+    }
+    return want(instances, files=shared, companions=comps, companions_found=found or {}, **over)
+
+
+def test_a_fresh_instance_starts_first_then_its_companions_all_together_enabled():
+    h = with_viewer(2, running=False)
+    result = lifecycle.apply(h.host, viewer_want({0: NEW, 1: NEW}, {0: {"viewer": VIEWER}, 1: {"viewer": VIEWER}}))
+    assert result["failed"] is None
+    starts = h.commands("start")
+    assert starts == [
+        "systemctl start isaac-sim@0.service isaac-sim@1.service",
+        "systemctl start isaac-sim-viewer@0.service isaac-sim-viewer@1.service",
+    ]
+    # enabled before the start: the instance's unit wants it (WantedBy=), so a reboot brings it back
+    assert h.log.index("systemctl enable isaac-sim-viewer@0.service") < h.log.index(starts[0])
+    assert all(c["ActiveState"] == "active" and c["UnitFileState"] == "enabled" for c in h.comps.values())
+
+
+def test_a_changed_companion_rolls_its_instance_and_nothing_is_done_when_all_is_current():
+    h = with_viewer(2)
+    same = lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD, 1: OLD}, {0: {"viewer": VIEWER}, 1: {"viewer": VIEWER}}, {0: ["viewer"], 1: ["viewer"]}),
+    )
+    assert not same["changed"]
+    result = lifecycle.apply(
+        h.host,
+        viewer_want(
+            {0: OLD, 1: OLD}, {0: {"viewer": VIEWER_2}, 1: {"viewer": VIEWER_2}}, {0: ["viewer"], 1: ["viewer"]}
+        ),
+    )
+    assert result["failed"] is None and result["plan"]["roll"] == [0, 1]
+    assert h.commands("restart") == ["systemctl restart isaac-sim@0.service", "systemctl restart isaac-sim@1.service"]
+    assert h.files[layout.companion_env_file(1, "viewer")][0] == VIEWER_2
+    assert h.comps[(1, "viewer")]["ActiveState"] == "active"
+
+
+def test_a_companion_that_does_not_start_reverts_its_instance_and_stops_the_roll():
+    h = with_viewer(3)
+    result = lifecycle.apply(
+        h.host,
+        viewer_want(
+            {i: NEW for i in range(3)},
+            {i: {"viewer": BROKEN} for i in range(3)},
+            {i: ["viewer"] for i in range(3)},
+        ),
+    )
+    failed = result["failed"]
+    assert failed["id"] == 0 and "companion isaac-sim-0-viewer did not start" in failed["reason"]
+    assert "stopped before it was ready" in failed["reason"]
+    assert failed["reverted"] is True and failed["left"] == "running" and result["untouched"] == [1, 2]
+    # the instance and its companion are back on their previous files, running
+    assert h.files[layout.env_file(0)][0] == OLD and h.files[layout.companion_env_file(0, "viewer")][0] == VIEWER
+    assert h.comps[(0, "viewer")]["ActiveState"] == "active" and h.units[0]["ActiveState"] == "active"
+    assert h.files[layout.env_file(1)][0] == OLD
+
+
+def test_a_companion_taken_away_is_stopped_and_disabled_before_its_file_and_template_go():
+    h = with_viewer(2)
+    result = lifecycle.apply(
+        h.host,
+        want(
+            {0: OLD, 1: OLD},
+            files={UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755), VIEWER_UNIT: (None, None)},
+            companions={},
+            companions_found={0: ["viewer"], 1: ["viewer"]},
+        ),
+    )
+    assert result["failed"] is None and result["plan"]["roll"] == [0, 1]
+    disable = h.log.index("systemctl disable --now isaac-sim-viewer@0.service")
+    assert disable < h.log.index(f"rm {layout.companion_env_file(0, 'viewer')}")
+    assert layout.companion_env_file(1, "viewer") not in h.files
+    # the template goes last, once no instance has the companion
+    assert VIEWER_UNIT not in h.files
+    assert h.log.index(f"rm {VIEWER_UNIT}") > h.log.index("systemctl restart isaac-sim@1.service")
+    assert all(c["ActiveState"] == "inactive" and c["UnitFileState"] == "disabled" for c in h.comps.values())
+
+
+def test_a_companion_down_beside_a_serving_instance_is_started_without_restarting_the_instance():
+    h = with_viewer(2)
+    h.comps[(1, "viewer")].update(ActiveState="failed", SubState="failed")
+    h.comp_markers.discard((1, "viewer"))
+    result = lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD, 1: OLD}, {0: {"viewer": VIEWER}, 1: {"viewer": VIEWER}}, {0: ["viewer"], 1: ["viewer"]}),
+    )
+    assert result["failed"] is None and result["changed"]
+    assert result["plan"]["companions"] == {1: ["isaac-sim-viewer@1.service"]}
+    assert h.commands("restart") == [] and h.commands("start") == ["systemctl start isaac-sim-viewer@1.service"]
+    assert h.comps[(1, "viewer")]["ActiveState"] == "active"
+
+
+def test_scale_down_takes_the_companions_with_their_instance():
+    h = with_viewer(3)
+    lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD}, {0: {"viewer": VIEWER}}, {i: ["viewer"] for i in range(3)}, remove=[1, 2]),
+    )
+    assert (
+        "systemctl disable --now isaac-sim-viewer@1.service isaac-sim-viewer@2.service isaac-sim@1.service "
+        "isaac-sim@2.service" in h.log
+    )
+    assert layout.companion_env_file(2, "viewer") not in h.files and layout.companion_env_file(0, "viewer") in h.files
+    assert VIEWER_UNIT in h.files
+
+
+def test_a_rolling_restart_brings_each_instance_back_with_its_companions():
+    h = with_viewer(2)
+    result = lifecycle.restart_each(h.host, [0, 1], 0, companions={0: ["viewer"], 1: ["viewer"]})
+    assert result["failed"] is None
+    assert h.log.index("systemctl start isaac-sim-viewer@0.service") < h.log.index(
+        "systemctl restart isaac-sim@1.service"
+    )
+    assert all(c["ActiveState"] == "active" for c in h.comps.values())
+
+
+def test_a_new_companion_that_fails_leaves_before_its_new_template_is_taken_back():
+    h = ScriptedHost(2)
+    result = lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD, 1: OLD}, {0: {"viewer": BROKEN}, 1: {"viewer": BROKEN}}),
+    )
+    assert result["failed"]["id"] == 0 and result["untouched"] == [1]
+    assert h.log.index("systemctl disable --now isaac-sim-viewer@0.service") < h.log.index(f"rm {VIEWER_UNIT}")
+    assert VIEWER_UNIT not in h.files and layout.companion_env_file(0, "viewer") not in h.files
+    assert h.units[0]["ActiveState"] == "active"

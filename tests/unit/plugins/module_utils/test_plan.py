@@ -98,6 +98,9 @@ def test_port_held_by_a_foreign_process_is_refused_but_ours_is_not():
     plan.build(cfg(), dict(HOST, ports_held=[ours]))
     # a UDP socket does not block a TCP port of the same number
     plan.build(cfg(), dict(HOST, ports_held=[dict(foreign, proto="udp")]))
+    # held twice (our viewer on the host's address, another process on 0.0.0.0): refused, in either order
+    for both in ([foreign, ours], [ours, foreign]):
+        assert "held on this host by nginx" in errors_of(cfg(), dict(HOST, ports_held=both))[0]
 
 
 def test_gpus_round_robin_and_map():

@@ -1,0 +1,119 @@
+"""NVIDIA's web viewer beside each 6.x instance (the built-in companion `viewer`).
+
+The scenario's inventory (inventory/demo) gives isaac_sim_web_viewer_image: the stand-in viewer
+(tests/fixtures/web-viewer) that tools/bootstrap built and pushed to the local registry. The
+image is one for every instance: each viewer is told its instance's address and ports when it
+starts. The last test builds the image through the web_viewer_image role on the test host.
+"""
+
+import subprocess
+import urllib.request
+
+import pytest
+import testbed
+from browser import chromium, console_errors
+from testbed import INSTANCES, by_name, container_id, sh, unit_show, wait_for
+
+FIXTURE = testbed.ROOT / "tests" / "fixtures" / "web-viewer"
+REGISTRY_KEY = (testbed.ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+
+
+@pytest.fixture()
+def ip(host):
+    return testbed.host_ip(host)
+
+
+def fetch(url: str) -> str:
+    with urllib.request.urlopen(url, timeout=3) as response:
+        return response.read().decode()
+
+
+def test_each_instance_has_its_viewer_bound_to_its_address_and_told_its_ports(host, ip):
+    status = testbed.info(host)
+    for i in range(INSTANCES):
+        inst = by_name(status)[f"isaac-sim-{i}"]
+        assert inst["urls"]["web_viewer"] == f"http://{ip}:{8210 + i}/"
+        [viewer] = inst["companions"]
+        assert viewer["name"] == "viewer" and viewer["state"] == "ready" and viewer["health"] == "healthy"
+        assert unit_show(host, f"isaac-sim-viewer@{i}.service")["ActiveState"] == "active"
+        # every reported URL answers, and the page is configured with this instance's ports
+        assert "Isaac Sim web viewer" in fetch(inst["urls"]["web_viewer"])
+        config = fetch(f"http://{ip}:{8210 + i}/stream-config.js")
+        assert config.strip() == (
+            f'window.ISAACSIM_STREAM = {{"host": "{ip}", "signalPort": {49100 + i}, "streamPort": {47998 + i}}};'
+        )
+        # bound to the instance's address, never to every interface
+        listening = sh(host, f"ss -Hltn 'sport = :{8210 + i}'").stdout.split()
+        assert f"{ip}:{8210 + i}" in listening and f"0.0.0.0:{8210 + i}" not in listening
+        # as NVIDIA runs it: its user, no new privileges
+        user = sh(
+            host, f"docker inspect -f '{{{{.Config.User}}}} {{{{.HostConfig.SecurityOpt}}}}' isaac-sim-{i}-viewer"
+        )
+        assert user.stdout.strip() == "1234:1234 [no-new-privileges]"
+    # one image for all of them
+    images = {sh(host, f"docker inspect -f '{{{{.Image}}}}' isaac-sim-{i}-viewer").stdout for i in range(INSTANCES)}
+    assert len(images) == 1
+
+
+def test_a_person_opening_each_viewer_sees_the_page_configured_for_that_instance(host, ip):
+    with chromium() as driver:
+        for i in range(INSTANCES):
+            driver.get(f"http://{ip}:{8210 + i}/")
+            wait_for(
+                lambda: driver.find_element("tag name", "body").get_attribute("data-configured") == "yes",
+                timeout=10,
+                what=f"viewer {i} configured",
+            )
+            assert driver.find_element("id", "signal").text == f"{ip}:{49100 + i}"
+            assert driver.find_element("id", "media").text == f"{ip}:{47998 + i}/udp"
+            assert console_errors(driver) == []
+
+
+def test_a_viewer_restarts_with_its_instance(host, ip):
+    before = container_id(host, "isaac-sim-3-viewer")
+    entered = int(sh(host, "systemctl show -p ActiveEnterTimestampMonotonic --value isaac-sim@3").stdout)
+    ok = testbed.run_playbook(
+        host, {"isaac_sim_action": "restart", "isaac_sim_instances_selected": [3]}, playbook="playbooks/instance.yml"
+    )
+    assert ok.returncode == 0, ok.stdout[-3000:]
+    assert int(sh(host, "systemctl show -p ActiveEnterTimestampMonotonic --value isaac-sim@3").stdout) > entered
+    after = container_id(host, "isaac-sim-3-viewer")
+    assert after and after != before
+    assert "Isaac Sim web viewer" in fetch(f"http://{ip}:8213/")
+
+
+def test_the_role_builds_the_image_once_on_one_host_and_pushes_it_to_the_registry(host):
+    ref = testbed.registry_image(host, "6.0.1").replace("isaac-sim-standin:6.0.1", "isaac-sim-web-viewer:built-here")
+    extra = {
+        "isaac_sim_web_viewer_image": ref,
+        "web_viewer_image_recipe_dir": str(FIXTURE),
+        # the stand-in's base: the stand-in Isaac Sim image the host has (NVIDIA's base cannot be pulled here)
+        "web_viewer_image_base": testbed.registry_image(host, "6.0.1"),
+        "web_viewer_image_registry_username": "$oauthtoken",
+        "web_viewer_image_registry_password": REGISTRY_KEY,
+    }
+    first = testbed.run_playbook(host, extra, playbook="playbooks/web_viewer_image.yml")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr
+    assert REGISTRY_KEY not in first.stdout
+    # in the fleet's registry now: any host pulls it from there
+    repo, tag = ref.split("/", 1)[1].rsplit(":", 1)
+    manifest = subprocess.run(
+        [
+            "curl",
+            "-sf",
+            "-u",
+            f"$oauthtoken:{REGISTRY_KEY}",
+            "-o",
+            "/dev/null",
+            "-H",
+            "Accept: application/vnd.docker.distribution.manifest.v2+json",
+            f"http://127.0.0.1:5555/v2/{repo}/manifests/{tag}",
+        ],
+        check=False,
+    )
+    assert manifest.returncode == 0
+    label = sh(host, f"docker image inspect -f '{{{{index .Config.Labels \"org.isaacsim.fleet.recipe\"}}}}' {ref}")
+    assert len(label.stdout.strip()) == 16
+    # the same recipe again: nothing is built or pushed
+    second = testbed.run_playbook(host, extra, playbook="playbooks/web_viewer_image.yml")
+    assert second.returncode == 0 and testbed.changed_count(second, host) == 0, second.stdout[-3000:]
