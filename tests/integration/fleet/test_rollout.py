@@ -48,8 +48,10 @@ def ip(host: str) -> str:
 
 
 def containers(host: str) -> dict:
+    """The instances' containers (not their companions'): {name: (id, image)}."""
     out = sh(host, "docker ps --no-trunc --filter name=isaac-sim- --format '{{.Names}} {{.ID}} {{.Image}}'")
-    return {name: (cid, image) for name, cid, image in (line.split() for line in out.strip().splitlines())}
+    found = (line.split() for line in out.strip().splitlines())
+    return {name: (cid, image) for name, cid, image in found if re.fullmatch(r"isaac-sim-\d+", name)}
 
 
 def all_ready(host: str) -> bool:
