@@ -139,17 +139,16 @@ def check(specs, release_ports: dict, max_instances: int, gpu_enabled: bool) -> 
         seen.add(name)
         if not spec.get("image"):
             errors.append(f"{where}.image: missing. Fix: give the companion's image, e.g. registry/ros-bridge:1.0.")
-        for key in ("env",):
-            value = spec.get(key) or {}
-            if not isinstance(value, dict):
-                errors.append(f"{where}.{key}: must be a mapping of NAME: value.")
-                continue
-            for env_name in value:
-                if not ENV_NAME_RE.match(str(env_name)) or str(env_name).startswith(layout.RESERVED_PREFIX):
-                    errors.append(
-                        f"{where}.env: {env_name!r} is not a usable variable name (letters, digits, _; the "
-                        f"{layout.RESERVED_PREFIX} prefix is the collection's own). Fix: rename it."
-                    )
+        env = spec.get("env") or {}
+        if not isinstance(env, dict):
+            errors.append(f"{where}.env: must be a mapping of NAME: value.")
+            env = {}
+        for env_name in env:
+            if not ENV_NAME_RE.match(str(env_name)) or str(env_name).startswith(layout.RESERVED_PREFIX):
+                errors.append(
+                    f"{where}.env: {env_name!r} is not a usable variable name (letters, digits, _; the "
+                    f"{layout.RESERVED_PREFIX} prefix is the collection's own). Fix: rename it."
+                )
         ports = spec.get("ports") or {}
         if not isinstance(ports, dict):
             errors.append(f"{where}.ports: must be a mapping of port name: base port. Fix: e.g. {{http: 9100}}.")
@@ -214,6 +213,16 @@ def check(specs, release_ports: dict, max_instances: int, gpu_enabled: bool) -> 
         if spec.get("docker_args") is not None and not isinstance(spec.get("docker_args"), list):
             errors.append(f"{where}.docker_args: must be a list of docker run arguments, one per item.")
     return errors
+
+
+def timeouts(spec, errors) -> dict:
+    """The companion's unit settings shared by all its instances: its name and its timeouts."""
+    where = f"{VAR}[{spec['name']}]"
+    return {
+        "name": spec["name"],
+        "ready_timeout": _int(spec.get("ready_timeout"), 1, f"{where}.ready_timeout", errors, DEFAULT_READY_TIMEOUT),
+        "stop_timeout": _int(spec.get("stop_timeout"), 0, f"{where}.stop_timeout", errors, DEFAULT_STOP_TIMEOUT),
+    }
 
 
 def own_ports(spec) -> dict:
@@ -325,8 +334,7 @@ def for_instance(spec, i, instance_ports, instance_gpu, stride, public, uid_gid,
         "container_env": env,
         "dirs": dirs,
         "uid_gid": uid_gid,
-        "ready_timeout": _int(spec.get("ready_timeout"), 1, f"{where}.ready_timeout", errors, DEFAULT_READY_TIMEOUT),
-        "stop_timeout": _int(spec.get("stop_timeout"), 0, f"{where}.stop_timeout", errors, DEFAULT_STOP_TIMEOUT),
+        **{k: v for k, v in timeouts(spec, errors).items() if k != "name"},
         "health_interval": interval,
     }, errors
 

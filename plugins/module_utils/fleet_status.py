@@ -304,13 +304,14 @@ def build(
         ports = ports_of(env)
         release = env.get(layout.K_RELEASE)
         address = address_override or env.get(layout.K_PUBLIC_ADDRESS) or default_address
-        served = [
-            int(spec.split("/", 1)[1])
-            for (j, _name), comp_env in (companion_envs or {}).items()
-            if j == key
-            for spec in comp_env.get(layout.K_PORTS, "").split()
-            if "/" in spec and spec.split("/", 1)[1].isdigit()
-        ]
+        comps = (
+            companion_records(
+                key, companion_envs or {}, companion_units or {}, comp_containers, companion_markers or set()
+            )
+            if isinstance(key, int)
+            else []
+        )
+        served = [p["port"] for c in comps if c["configured"] for p in c["ports"]]
         urls = endpoints(release, ports, address, served) if release and ports else {}
         procs = gpu_by_container.get((container or {}).get("id"), [])
         gpu_index = env.get(layout.K_GPU, "")
@@ -350,11 +351,7 @@ def build(
                 "gpu_memory_used_mib": sum(p["used_mib"] or 0 for p in procs) if procs else (0 if gpu else None),
                 "gpu_processes": procs,
                 "limits": parse_limits(env.get(layout.K_DOCKER_ARGS, "")),
-                "companions": companion_records(
-                    key, companion_envs or {}, companion_units or {}, comp_containers, companion_markers or set()
-                )
-                if isinstance(key, int)
-                else [],
+                "companions": comps,
             }
         )
     return records

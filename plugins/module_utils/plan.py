@@ -415,6 +415,8 @@ def build(cfg: dict, host: dict) -> dict:
             errors += comp_errors
             inst["companions"].append(planned)
             inst["dirs"] += planned["dirs"]
+    # one unit template per companion, even one no instance of this host has yet
+    companion_units = [companions.timeouts(spec, errors) for spec in comp_specs]
     if errors:
         raise PlanError(sorted(set(errors), key=errors.index))
     return {
@@ -431,20 +433,7 @@ def build(cfg: dict, host: dict) -> dict:
         "settings": {name: as_int(cfg[name]) for name, _lowest, _what in SETTINGS},
         "layout": layout.as_dict(data_root),
         # one unit template per companion name, with the timeouts it is started and stopped with
-        "companion_units": [
-            {
-                "name": spec["name"],
-                "ready_timeout": next(
-                    (c["ready_timeout"] for inst in instances for c in inst["companions"] if c["name"] == spec["name"]),
-                    companions.DEFAULT_READY_TIMEOUT,
-                ),
-                "stop_timeout": next(
-                    (c["stop_timeout"] for inst in instances for c in inst["companions"] if c["name"] == spec["name"]),
-                    companions.DEFAULT_STOP_TIMEOUT,
-                ),
-            }
-            for spec in comp_specs
-        ],
+        "companion_units": companion_units,
         "warnings": warnings,
     }
 

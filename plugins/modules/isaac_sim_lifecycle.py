@@ -193,8 +193,8 @@ def _host(module):
     return lifecycle.Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
 
 
-def _want(module, host):
-    """The wanted state of the host, from the plan."""
+def _want(module, host, found):
+    """The wanted state of the host, from the plan; found: the companions on the host now."""
     p = module.params
     plan = p["plan"]
     env_mode = 0o600 if p["secret_env"] else 0o644
@@ -234,7 +234,7 @@ def _want(module, host):
         "files": files,
         "instances": instances,
         "companions": companions,
-        "companions_found": hostprobe.existing_companions(layout.CONFIG_DIR),
+        "companions_found": found,
         "env_mode": env_mode,
         "remove": gone,
         "purge": p["purge"],
@@ -284,7 +284,7 @@ def main():
     found = hostprobe.existing_companions(layout.CONFIG_DIR)
 
     if p["action"] == "apply":
-        want = _want(module, host)
+        want = _want(module, host, found)
         paths, uid, gid = _directories(p["plan"])
         dir_changes = dirs.wanted_changes(paths, uid, gid, 0o750)
         applied = []
