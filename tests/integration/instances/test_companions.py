@@ -95,15 +95,15 @@ def test_a_companion_that_never_gets_healthy_reverts_its_instance_and_stops_the_
     result = testbed.run_playbook(host, {"isaac_sim_companions": [rec, bad]})
     assert result.returncode != 0
     # Ansible wraps long messages: compare with every run of whitespace made one space
-    out = " ".join(result.stdout.split())
+    out = " ".join((result.stdout + result.stderr).split())
     assert "isaac-sim-0: its companion isaac-sim-0-bad did not start" in out, result.stdout[-3000:]
     assert "was not ready within 5 s" in out
     all_ready(host)
-    # instance 0 is back on its previous set (its viewer); the others were not touched
+    # instance 0 is back on its previous set (no companion); the others were not touched
     assert all(container_id(host, f"isaac-sim-{i}") == before[i] for i in (1, 2, 3))
     assert sh(host, "ls /etc/isaac-sim/ | grep -c '\\.bad\\.env'", check=False).stdout.strip() == "0"
     assert unit_show(host, "isaac-sim-bad@0.service")["UnitFileState"] != "enabled"
-    wait_for(lambda: unit_show(host, "isaac-sim-viewer@0.service")["ActiveState"] == "active", what="viewer@0 back")
+    assert [c["name"] for c in by_name(testbed.info(host))["isaac-sim-0"]["companions"]] == []
     assert sh(host, "test -e /etc/systemd/system/isaac-sim-bad@.service", check=False).rc != 0
 
 
@@ -156,8 +156,7 @@ def test_taking_the_companion_away_removes_its_units_and_template(host):
     assert sh(host, "ls /etc/isaac-sim/ | grep -c '\\.rec\\.env'", check=False).stdout.strip() == "0"
     loaded = sh(host, "systemctl list-units --all --no-legend 'isaac-sim-rec@*' | grep -c rec", check=False)
     assert loaded.stdout.strip() == "0"
-    # only the scenario's own companion is left: the web viewer
-    names = {c["name"] for inst in testbed.info(host)["instances"] for c in inst["companions"]}
-    assert names == {"viewer"}
+    # no companion is left (the scenario runs no web viewer: test_web_viewer deploys them)
+    assert [c for inst in testbed.info(host)["instances"] for c in inst["companions"]] == []
     # the recordings were kept
     assert sh(host, "cat /var/lib/isaac-sim/instance-1/companions/rec/recordings/take.txt").stdout == "take-1\n"

@@ -82,7 +82,7 @@ def test_more_instances_than_gpus(host):
 
 
 def test_a_port_held_by_another_process(host):
-    # the signal port a fifth instance would get (every port of the four is held by them and their viewers)
+    # the signal port a fifth instance would get (the four hold every port of their own blocks)
     sh(host, "systemd-run --unit=port-squatter python3 -m http.server 49104")
 
     def listening():

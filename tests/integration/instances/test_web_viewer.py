@@ -1,21 +1,33 @@
 """NVIDIA's web viewer beside each 6.x instance (the built-in companion `viewer`).
 
-The scenario's inventory (inventory/demo) gives isaac_sim_web_viewer_image: the stand-in viewer
-(tests/fixtures/web-viewer) that tools/bootstrap built and pushed to the local registry. The
-image is one for every instance: each viewer is told its instance's address and ports when it
-starts. The last test builds the image through the web_viewer_image role on the test host.
+The scenario runs without viewers (its hosts.yml): this module deploys them once, with the demo
+inventory's image (the stand-in viewer of tests/fixtures/web-viewer, which tools/bootstrap built
+and pushed to the local registry), and leaves them on: it is the scenario's last. The image is
+one for every instance: each viewer is told its instance's address and ports when it starts.
+The last test builds the image through the web_viewer_image role on the test host.
 """
 
+import json
 import subprocess
 import urllib.request
 
 import pytest
 import testbed
 from browser import chromium, console_errors
-from testbed import INSTANCES, by_name, container_id, sh, unit_show, wait_for
+from dashboard import OUTPUT, check_dashboard, dashboard
+from testbed import INSTANCES, all_ready, by_name, container_id, sh, unit_show, wait_for
 
 FIXTURE = testbed.ROOT / "tests" / "fixtures" / "web-viewer"
 REGISTRY_KEY = (testbed.ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def viewers(host):
+    image = testbed.registry_image(host, "6.0.1").replace("isaac-sim-standin:6.0.1", "isaac-sim-web-viewer:2.1.5")
+    result = testbed.run_playbook(host, {"isaac_sim_web_viewer_image": image})
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    all_ready(host)
+    return image
 
 
 @pytest.fixture()
@@ -80,6 +92,37 @@ def test_a_viewer_restarts_with_its_instance(host, ip):
     after = container_id(host, "isaac-sim-3-viewer")
     assert after and after != before
     assert "Isaac Sim web viewer" in fetch(f"http://{ip}:8213/")
+
+
+def test_a_stopped_instance_brings_its_viewer_when_started_as_at_boot(host, ip):
+    # stopped with its instance (PartOf=); started by the instance's own wants (WantedBy=), the
+    # path boot takes: multi-user.target wants the instance, the instance wants its viewer
+    sh(host, "systemctl stop isaac-sim@2")
+    assert unit_show(host, "isaac-sim-viewer@2.service")["ActiveState"] == "inactive"
+    assert container_id(host, "isaac-sim-2-viewer") == ""
+    assert "isaac-sim-viewer@2.service" in sh(host, "ls /etc/systemd/system/isaac-sim@2.service.wants/").stdout
+    sh(host, "systemctl start isaac-sim@2")
+    wait_for(lambda: unit_show(host, "isaac-sim-viewer@2.service")["ActiveState"] == "active", what="viewer@2")
+    assert "Isaac Sim web viewer" in fetch(f"http://{ip}:8212/")
+
+
+def test_status_lists_each_viewer_under_its_instance_and_the_dashboard_links_it(host, ip, tmp_path):
+    run, out = dashboard(host, tmp_path)
+    rows = [line.split() for line in (out / "status.txt").read_text().splitlines()[1:-1]]
+    # each instance, then its web viewer on a line of its own
+    assert [(r[1], r[2], r[3], r[-1]) for r in rows] == [
+        row
+        for i in range(INSTANCES)
+        for row in ((str(i), "ready", "yes", f"{ip}:{49100 + i}"), (f"{i}/viewer", "ready", "yes", f"{8210 + i}/tcp"))
+    ]
+    report = json.loads((out / "status.json").read_text())
+    assert report["summary"]["stray"] == 0
+    expected = {i["id"]: i for i in testbed.info(host)["instances"]}
+    found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard-viewers.png")
+    # one link per instance: its web viewer, at the URL that answers
+    assert sorted((int(i), kind) for i, kind, _href in found["links"]) == [(i, "web_viewer") for i in range(INSTANCES)]
+    for _i, _kind, href in found["links"]:
+        assert "Isaac Sim web viewer" in fetch(href)
 
 
 def test_the_role_builds_the_image_once_on_one_host_and_pushes_it_to_the_registry(host):
