@@ -23,9 +23,13 @@ options:
     type: path
     default: /etc/docker/daemon.json
   settings:
-    description: Settings to merge in.
+    description: Settings to merge in; none leaves the file as it is (and absent when it is absent).
     type: dict
     required: true
+  restart_marker:
+    description: A file that notes a Docker restart still to do; the module says whether it exists
+      (RV(restart_noted)), so a role needs no second task to look.
+    type: path
 """
 
 EXAMPLES = r"""
@@ -45,6 +49,10 @@ config:
   returned: success
   type: dict
   sample: {"log-driver": "json-file", "runtimes": {"nvidia": {"path": "nvidia-container-runtime", "args": []}}}
+restart_noted:
+  description: Whether O(restart_marker) exists.
+  returned: when O(restart_marker) is given
+  type: bool
 """
 
 import json
@@ -60,6 +68,7 @@ def main():
         argument_spec=dict(
             path=dict(type="path", default="/etc/docker/daemon.json"),
             settings=dict(type="dict", required=True),
+            restart_marker=dict(type="path"),
         ),
         supports_check_mode=True,
     )
@@ -69,7 +78,10 @@ def main():
         with open(path) as fh:
             text = fh.read()
     try:
-        changed, before, after = daemon_json.plan(text, module.params["settings"], path)
+        if module.params["settings"] or text is not None:
+            changed, before, after = daemon_json.plan(text, module.params["settings"], path)
+        else:  # nothing to merge into no file: no file is written
+            changed, before, after = False, "", "{}"
     except daemon_json.DaemonJsonError as exc:
         module.fail_json(msg=str(exc))
 
@@ -83,6 +95,8 @@ def main():
         module.atomic_move(tmp, path)
 
     result = dict(changed=changed, config=json.loads(after))
+    if module.params["restart_marker"]:
+        result["restart_noted"] = os.path.exists(module.params["restart_marker"])
     if module._diff:
         result["diff"] = dict(before=before, after=after, before_header=path, after_header=path)
     module.exit_json(**result)

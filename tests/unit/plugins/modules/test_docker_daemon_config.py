@@ -37,3 +37,14 @@ def test_a_file_that_is_not_json_is_left_alone(tmp_path, capsys):
     path.write_text("{broken")
     result = run_module(docker_daemon_config.main, {"path": str(path), "settings": RUNTIME}, capsys)
     assert result["failed"] and path.read_text() == "{broken"
+
+
+def test_no_settings_write_no_file_and_the_restart_marker_is_reported(tmp_path, capsys):
+    path, marker = tmp_path / "daemon.json", tmp_path / "restart-pending"
+    args = {"path": str(path), "settings": {}, "restart_marker": str(marker)}
+    result = run_module(docker_daemon_config.main, args, capsys)
+    assert result["changed"] is False and not path.exists() and result["restart_noted"] is False
+    marker.write_text("")
+    assert run_module(docker_daemon_config.main, args, capsys)["restart_noted"] is True
+    # without the option the module says nothing about it
+    assert "restart_noted" not in run_module(docker_daemon_config.main, {"path": str(path), "settings": {}}, capsys)
