@@ -42,11 +42,13 @@ DEFAULT_STOP_TIMEOUT = 10
 VIEWER = "viewer"
 
 
-def web_viewer(image: str, health_interval: int = 30) -> dict:
+def web_viewer(image: str, health_interval: int = 30, instances=None) -> dict:
     """The built-in companion of a 6.x instance: NVIDIA's web viewer (roles/web_viewer_image),
     told the instance's address and ports when it starts, bound to that address on the block's
-    web-viewer port, healthchecked as NVIDIA's recipe does (curl -f on its page)."""
-    return {
+    web-viewer port, healthchecked as NVIDIA's recipe does (curl -f on its page).
+
+    instances: the streaming ones, where there are others (None: every instance)."""
+    spec = {
         "name": VIEWER,
         "image": image,
         "user": "1234:1234",
@@ -67,6 +69,9 @@ def web_viewer(image: str, health_interval: int = 30) -> dict:
             "retries": 3,
         },
     }
+    if instances is not None:
+        spec["instances"] = list(instances)
+    return spec
 
 
 def _int(value, lowest, where, errors, default):

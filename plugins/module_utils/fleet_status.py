@@ -312,7 +312,10 @@ def build(
             else []
         )
         served = [p["port"] for c in comps if c["configured"] for p in c["ports"]]
-        urls = endpoints(release, ports, address, served) if release and ports else {}
+        # what the instance opens (its env file's checked ports), so no URL names a closed port
+        opened = {spec.split("/", 1)[-1] for spec in env.get(layout.K_PORTS, "").split()}
+        listens = [kind for kind, port in ports.items() if str(port) in opened] if layout.K_PORTS in env else None
+        urls = endpoints(release, ports, address, served, listens) if release and ports else {}
         procs = gpu_by_container.get((container or {}).get("id"), [])
         gpu_index = env.get(layout.K_GPU, "")
         active_enter = _int((unit or {}).get("ActiveEnterTimestampMonotonic"))
@@ -344,6 +347,7 @@ def build(
                 "image": env.get(layout.K_IMAGE) or (container or {}).get("image"),
                 "image_id": (container or {}).get("image_id") or env.get(layout.K_IMAGE_ID),
                 "digest": (container or {}).get("digest"),
+                "profile": env.get(layout.K_PROFILE) or ("streaming" if env else None),
                 "ports": ports,
                 "public_address": address,
                 "urls": urls,

@@ -57,6 +57,7 @@ K_IMAGE = "ISAAC_SIM_IMAGE"
 K_IMAGE_ID = "ISAAC_SIM_IMAGE_ID"
 K_PORT_PREFIX = "ISAAC_SIM_PORT_"
 K_PORTS = "ISAAC_SIM_PORTS"
+K_PROFILE = "ISAAC_SIM_PROFILE"
 K_GPU = "ISAAC_SIM_GPU"
 K_PUBLIC_ADDRESS = "ISAAC_SIM_PUBLIC_ADDRESS"
 K_READY_TIMEOUT = "ISAAC_SIM_READY_TIMEOUT"
@@ -249,6 +250,7 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
     )
     lines.append(f"{K_PORTS}={quote(ports)}")
     lines += [
+        f"{K_PROFILE}={quote(instance.get('profile', 'streaming'))}",
         f"{K_GPU}={'' if instance.get('gpu') is None else instance['gpu']}",
         f"{K_PUBLIC_ADDRESS}={quote(plan.get('public_address') or '')}",
         f"{K_READY_TIMEOUT}={settings['ready_timeout']}",

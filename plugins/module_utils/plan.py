@@ -17,6 +17,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
     KIT,
     MIN_MEMORY,
     RELEASES,
+    STREAMING,
     default_image,
     healthcheck,
     release_of_tag,
@@ -208,6 +209,41 @@ def _check_companion_ports(specs, blocks, stride, held) -> list:
     return errors
 
 
+def instance_profiles(release, count, default, per_instance) -> tuple[dict, list]:
+    """({instance: profile}, errors): isaac_sim_profile for every instance, but where
+    isaac_sim_instance_profiles names another."""
+    known = RELEASES[release]["profiles"]
+    errors = []
+
+    def usable(name, what):
+        if name in known:
+            return True
+        others = [r for r, spec in RELEASES.items() if name in spec["profiles"]]
+        also = f" (a profile of Isaac Sim {', '.join(others)} only)" if others else ""
+        errors.append(
+            f"{what}: {name!r} is not a profile of Isaac Sim {release}{also}. Fix: choose one of {', '.join(known)}."
+        )
+        return False
+
+    usable(default, "isaac_sim_profile")
+    chosen = {i: default for i in range(count)}
+    for key, name in (per_instance or {}).items():
+        inst = as_int(key)
+        if not isinstance(inst, int):
+            errors.append(
+                f"isaac_sim_instance_profiles: {key!r} is not an instance number. Fix: map instance numbers to "
+                f"profiles, e.g. {{3: headless}}."
+            )
+        elif not 0 <= inst < count:
+            errors.append(
+                f"isaac_sim_instance_profiles: instance {inst} does not exist (instances are 0..{count - 1}). "
+                f"Fix: remove it from isaac_sim_instance_profiles."
+            )
+        elif usable(name, f"isaac_sim_instance_profiles[{inst}]"):
+            chosen[inst] = name
+    return chosen, errors
+
+
 def assign_gpus(count, gpu_count, gpu_map, exclusive):
     """({instance: gpu index}, errors). Round-robin unless the map says otherwise."""
     errors = []
@@ -367,9 +403,15 @@ def build(cfg: dict, host: dict) -> dict:
             "isaac_sim_gpu_map: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove the map."
         )
 
+    profiles, profile_errors = instance_profiles(
+        release, max(count, 0), cfg.get("profile") or STREAMING, cfg.get("instance_profiles")
+    )
+    errors += profile_errors
+
     comp_specs = cfg.get("companions") or []
     viewer_image = cfg.get("web_viewer_image") or ""
-    if viewer_image and "web_viewer" in profile["ports"]:
+    viewed = [i for i, name in profiles.items() if name == STREAMING]
+    if viewer_image and "web_viewer" in profile["ports"] and (viewed or not profiles):
         if parse_image(viewer_image) is None:
             errors.append(
                 f"isaac_sim_web_viewer_image: {viewer_image!r} is not a valid image reference. "
@@ -381,7 +423,10 @@ def build(cfg: dict, host: dict) -> dict:
                 f"isaac_sim_companions: the name {companions.VIEWER} is the built-in web viewer's "
                 "(isaac_sim_web_viewer_image). Fix: rename that companion."
             )
-        comp_specs = [companions.web_viewer(viewer_image, as_int(cfg["health_interval"]))] + list(comp_specs)
+        # a viewer needs a stream to show: the streaming instances only
+        every = len(viewed) == len(profiles)
+        viewer = companions.web_viewer(viewer_image, as_int(cfg["health_interval"]), None if every else viewed)
+        comp_specs = [viewer] + list(comp_specs)
     # {kind: True when the instance itself listens there} (web_viewer is kept for a companion)
     release_ports = {kind: spec[2] is not None for kind, spec in profile["ports"].items()}
     errors += companions.check(
@@ -395,7 +440,7 @@ def build(cfg: dict, host: dict) -> dict:
 
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
     warnings = _needs(release, profile, memory, gpus, host)
-    instances = [_instance(sized, profile, i, blocks[i], gpus.get(i)) for i in range(count)]
+    instances = [_instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i)) for i in range(count)]
     for inst in instances:
         inst["companions"] = []
         for spec in comp_specs:
@@ -464,7 +509,9 @@ def _needs(release, profile, memory, gpus, host) -> list:
     return warnings
 
 
-def _instance(cfg, profile, i, ports, gpu):
+def _instance(cfg, profile, mode, i, ports, gpu):
+    """One instance of release profile `profile`, run as `mode` (isaac_sim_profile)."""
+    launch = profile["profiles"][mode]
     root = layout.data_dir(i, cfg["data_root"])
     docker = [
         "--network=host",
@@ -473,7 +520,7 @@ def _instance(cfg, profile, i, ports, gpu):
         f"--memory-swap={cfg['memory_limit']}",
         f"--shm-size={cfg['shm_size']}",
         f"--user={profile['uid']}:{profile['gid']}",
-        f"--entrypoint={profile['entrypoint']}",
+        f"--entrypoint={launch['entrypoint']}",
         f"--label={layout.LABEL_INSTANCE}={i}",
     ]
     docker += [f"--security-opt={opt}" for opt in profile.get("security_opts", [])]
@@ -483,8 +530,11 @@ def _instance(cfg, profile, i, ports, gpu):
     if cfg.get("privacy_consent"):
         env_names.append("PRIVACY_CONSENT")
         container_env["PRIVACY_CONSENT"] = "Y"
-    app = []
+    # only the settings of what this profile opens: a port set but never opened would be reported
+    app = list(launch["args"])
     for kind, port in ports.items():
+        if kind not in launch["opens"]:
+            continue
         how, setting = profile["ports"][kind][2], profile["ports"][kind][3]
         if how == KIT:
             app.append(f"--/{setting.lstrip('/')}={port}")
@@ -492,7 +542,7 @@ def _instance(cfg, profile, i, ports, gpu):
             container_env[setting] = str(port)
             env_names.append(setting)
     public = cfg.get("public_address")
-    if public:
+    if public and launch["opens"]:
         how, setting = profile["public_address"]
         if how == KIT:
             app.append(f"--/{setting.lstrip('/')}={public}")
@@ -508,15 +558,14 @@ def _instance(cfg, profile, i, ports, gpu):
     for sub, target in profile["mounts"].items():
         dirs.append(f"{root}/{sub}")
         docker.append(f"--volume={root}/{sub}:{target}:rw")
-    probe = profile.get("health_port")
-    if probe in ports:
-        docker += [
-            f"--health-cmd={healthcheck(cfg['release'], ports[probe])}",
-            f"--health-interval={as_int(cfg['health_interval'])}s",
-            "--health-timeout=10s",
-            f"--health-retries={as_int(cfg['health_retries'])}",
-            f"--health-start-period={as_int(cfg['ready_timeout'])}s",
-        ]
+    probe = launch["health_port"]
+    docker += [
+        f"--health-cmd={healthcheck(cfg['release'], ports.get(probe))}",
+        f"--health-interval={as_int(cfg['health_interval'])}s",
+        "--health-timeout=10s",
+        f"--health-retries={as_int(cfg['health_retries'])}",
+        f"--health-start-period={as_int(cfg['ready_timeout'])}s",
+    ]
     if gpu is not None:
         docker += ["--runtime=nvidia", f"--gpus=device={gpu}"]
     docker += list(cfg.get("docker_args") or [])
@@ -526,8 +575,9 @@ def _instance(cfg, profile, i, ports, gpu):
         "name": layout.container(i),
         "ports": ports,
         "protocols": {kind: profile["ports"][kind][0] for kind in ports},
-        # the ports Isaac Sim itself opens (web_viewer is kept for a companion)
-        "listens": [kind for kind in ports if profile["ports"][kind][2] is not None],
+        "profile": mode,
+        # the ports Isaac Sim itself opens in this profile (web_viewer is kept for a companion)
+        "listens": [kind for kind in ports if kind in launch["opens"]],
         "gpu": gpu,
         "root": root,
         "dirs": dirs,

@@ -3,9 +3,10 @@
 """What each Isaac Sim release understands at its container interface.
 
 One profile per release family: the container user, where it keeps caches,
-which launch script runs headless streaming, which ports it opens and how each
-port is set (a kit flag or an environment variable), the line it prints when
-ready, and the oldest driver it runs on.
+which ports its block holds and how each port is set (a kit flag or an
+environment variable), the ways it can run (isaac_sim_profile: the launch script
+and the ports each opens), the line it prints when ready, and the oldest driver
+it runs on.
 """
 
 from __future__ import annotations
@@ -49,17 +50,39 @@ _STREAMING_PORTS_5X = {
     "http": ("tcp", 8011, KIT, "/exts/omni.services.transport.server.http/port"),
 }
 
+STREAMING, HEADLESS, NATIVE = "streaming", "headless", "native"
+
+
+def _launch(entrypoint, opens, health_port, args=()):
+    """One way to run a release (isaac_sim_profile): its launch script and arguments, the ports of
+    the block it opens, and the port its healthcheck asks (None: NVIDIA's AppReady check alone)."""
+    return {"entrypoint": entrypoint, "args": list(args), "opens": list(opens), "health_port": health_port}
+
+
+# No stream at all: NVIDIA's container has no launch script for it (runheadless.sh streams); its
+# skill runs the full app with --no-window, which still prints "Isaac Sim Full App is loaded.".
+# Kit refuses to run as root without --allow-root (NVIDIA's own root-era scripts pass it).
+def _headless(uid):
+    return _launch("/isaac-sim/isaac-sim.sh", (), None, ["--no-window"] + (["--allow-root"] if uid == 0 else []))
+
+
 RELEASES = {
     "2023.1": {
         "default_tag": "2023.1.1",
         "uid": 0,
         "gid": 0,
-        "entrypoint": "/isaac-sim/runheadless.webrtc.sh",
         "mounts": _ROOT_MOUNTS,
         "ports": {
             "http": ("tcp", 8211, KIT, "/exts/omni.services.transport.server.http/port"),
             "webrtc": ("tcp", 8011, KIT, "/exts/omni.kit.livestream.webrtc/port"),
-            "native": ("tcp", 8899, KIT, "/exts/omni.kit.livestream.native/port"),
+            # the native livestream's port (48010 by default, set by the livestream's port setting)
+            "native": ("tcp", 48010, KIT, "/app/livestream/port"),
+        },
+        # NVIDIA: one streaming method per instance; the WebRTC browser client by default
+        "profiles": {
+            STREAMING: _launch("/isaac-sim/runheadless.webrtc.sh", ("http", "webrtc"), "http"),
+            NATIVE: _launch("/isaac-sim/runheadless.native.sh", ("native",), None),
+            HEADLESS: _headless(0),
         },
         "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
         "ready_pattern": r"App is loaded\.",
@@ -68,15 +91,17 @@ RELEASES = {
         "security_opts": [],
         "min_vram_mib": None,
         "log_dir": "/root/.nvidia-omniverse/logs",
-        "health_port": "http",
     },
     "4.x": {
         "default_tag": "4.5.0",
         "uid": 0,
         "gid": 0,
-        "entrypoint": "/isaac-sim/runheadless.sh",
         "mounts": _ROOT_MOUNTS,
         "ports": _STREAMING_PORTS_5X,
+        "profiles": {
+            STREAMING: _launch("/isaac-sim/runheadless.sh", _STREAMING_PORTS_5X, "signal"),
+            HEADLESS: _headless(0),
+        },
         "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
         "ready_pattern": r"App is loaded\.",
         "min_driver": "535.129",
@@ -84,15 +109,17 @@ RELEASES = {
         "security_opts": [],
         "min_vram_mib": 16384,
         "log_dir": "/root/.nvidia-omniverse/logs",
-        "health_port": "signal",
     },
     "5.x": {
         "default_tag": "5.1.0",
         "uid": 1234,
         "gid": 1234,
-        "entrypoint": "/isaac-sim/runheadless.sh",
         "mounts": _ISAAC_USER_MOUNTS,
         "ports": _STREAMING_PORTS_5X,
+        "profiles": {
+            STREAMING: _launch("/isaac-sim/runheadless.sh", _STREAMING_PORTS_5X, "signal"),
+            HEADLESS: _headless(1234),
+        },
         "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
         "ready_pattern": r"App is loaded\.",
         "min_driver": "570.169",
@@ -100,19 +127,22 @@ RELEASES = {
         "security_opts": ["no-new-privileges"],
         "min_vram_mib": 16384,
         "log_dir": "/isaac-sim/.nvidia-omniverse/logs",
-        "health_port": "signal",
     },
     "6.x": {
         "default_tag": "6.0.1",
         "uid": 1234,
         "gid": 1234,
-        "entrypoint": "/isaac-sim/runheadless.sh",
         "mounts": _ISAAC_USER_MOUNTS_6X,
         "ports": {
             "signal": ("tcp", 49100, ENV, "ISAACSIM_SIGNAL_PORT"),
             "stream": ("udp", 47998, ENV, "ISAACSIM_STREAM_PORT"),
             # served by the web viewer next to the instance; reserved in the block
             "web_viewer": ("tcp", 8210, None, None),
+        },
+        # the web viewer (a companion) comes with the streaming profile only
+        "profiles": {
+            STREAMING: _launch("/isaac-sim/runheadless.sh", ("signal", "stream"), "signal"),
+            HEADLESS: _headless(1234),
         },
         "public_address": (ENV, "ISAACSIM_HOST"),
         "ready_pattern": r"App is loaded\.",
@@ -121,7 +151,6 @@ RELEASES = {
         "security_opts": ["no-new-privileges"],
         "min_vram_mib": 16384,
         "log_dir": "/isaac-sim/.nvidia-omniverse/logs",
-        "health_port": "signal",
     },
 }
 
@@ -132,16 +161,19 @@ MIN_MEMORY = 32 * 1024**3
 NGC_REPOSITORY = "nvcr.io/nvidia/isaac-sim"
 
 
-def healthcheck(release: str, port: int) -> str:
+def healthcheck(release: str, port: int | None) -> str:
     """The container healthcheck: NVIDIA's own (AppReady in the newest kit log, as its 6.x
-    image and compose recipe check it) and the instance's port answering a request within 5 s
-    (a hung app keeps its socket open but answers nothing)."""
+    image and compose recipe check it) and, where the profile opens one, the instance's port
+    answering a request within 5 s (a hung app keeps its socket open but answers nothing)."""
     logs = RELEASES[release]["log_dir"]
-    probe = f"exec 3<>/dev/tcp/127.0.0.1/{port} && printf 'GET / HTTP/1.0\\r\\n\\r\\n' >&3 && read -r -n1 -t5 _ <&3"
-    return (
+    check = (
         f'latest=$(ls -t {logs}/Kit/*/*/kit_*.log 2>/dev/null | head -1) && [ -n "$latest" ] '
-        f'&& grep -q AppReady "$latest" && bash -c "{probe}"'
+        f'&& grep -q AppReady "$latest"'
     )
+    if port is None:
+        return check
+    probe = f"exec 3<>/dev/tcp/127.0.0.1/{port} && printf 'GET / HTTP/1.0\\r\\n\\r\\n' >&3 && read -r -n1 -t5 _ <&3"
+    return f'{check} && bash -c "{probe}"'
 
 
 def default_image(release: str) -> str:

@@ -111,6 +111,17 @@ options:
     type: list
     elements: raw
     default: []
+  profile:
+    description:
+      - How the instances run. C(streaming) - the release's default stream (WebRTC). C(headless) - no stream,
+        no port opened, no viewer (batch work, synthetic data). C(native) - 2023.1 only, its native livestream
+        instead of the WebRTC client.
+    type: str
+    default: streaming
+  instance_profiles:
+    description: Instance number to profile, for the instances that run otherwise than O(profile).
+    type: dict
+    default: {}
   web_viewer_image:
     description:
       - NVIDIA's web viewer image (built once by P(isaacsim.fleet.web_viewer_image#role)); for 6.x each instance
@@ -248,6 +259,8 @@ def main():
             registry_login=dict(type="bool", default=False),
             check_host_ports=dict(type="bool", default=True),
             companions=dict(type="list", elements="raw", default=[]),
+            profile=dict(type="str", default="streaming"),
+            instance_profiles=dict(type="dict", default={}),
             web_viewer_image=dict(type="str", default=""),
             config_dir=dict(type="path", default="/etc/isaac-sim"),
             systemd_dir=dict(type="path", default="/etc/systemd/system"),
@@ -279,7 +292,9 @@ def main():
     # companion images not on the host yet: the role pulls them with the instance's image
     host["companion_images_missing"] = []
     wanted_images = [c.get("image") for c in p["companions"] if isinstance(c, dict) and c.get("image")]
-    if p["web_viewer_image"] and p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]:
+    streams = "streaming" in [p["profile"], *p["instance_profiles"].values()]
+    has_viewer = p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]
+    if p["web_viewer_image"] and streams and has_viewer:
         wanted_images.insert(0, p["web_viewer_image"])
     for ref in dict.fromkeys(str(r) for r in wanted_images):
         present = False

@@ -21,20 +21,44 @@ def restore_default(host):
     testbed.all_ready(host)
 
 
-def test_2023_1_serves_the_webrtc_client_page_per_instance(host, restore_default):
+def refused(ip, port) -> bool:
+    try:
+        socket.create_connection((ip, port), timeout=2).close()
+    except ConnectionRefusedError:
+        return True
+    return False
+
+
+def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, restore_default):
+    # instances 0-2 the WebRTC browser client (the default profile), instance 3 the native livestream
     result = testbed.run_playbook(
-        host, {"isaac_sim_release": "2023.1", "isaac_sim_image": registry_image(host, "2023.1.1")}
+        host,
+        {
+            "isaac_sim_release": "2023.1",
+            "isaac_sim_image": registry_image(host, "2023.1.1"),
+            "isaac_sim_instance_profiles": {3: "native"},
+        },
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr
     ip = testbed.host_ip(host)
+    status = testbed.by_name(testbed.info(host))
     for i in range(INSTANCES):
         assert testbed.instance_ready(host, i)
-        url = f"http://{ip}:{8211 + i}/streaming/webrtc-client?server={ip}"
-        assert url in result.stdout, "the deploy did not print the instance's address"
-        with urllib.request.urlopen(url, timeout=5) as page:
-            assert f"server={ip}" in page.read().decode()
         assert sh(host, f"docker inspect -f '{{{{.Config.User}}}}' isaac-sim-{i}").stdout.strip() == "0:0"
-        socket.create_connection((ip, 8899 + i), timeout=2).close()
+        urls = status[f"isaac-sim-{i}"]["urls"]
+        if i < 3:
+            url = f"http://{ip}:{8211 + i}/streaming/webrtc-client?server={ip}"
+            assert url in result.stdout, "the deploy did not print the instance's address"
+            with urllib.request.urlopen(url, timeout=5) as page:
+                assert f"server={ip}" in page.read().decode()
+            # NVIDIA: one streaming method per instance; the native port is kept, not opened
+            assert urls == {"webrtc_client": url} and refused(ip, 48010 + i)
+        else:
+            assert status["isaac-sim-3"]["profile"] == "native"
+            assert urls == {"native": f"{ip}:48013"} and f"native={ip}:48013" in result.stdout
+            with socket.create_connection((ip, 48013), timeout=2) as conn:
+                assert conn.recv(64).startswith(b"isaac-sim-standin native")
+            assert refused(ip, 8214) and refused(ip, 8014)
 
 
 def test_a_release_switch_goes_through_the_lifecycle_and_a_failed_one_goes_back(host, restore_default):

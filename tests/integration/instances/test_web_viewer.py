@@ -125,6 +125,33 @@ def test_status_lists_each_viewer_under_its_instance_and_the_dashboard_links_it(
         assert "Isaac Sim web viewer" in fetch(href)
 
 
+def test_a_headless_instance_has_no_stream_no_viewer_and_no_link(host, viewers, tmp_path):
+    before = {i: container_id(host, f"isaac-sim-{i}") for i in range(3)}
+    result = testbed.run_playbook(
+        host, {"isaac_sim_web_viewer_image": viewers, "isaac_sim_instance_profiles": {3: "headless"}}
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    all_ready(host)
+    # the full app without a window, ready by its own line, healthy by NVIDIA's AppReady check alone
+    args = sh(host, "docker inspect -f '{{.Config.Entrypoint}} {{.Args}}' isaac-sim-3").stdout
+    assert "/isaac-sim/isaac-sim.sh" in args and "--no-window" in args
+    wait_for(lambda: by_name(testbed.info(host))["isaac-sim-3"]["health"] == "healthy", timeout=30, what="healthy")
+    inst = by_name(testbed.info(host))["isaac-sim-3"]
+    assert inst["profile"] == "headless" and inst["ready"]
+    assert inst["urls"] == {} and inst["companions"] == []
+    # nothing listens on its block, and its viewer is gone
+    assert sh(host, "ss -Hltnu | grep -E ':(49103|48001|8213) ' | wc -l").stdout.strip() == "0"
+    assert container_id(host, "isaac-sim-3-viewer") == ""
+    assert unit_show(host, "isaac-sim-viewer@3.service")["UnitFileState"] != "enabled"
+    # the streaming instances and their viewers were not touched
+    assert {i: container_id(host, f"isaac-sim-{i}") for i in range(3)} == before
+    _run, out = dashboard(host, tmp_path)
+    expected = {i["id"]: i for i in testbed.info(host)["instances"]}
+    found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard-headless.png")
+    assert sorted(int(i) for i, _kind, _href in found["links"]) == [0, 1, 2]
+    assert "3" not in {i for i, _kind, _text in found["addresses"]}
+
+
 def test_the_role_builds_the_image_once_on_one_host_and_pushes_it_to_the_registry(host):
     ref = testbed.registry_image(host, "6.0.1").replace("isaac-sim-standin:6.0.1", "isaac-sim-web-viewer:built-here")
     extra = {

@@ -36,3 +36,25 @@ def test_summary_lines_one_per_instance():
         "isaac-sim-0 gpu=- signal=h:49100 stream=h:47998/udp",
         "isaac-sim-1 gpu=1 signal=h:49101 stream=h:47999/udp",
     ]
+
+
+def test_only_what_the_profile_opens_is_reported():
+    block = {"signal": 49101, "stream": 47999, "web_viewer": 8211}
+    # headless: nothing opened, so nothing to point a client at
+    assert endpoints.endpoints("6.x", block, "h", served=[], listens=[]) == {}
+    native = endpoints.endpoints("2023.1", {"http": 8212, "webrtc": 8012, "native": 48011}, "h", listens=["native"])
+    assert native == {"native": "h:48011"}
+    webrtc = endpoints.endpoints(
+        "2023.1", {"http": 8212, "webrtc": 8012, "native": 48011}, "h", listens=["http", "webrtc"]
+    )
+    assert list(webrtc) == ["webrtc_client"]
+
+
+def test_summary_lines_name_a_profile_other_than_streaming():
+    plan = {
+        "release": "6.x",
+        "instances": [
+            {"name": "isaac-sim-0", "gpu": None, "ports": {"signal": 49100}, "listens": [], "profile": "headless"}
+        ],
+    }
+    assert endpoints.summary_lines(plan, "h") == ["isaac-sim-0 gpu=- profile=headless "]

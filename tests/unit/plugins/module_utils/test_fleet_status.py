@@ -149,11 +149,21 @@ def test_env_file_parser_reads_back_what_the_role_quotes():
     assert env(2)["ISAAC_SIM_READY_PATTERN"] == "App is loaded\\."
 
 
+def test_a_headless_instance_reports_its_profile_and_no_url():
+    e = dict(env(1), ISAAC_SIM_PORTS="", ISAAC_SIM_PROFILE="headless")
+    r = records(envs={1: e})["isaac-sim-1"]
+    assert r["profile"] == "headless" and r["urls"] == {}
+    # the block stays the instance's
+    assert r["ports"] == {"signal": 49101, "stream": 47999, "web_viewer": 8211}
+    streaming = dict(env(1), ISAAC_SIM_PORTS="tcp/49101 udp/47999", ISAAC_SIM_PROFILE="streaming")
+    assert list(records(envs={1: streaming})["isaac-sim-1"]["urls"]) == ["signal", "stream"]
+
+
 def test_2023_instance_gets_the_browser_client_url():
     e = dict(env(0), ISAAC_SIM_RELEASE="2023.1")
     for k in [k for k in e if k.startswith("ISAAC_SIM_PORT_")]:
         del e[k]
-    e.update(ISAAC_SIM_PORT_HTTP="8211", ISAAC_SIM_PORT_WEBRTC="8011", ISAAC_SIM_PORT_NATIVE="8899")
+    e.update(ISAAC_SIM_PORT_HTTP="8211", ISAAC_SIM_PORT_WEBRTC="8011", ISAAC_SIM_PORT_NATIVE="48010")
     r = records(envs={0: e})["isaac-sim-0"]
     assert r["urls"]["webrtc_client"] == "http://172.17.0.2:8211/streaming/webrtc-client?server=172.17.0.2"
 

@@ -81,6 +81,11 @@ def test_env_file_carries_every_value_exactly():
     # a size with a space becomes Docker's one word; a label with a space stays one argument
     assert "--memory=1g" in args and "--label=team=a b" in args
     assert env[layout.K_PORT_PREFIX + "SIGNAL"] == "49101"
+    assert env[layout.K_PROFILE] == "streaming" and env[layout.K_PORTS] == "tcp/49101 udp/47999"
+    headless = _plan(instance_profiles={1: "headless"})
+    env = layout.parse(layout.render_env(headless["instances"][1], headless, "sha256:abc", {}, "managed"))
+    # checked free at start: nothing, as the headless app opens nothing
+    assert env[layout.K_PROFILE] == "headless" and env[layout.K_PORTS] == ""
 
 
 def test_unit_numbers_are_numbers_whatever_was_given():

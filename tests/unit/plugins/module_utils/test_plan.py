@@ -23,12 +23,65 @@ def errors_of(c, host=None):
 def test_2023_1_reproduces_the_known_port_table():
     result = plan.build(cfg(release="2023.1", image="nvcr.io/nvidia/isaac-sim:2023.1.1"), HOST)
     assert [i["ports"] for i in result["instances"]] == [
-        {"http": 8211 + i, "webrtc": 8011 + i, "native": 8899 + i} for i in range(4)
+        {"http": 8211 + i, "webrtc": 8011 + i, "native": 48010 + i} for i in range(4)
     ]
     first = result["instances"][0]
     assert "--/exts/omni.services.transport.server.http/port=8211" in first["app_args"]
     assert "--user=0:0" in first["docker_args"]
     assert "--entrypoint=/isaac-sim/runheadless.webrtc.sh" in first["docker_args"]
+    # one streaming method per instance: the WebRTC client's, the native port kept in the block only
+    assert first["listens"] == ["http", "webrtc"] and first["profile"] == "streaming"
+    assert not any(a.startswith("--/app/livestream/port") for a in first["app_args"])
+
+
+def test_profiles_per_instance_decide_launch_ports_health_and_the_viewer():
+    c = cfg(profile="streaming", instance_profiles={"3": "headless"}, web_viewer_image="reg.lab/viewer:1")
+    result = plan.build(c, HOST)
+    streaming, headless = result["instances"][0], result["instances"][3]
+    assert streaming["profile"] == "streaming" and headless["profile"] == "headless"
+    assert "--entrypoint=/isaac-sim/isaac-sim.sh" in headless["docker_args"]
+    assert headless["app_args"][:1] == ["--no-window"] and "--allow-root" not in headless["app_args"]
+    # the block is kept (a later switch back does not move ports), but nothing is opened or set
+    assert headless["ports"] == {"signal": 49103, "stream": 48001, "web_viewer": 8213}
+    assert headless["listens"] == []
+    assert not {"ISAACSIM_SIGNAL_PORT", "ISAACSIM_STREAM_PORT", "ISAACSIM_HOST"} & set(headless["container_env"])
+    [health] = [a for a in headless["docker_args"] if a.startswith("--health-cmd=")]
+    assert "AppReady" in health and "/dev/tcp/" not in health
+    # the web viewer only beside the streaming instances
+    assert [c["name"] for c in streaming["companions"]] == ["viewer"]
+    assert headless["companions"] == []
+    # every instance headless: no viewer at all
+    quiet = plan.build(cfg(profile="headless", web_viewer_image="reg.lab/viewer:1"), HOST)
+    assert all(i["companions"] == [] for i in quiet["instances"])
+
+
+def test_2023_1_native_opens_only_the_native_port():
+    c = cfg(release="2023.1", image="nvcr.io/nvidia/isaac-sim:2023.1.1", instance_profiles={1: "native"})
+    native = plan.build(c, HOST)["instances"][1]
+    assert "--entrypoint=/isaac-sim/runheadless.native.sh" in native["docker_args"]
+    assert native["listens"] == ["native"]
+    assert [a for a in native["app_args"] if a.startswith("--/")] == [
+        "--/app/livestream/port=48011",
+        "--/app/livestream/publicEndpointAddress=10.0.0.5",
+    ]
+    headless = plan.build(dict(c, instance_profiles={1: "headless"}), HOST)["instances"][1]
+    assert headless["app_args"] == ["--no-window", "--allow-root"]
+
+
+@pytest.mark.parametrize(
+    "settings, wanted",
+    [
+        ({"profile": "native"}, ["isaac_sim_profile: 'native' is not a profile of Isaac Sim 6.x", "2023.1 only"]),
+        ({"profile": "batch"}, ["isaac_sim_profile: 'batch'", "Fix: choose one of streaming, headless"]),
+        ({"instance_profiles": {"7": "headless"}}, ["isaac_sim_instance_profiles: instance 7 does not exist"]),
+        ({"instance_profiles": {"x": "headless"}}, ["isaac_sim_instance_profiles: 'x' is not an instance number"]),
+        ({"instance_profiles": {"1": "native"}}, ["isaac_sim_instance_profiles[1]: 'native'"]),
+    ],
+)
+def test_unknown_profiles_are_refused_naming_the_variable(settings, wanted):
+    text = "\n".join(errors_of(cfg(**settings)))
+    for part in wanted:
+        assert part in text, text
 
 
 def test_6x_ports_go_through_isaacsim_variables():

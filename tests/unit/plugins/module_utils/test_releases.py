@@ -18,7 +18,20 @@ def test_the_role_documents_exactly_the_releases_of_the_table():
 
 def test_every_release_has_what_the_plan_and_the_gates_read():
     for name, profile in RELEASES.items():
-        assert {"uid", "gid", "entrypoint", "mounts", "ports", "ready_pattern", "min_driver", "log_dir"} <= set(profile)
-        assert profile["health_port"] in profile["ports"], name
+        assert {"uid", "gid", "profiles", "mounts", "ports", "ready_pattern", "min_driver", "log_dir"} <= set(profile)
+        assert "streaming" in profile["profiles"] and "headless" in profile["profiles"], name
+        for mode, launch in profile["profiles"].items():
+            assert launch["entrypoint"].startswith("/isaac-sim/"), (name, mode)
+            assert set(launch["opens"]) <= set(profile["ports"]), (name, mode)
+            assert launch["health_port"] is None or launch["health_port"] in launch["opens"], (name, mode)
+        # no stream at all: nothing opened, asked only whether the app is ready
+        assert profile["profiles"]["headless"]["opens"] == []
+        assert "--no-window" in profile["profiles"]["headless"]["args"]
+        assert ("--allow-root" in profile["profiles"]["headless"]["args"]) == (profile["uid"] == 0)
         assert release_of_tag(profile["default_tag"]) == name
         assert f"{profile['log_dir']}/Kit/*/*/kit_*.log" in healthcheck(name, 1234)
+
+
+def test_a_healthcheck_without_a_port_asks_only_for_appready():
+    assert healthcheck("6.x", None).endswith('grep -q AppReady "$latest"')
+    assert "/dev/tcp/127.0.0.1/49100" in healthcheck("6.x", 49100)
