@@ -92,6 +92,7 @@ def build(results: dict, targets: list, generated_at: str = "") -> dict:
                 "deployed": res.get("deployed", False),
                 "error": "; ".join(res.get("errors") or []) or None,
                 "public_address": res.get("public_address"),
+                "status_url": res.get("status_url"),
                 "gpu": res.get("gpu", {}),
                 "instances": instances,
                 "summary": summary,

@@ -565,5 +565,15 @@ def gather(
             "gpus": (usage or {}).get("gpus", []),
             "error": gpu_error,
         },
+        # where the host serves this status live (the dashboard refreshes from it), if it does
+        "status_url": read_status_url(config_dir),
         "errors": errors,
     }
+
+
+def read_status_url(config_dir: str):
+    try:
+        with open(os.path.join(config_dir, layout.STATUS_ENV)) as fh:
+            return parse_env_file(fh.read()).get(layout.K_STATUS_URL) or None
+    except OSError:
+        return None

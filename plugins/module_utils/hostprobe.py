@@ -72,13 +72,14 @@ def _read(path):
         return ""
 
 
-def ports_held(wanted_ports, our_container_ids, proc="/proc"):
+def ports_held(wanted_ports, our_container_ids, proc="/proc", our_units=()):
     """Sockets on the ports we want, each with its process and whether it is ours.
 
     our_container_ids is a function, called only when a wanted port is taken.
     A socket is ours when its process runs inside one of our containers: the
     container id appears in the process's cgroup path, under cgroup v1 and v2,
-    with the cgroupfs or the systemd driver.
+    with the cgroupfs or the systemd driver; or when it runs in one of our_units (a host
+    service of the collection, such as the status endpoint).
     """
     wanted = set(wanted_ports)
     socks = [s for s in listening_sockets(proc) if (s[0], s[1]) in wanted]
@@ -91,7 +92,7 @@ def ports_held(wanted_ports, our_container_ids, proc="/proc"):
         pid = owners.get(inode)
         comm = _read(os.path.join(proc, str(pid), "comm")).strip() if pid else ""
         cgroup = _read(os.path.join(proc, str(pid), "cgroup")) if pid else ""
-        ours = any(cid in cgroup for cid in ids)
+        ours = any(cid in cgroup for cid in ids) or any(f"/{unit}" in cgroup for unit in our_units)
         process = f"{comm} (pid {pid})" if pid else "a process in another namespace"
         held.append({"proto": proto, "port": port, "process": process, "ours": ours})
     return held

@@ -34,6 +34,11 @@ PORTS_SCRIPT = "isaac-sim-ports"
 # isaac-sim-run's exit status when a port of the block is held by another process
 PORTS_HELD_STATUS = 76
 SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT)
+# the host's read-only status endpoint (a host service, not an instance)
+STATUS_UNIT = "isaac-sim-status.service"
+STATUS_SCRIPT = "isaac-sim-status-server"
+STATUS_ENV = "status.env"
+K_STATUS_URL = "ISAAC_SIM_STATUS_URL"
 
 UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
@@ -137,6 +142,10 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "target": TARGET,
         "container_prefix": CONTAINER_PREFIX,
         "label_instance": LABEL_INSTANCE,
+        "status_unit": STATUS_UNIT,
+        "status_script": STATUS_SCRIPT,
+        "status_env": f"{CONFIG_DIR}/{STATUS_ENV}",
+        "k_status_url": K_STATUS_URL,
     }
 
 

@@ -9,9 +9,10 @@ Every error names the variable to change and how.
 
 from __future__ import annotations
 
+import ipaddress
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, layout, status_server
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
     ENV,
     KIT,
@@ -207,6 +208,60 @@ def _check_companion_ports(specs, blocks, stride, held) -> list:
                         f"{owner.get('process') or 'another process'}. Fix: stop that process, or move the base."
                     )
     return errors
+
+
+def _status_endpoint(cfg, blocks, comp_specs, stride, held) -> tuple[dict, list]:
+    """(the host's status endpoint as the role installs it, errors). Off: {"enabled": False}."""
+    want = cfg.get("status_server") or {}
+    if not want.get("enabled"):
+        return {"enabled": False}, []
+    errors = []
+    port = as_int(want.get("port"))
+    taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    for spec in comp_specs:
+        for port_name, (_proto, base) in companions.own_ports(spec).items():
+            taken.update({base + i * stride: f"instance {i} companion {spec['name']} {port_name}" for i in blocks})
+    if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
+        errors.append(
+            f"isaac_sim_status_server_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
+            "Fix: choose one, e.g. 8290."
+        )
+    elif port in taken:
+        errors.append(
+            f"isaac_sim_status_server_port: {port} is also {taken[port]}'s port. Fix: choose a port outside every "
+            "instance's block."
+        )
+    elif ("tcp", port) in held and not held[("tcp", port)].get("ours"):
+        errors.append(
+            f"isaac_sim_status_server_port: {port}/tcp is already held on this host by "
+            f"{held[('tcp', port)].get('process') or 'another process'}. Fix: stop it, or choose another port."
+        )
+    address = str(want.get("address") or cfg.get("public_address") or "")
+    try:
+        bound = ipaddress.ip_address(address)
+    except ValueError:
+        errors.append(
+            f"isaac_sim_status_server_address: {address!r} is not an IP address of this host. Fix: give one "
+            "(empty: isaac_sim_public_address), or 0.0.0.0 to listen on every address."
+        )
+        bound = None
+    networks, net_errors = status_server.parse_networks(want.get("allow"))
+    errors += net_errors
+    if not networks and not net_errors:
+        errors.append(
+            "isaac_sim_status_server_allow: empty, so nobody could read the status. Fix: list the networks the "
+            "dashboard is opened from, e.g. [10.20.0.0/16], or set isaac_sim_status_server_enabled: false."
+        )
+    # a URL a browser can open: the host's public address when listening on every address
+    shown = cfg.get("public_address") if bound is not None and bound.is_unspecified else address
+    host = f"[{shown}]" if ":" in str(shown) else shown
+    return {
+        "enabled": True,
+        "address": address,
+        "port": port,
+        "allow": [str(n) for n in networks],
+        "url": f"http://{host}:{port}/status",
+    }, errors
 
 
 def instance_profiles(release, count, default, per_instance) -> tuple[dict, list]:
@@ -434,6 +489,8 @@ def build(cfg: dict, host: dict) -> dict:
     )
     if not errors:
         errors += _check_companion_ports(comp_specs, blocks, stride, held)
+    status, status_errors = _status_endpoint(cfg, blocks, comp_specs, stride, held)
+    errors += status_errors
 
     if errors:
         raise PlanError(errors)
@@ -479,6 +536,7 @@ def build(cfg: dict, host: dict) -> dict:
         "layout": layout.as_dict(data_root),
         # one unit template per companion name, with the timeouts it is started and stopped with
         "companion_units": companion_units,
+        "status_server": status,
         "warnings": warnings,
     }
 

@@ -97,6 +97,12 @@ public_address:
   returned: always
   type: str
   sample: 10.0.0.12
+status_url:
+  description: Where this host serves the same status live, read-only (the isaac_sim role's status endpoint); null when
+    it does not.
+  returned: always
+  type: str
+  sample: http://10.0.0.12:8290/status
 summary:
   description: Counts over the instances reported.
   returned: always

@@ -122,6 +122,13 @@ options:
     description: Instance number to profile, for the instances that run otherwise than O(profile).
     type: dict
     default: {}
+  status_server:
+    description:
+      - The host's read-only status endpoint - C(enabled), C(port), C(address) (empty - O(public_address)) and
+        C(allow) (the networks that may read it). Its port is checked against the instances' blocks and the
+        host's listening sockets.
+    type: dict
+    default: {enabled: false}
   web_viewer_image:
     description:
       - NVIDIA's web viewer image (built once by P(isaacsim.fleet.web_viewer_image#role)); for 6.x each instance
@@ -261,6 +268,7 @@ def main():
             companions=dict(type="list", elements="raw", default=[]),
             profile=dict(type="str", default="streaming"),
             instance_profiles=dict(type="dict", default={}),
+            status_server=dict(type="dict", default={"enabled": False}),
             web_viewer_image=dict(type="str", default=""),
             config_dir=dict(type="path", default="/etc/isaac-sim"),
             systemd_dir=dict(type="path", default="/etc/systemd/system"),
@@ -304,6 +312,7 @@ def main():
         if not present:
             host["companion_images_missing"].append(ref)
     host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
+    host["status_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.STATUS_UNIT))
     # instances serving now: a Docker restart on this host waits for the canary batches
     systemctl = module.get_bin_path("systemctl")
     host["serving"] = 0
@@ -316,6 +325,8 @@ def main():
         profile = RELEASES[p["release"]]["ports"]
         blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), p["port_bases"], max(p["port_stride"], 1))
         wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
+        if p["status_server"].get("enabled") and str(p["status_server"].get("port", "")).isdigit():
+            wanted.add(("tcp", int(p["status_server"]["port"])))
         for spec in p["companions"] if isinstance(p["companions"], list) else []:
             for proto, base in companions.own_ports(spec if isinstance(spec, dict) else {}).values():
                 wanted |= {(proto, base + i * max(p["port_stride"], 1)) for i in blocks}
@@ -327,7 +338,7 @@ def main():
             rc, out, _err = module.run_command(argv)
             return out.split() if rc == 0 else []
 
-        host["ports_held"] = hostprobe.ports_held(wanted, our_ids)
+        host["ports_held"] = hostprobe.ports_held(wanted, our_ids, our_units=[layout.STATUS_UNIT])
 
     try:
         result = plan.build(cfg, host)

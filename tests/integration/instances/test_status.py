@@ -7,9 +7,12 @@ other instance tests; each test leaves every instance ready again.
 import json
 import re
 import socket
+import urllib.error
+import urllib.request
 
 import pytest
 import testbed
+from browser import chromium
 from dashboard import OUTPUT, check_dashboard, dashboard
 from testbed import INSTANCES, all_ready, by_name, container_id, sh, unit_show, wait_for
 
@@ -133,6 +136,83 @@ def test_status_playbook_prints_the_table_and_writes_json(host, tmp_path, ip):
     assert table[0] in run.stdout  # also printed by the play
     report = json.loads((out / "status.json").read_text())
     assert report["summary"]["instances"] == INSTANCES and report["summary"]["ready"] == INSTANCES
+
+
+def status_request(url, method="GET"):
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, method=method), timeout=5) as response:
+            return response.status, dict(response.headers), response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+def test_each_host_serves_its_status_read_only_to_the_networks_allowed(host, ip):
+    url = f"http://{ip}:8290/status"
+    info = testbed.info(host)
+    assert info["status_url"] == url
+    code, headers, body = status_request(url)
+    assert code == 200 and headers["Access-Control-Allow-Origin"] == "*"
+    live = json.loads(body)
+    # the host as the dashboard draws it, from the same status code as isaac_sim_info
+    assert live["host"] == testbed.name(host) and live["reachable"] and live["status_url"] == url
+    assert [(i["name"], i["state"], i["ports"]) for i in live["instances"]] == [
+        (i["name"], i["state"], i["ports"]) for i in info["instances"]
+    ]
+    assert all(i["uptime"] and "gpu_text" in i for i in live["instances"])
+    # read-only: nothing but GET
+    assert status_request(url, "POST")[0] == 405 and status_request(url, "DELETE")[0] == 405
+    assert status_request(f"http://{ip}:8290/")[0] == 404
+    # bound to the host's address, not every interface; no capability, a read-only system
+    assert sh(host, "ss -Hltn 'sport = :8290'").stdout.split()[3] == f"{ip}:8290"
+    props = sh(host, "systemctl show isaac-sim-status -p CapabilityBoundingSet,NoNewPrivileges,ProtectSystem").stdout
+    assert set(props.split()) == {"CapabilityBoundingSet=", "NoNewPrivileges=yes", "ProtectSystem=strict"}
+    exposure = sh(host, "systemd-analyze security isaac-sim-status.service --no-pager | tail -1", check=False)
+    print(f"systemd-analyze security: {exposure.stdout.strip()}")
+    before = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+    try:
+        ok(testbed.run_playbook(host, {"isaac_sim_status_server_allow": ["10.255.0.0/16"]}))
+        code, _headers, body = status_request(url)
+        assert code == 403 and b"isaac_sim_status_server_allow" in body
+    finally:
+        ok(testbed.run_playbook(host))
+    assert status_request(url)[0] == 200
+    # the endpoint is a host service: its changes restart no instance
+    assert {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)} == before
+
+
+def test_the_dashboard_follows_each_host_live_without_ansible(host, tmp_path):
+    _run, out = dashboard(host, tmp_path, {"fleet_report_refresh": 1})
+    with chromium() as driver:
+        driver.get((out / "status.html").as_uri())
+
+        def section():
+            return driver.find_element("css selector", "section.host")
+
+        def state(i):
+            return driver.find_element("css selector", f'.instance-card[data-instance="{i}"]').get_attribute(
+                "data-state"
+            )
+
+        wait_for(lambda: section().get_attribute("data-live") == "ok", timeout=15, what="the page to read the host")
+        sh(host, "systemctl stop isaac-sim@1")
+        try:
+            wait_for(lambda: state(1) == "stopped", timeout=15, interval=0.5, what="instance 1 shown stopped")
+            assert driver.find_element("id", "sum-ready").text == str(INSTANCES - 1)
+        finally:
+            sh(host, "systemctl start isaac-sim@1")
+        wait_for(lambda: state(1) == "ready", timeout=60, interval=0.5, what="instance 1 shown ready again")
+        assert driver.find_element("id", "sum-ready").text == str(INSTANCES)
+        # a host that stops answering is shown as unreachable, its cards kept as last known
+        sh(host, "systemctl stop isaac-sim-status")
+        try:
+            wait_for(lambda: section().get_attribute("data-live") == "unreachable", timeout=15, what="unreachable")
+            assert "unreachable" in section().find_element("css selector", ".host-line").text
+            assert len(driver.find_elements("css selector", ".instance-card")) == INSTANCES
+        finally:
+            sh(host, "systemctl start isaac-sim-status")
+        wait_for(lambda: section().get_attribute("data-live") == "ok", timeout=20, what="the host back")
+        driver.save_screenshot(str(OUTPUT / "dashboard-live.png"))
+    all_ready(host)
 
 
 def test_dashboard_in_headless_chromium(host, tmp_path):

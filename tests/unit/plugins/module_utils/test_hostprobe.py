@@ -61,6 +61,12 @@ def test_ports_held_tells_ours_from_foreign(tmp_path):
     assert calls == [1]
 
 
+def test_a_port_held_by_one_of_our_host_services_is_ours(tmp_path):
+    proc = fake_proc(tmp_path)
+    assert hostprobe.ports_held({("tcp", 49101)}, lambda: [], proc, our_units=["nginx.service"])[0]["ours"]
+    assert not hostprobe.ports_held({("tcp", 49101)}, lambda: [], proc, our_units=["x-nginx.service"])[0]["ours"]
+
+
 def test_docker_is_not_asked_when_no_wanted_port_is_taken(tmp_path):
     def ids():
         raise AssertionError("docker asked for nothing")

@@ -314,3 +314,40 @@ def test_the_healthcheck_is_nvidias_plus_the_port_answering():
     old = plan.build(cfg(release="2023.1", image="nvcr.io/nvidia/isaac-sim:2023.1.1"), HOST)["instances"][0]
     assert "/root/.nvidia-omniverse/logs/Kit" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
     assert "/dev/tcp/127.0.0.1/8211" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
+
+
+STATUS = {"enabled": True, "port": 8290, "address": "", "allow": ["10.0.0.0/8"]}
+
+
+def test_the_status_endpoint_listens_on_the_public_address_and_says_its_url():
+    result = plan.build(cfg(status_server=STATUS), HOST)
+    assert result["status_server"] == {
+        "enabled": True,
+        "address": "10.0.0.5",
+        "port": 8290,
+        "allow": ["10.0.0.0/8"],
+        "url": "http://10.0.0.5:8290/status",
+    }
+    every = plan.build(cfg(status_server=dict(STATUS, address="0.0.0.0")), HOST)["status_server"]
+    assert every["address"] == "0.0.0.0" and every["url"] == "http://10.0.0.5:8290/status"
+    assert plan.build(cfg(), HOST)["status_server"] == {"enabled": False}
+
+
+@pytest.mark.parametrize(
+    "settings, host, wanted",
+    [
+        ({"port": 49101}, HOST, "isaac_sim_status_server_port: 49101 is also instance 1 signal's port"),
+        ({"port": 80}, HOST, "isaac_sim_status_server_port: 80 is not a port in 1024-65535"),
+        (
+            {},
+            dict(HOST, ports_held=[{"proto": "tcp", "port": 8290, "process": "nginx (pid 7)", "ours": False}]),
+            "isaac_sim_status_server_port: 8290/tcp is already held on this host by nginx (pid 7)",
+        ),
+        ({"address": "gpu-1.lab"}, HOST, "isaac_sim_status_server_address: 'gpu-1.lab' is not an IP address"),
+        ({"allow": ["lab-net"]}, HOST, "isaac_sim_status_server_allow: 'lab-net' is not a network"),
+        ({"allow": []}, HOST, "isaac_sim_status_server_allow: empty, so nobody could read the status"),
+    ],
+)
+def test_bad_status_endpoint_settings_are_refused_before_any_change(settings, host, wanted):
+    text = "\n".join(errors_of(cfg(status_server=dict(STATUS, **settings)), host))
+    assert wanted in text and "Fix:" in text, text

@@ -1,0 +1,94 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""A host service of the collection that is not an instance (the status endpoint): its files
+and its systemd unit, brought to the wanted state in one module call.
+
+Pure decisions here; the module (isaac_sim_host_service) reads and writes. Instances never
+come here: they change only through the lifecycle (module_utils/lifecycle.py).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+UNIT_SUFFIXES = (".service", ".timer", ".socket")
+
+
+def changed_files(files: dict, read) -> list:
+    """The paths whose content or mode differ from what is wanted. read(path) -> (content, mode) or None."""
+    out = []
+    for path, want in sorted(files.items()):
+        have = read(path)
+        if have is None or have[0] != want["content"] or have[1] != int(str(want.get("mode", "0644")), 8):
+            out.append(path)
+    return out
+
+
+def actions(state: str, show: dict, files_changed: list, removable: list) -> list:
+    """systemctl verbs, in order, for the unit as `show` describes it (ActiveState, UnitFileState, LoadState).
+
+    started: enabled and running, restarted when one of its files changed while it ran.
+    absent: stopped and disabled, before its files go.
+    """
+    units_changed = any(p.endswith(UNIT_SUFFIXES) for p in files_changed + (removable if state == "absent" else []))
+    active = show.get("ActiveState") in ("active", "activating", "reloading")
+    enabled = show.get("UnitFileState") == "enabled"
+    verbs = []
+    if state == "absent":
+        if active:
+            verbs.append("stop")
+        if enabled:
+            verbs.append("disable")
+        if removable:
+            verbs.append("remove")
+        if units_changed:
+            verbs.append("daemon-reload")
+        return verbs
+    if files_changed:
+        verbs.append("write")
+    if units_changed:
+        verbs.append("daemon-reload")
+    if not enabled:
+        verbs.append("enable")
+    if not active:
+        verbs.append("start")
+    elif files_changed:
+        verbs.append("restart")
+    return verbs
+
+
+def read_file(path):
+    try:
+        with open(path) as fh:
+            content = fh.read()
+        return content, os.stat(path).st_mode & 0o7777
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def write_file(path: str, content: str, mode) -> None:
+    """Atomically: a reader never sees half a file."""
+    directory = os.path.dirname(path)
+    os.makedirs(directory, mode=0o755, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".isaac-sim.")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(content)
+        os.chmod(tmp, int(str(mode), 8))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def remove(path: str) -> bool:
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path)
+        return True
+    if os.path.lexists(path):
+        os.unlink(path)
+        return True
+    return False

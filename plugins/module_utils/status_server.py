@@ -1,0 +1,127 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""A host's read-only status endpoint (isaac-sim-status.service): what isaac_sim_info
+returns, as the fleet dashboard shows it, served as JSON to the networks allowed.
+
+GET only, one path, no control: changes go through Ansible. Answers are computed at most
+once per `ttl` seconds however many dashboards ask, so a page left open on many desks
+costs the host one status read per period.
+"""
+
+from __future__ import annotations
+
+import http.server
+import ipaddress
+import json
+import socket
+import threading
+import time
+
+PATH = "/status"
+# the address families the dashboard may come from; a private fleet by default
+DEFAULT_ALLOW = ("127.0.0.0/8", "10.0.0.0/8", "172.16.0.0/12", "192.168.0.0/16", "::1/128", "fc00::/7")
+
+
+def parse_networks(texts) -> tuple[list, list]:
+    """(networks, errors) for the allowed networks as written (CIDR or single addresses)."""
+    networks, errors = [], []
+    for text in texts or []:
+        try:
+            networks.append(ipaddress.ip_network(str(text).strip(), strict=False))
+        except ValueError:
+            errors.append(
+                f"isaac_sim_status_server_allow: {text!r} is not a network. Fix: write it as CIDR, "
+                "e.g. 10.20.0.0/16, or a single address."
+            )
+    return networks, errors
+
+
+def allowed(address: str, networks) -> bool:
+    try:
+        ip = ipaddress.ip_address(address.split("%", 1)[0])
+    except ValueError:
+        return False
+    # an IPv4 client on an IPv6 socket arrives as ::ffff:a.b.c.d
+    if ip.version == 6 and ip.ipv4_mapped:
+        ip = ip.ipv4_mapped
+    return any(ip in net for net in networks if net.version == ip.version)
+
+
+class Cache:
+    """One status read per ttl seconds; concurrent requests wait for the same read."""
+
+    def __init__(self, read, ttl: float, clock=time.monotonic):
+        self._read, self._ttl, self._clock = read, ttl, clock
+        self._lock = threading.Lock()
+        self._at, self._body = None, b""
+        self.reads = 0
+
+    def get(self) -> bytes:
+        with self._lock:
+            now = self._clock()
+            if self._at is None or now - self._at >= self._ttl:
+                self._body = json.dumps(self._read(), sort_keys=True).encode()
+                self._at = now
+                self.reads += 1
+            return self._body
+
+
+def handler(cache: Cache, networks):
+    class Handler(http.server.BaseHTTPRequestHandler):
+        server_version = "isaac-sim-status"
+        sys_version = ""
+
+        def _send(self, code, body: bytes, content_type="text/plain; charset=utf-8", extra=()):
+            self.send_response(code)
+            self.send_header("Content-Type", content_type)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "no-store")
+            self.send_header("X-Content-Type-Options", "nosniff")
+            # read-only data for a page opened from a file or another host: any origin may read it
+            self.send_header("Access-Control-Allow-Origin", "*")
+            for name, value in extra:
+                self.send_header(name, value)
+            self.end_headers()
+            if self.command != "HEAD":
+                self.wfile.write(body)
+
+        def _allowed(self) -> bool:
+            if allowed(self.client_address[0], networks):
+                return True
+            self._send(403, b"forbidden: this address is not in isaac_sim_status_server_allow\n")
+            return False
+
+        def do_GET(self):  # noqa: N802 - http.server's naming
+            if not self._allowed():
+                return
+            if self.path.split("?", 1)[0] not in (PATH, PATH + "/"):
+                self._send(404, f"not found: the status is at {PATH}\n".encode())
+                return
+            try:
+                body = cache.get()
+            except Exception as exc:  # the host's status could not be read: say so, keep serving
+                self._send(503, f"status unavailable: {exc}\n".encode())
+                return
+            self._send(200, body, "application/json")
+
+        do_HEAD = do_GET  # noqa: N815
+
+        def _refuse(self):
+            if self._allowed():
+                self._send(405, b"read-only: GET only\n", extra=(("Allow", "GET, HEAD"),))
+
+        do_POST = do_PUT = do_DELETE = do_PATCH = _refuse  # noqa: N815
+
+        def log_message(self, *args):
+            pass
+
+    return Handler
+
+
+def server(address: str, port: int, cache: Cache, networks) -> http.server.ThreadingHTTPServer:
+    srv_class = http.server.ThreadingHTTPServer
+    if ":" in address:
+        srv_class = type("V6", (http.server.ThreadingHTTPServer,), {"address_family": socket.AF_INET6})
+    srv = srv_class((address, port), handler(cache, networks))
+    srv.daemon_threads = True
+    return srv

@@ -1,0 +1,52 @@
+"""Host services that are not instances (module_utils/host_service.py): files and unit in one call."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils import host_service
+
+UNIT = "/etc/systemd/system/isaac-sim-status.service"
+SCRIPT = "/usr/local/libexec/isaac-sim/isaac-sim-status-server"
+RUNNING = {"ActiveState": "active", "UnitFileState": "enabled", "LoadState": "loaded"}
+NEW = {"ActiveState": "inactive", "UnitFileState": "", "LoadState": "not-found"}
+
+
+@pytest.mark.parametrize(
+    "show, changed, expected",
+    [
+        # a fresh host: written, loaded, enabled, started
+        (NEW, [UNIT, SCRIPT], ["write", "daemon-reload", "enable", "start"]),
+        # nothing to do on a re-run
+        (RUNNING, [], []),
+        # a changed script restarts the running service, no reload needed
+        (RUNNING, [SCRIPT], ["write", "restart"]),
+        (RUNNING, [UNIT], ["write", "daemon-reload", "restart"]),
+        # stopped by hand: started again, files unchanged
+        (dict(RUNNING, ActiveState="failed"), [], ["start"]),
+    ],
+)
+def test_started(show, changed, expected):
+    assert host_service.actions("started", show, changed, []) == expected
+
+
+def test_absent_stops_and_disables_before_removing():
+    assert host_service.actions("absent", RUNNING, [], [UNIT, SCRIPT]) == ["stop", "disable", "remove", "daemon-reload"]
+    assert host_service.actions("absent", NEW, [], []) == []
+
+
+def test_changed_files_compare_content_and_mode(tmp_path):
+    same, other, mode, missing = (str(tmp_path / n) for n in ("same", "other", "mode", "missing"))
+    for path in (same, other, mode):
+        host_service.write_file(path, "x\n", "0644")
+    files = {
+        same: {"content": "x\n", "mode": "0644"},
+        other: {"content": "y\n", "mode": "0644"},
+        mode: {"content": "x\n", "mode": "0755"},
+        missing: {"content": "x\n", "mode": "0644"},
+    }
+    assert host_service.changed_files(files, host_service.read_file) == sorted([other, mode, missing])
+    host_service.write_file(mode, "x\n", "0755")
+    assert os.stat(mode).st_mode & 0o777 == 0o755
+    assert host_service.remove(str(tmp_path)) and not os.path.exists(same)
