@@ -171,6 +171,7 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
             continue
         name = _CONTAINER_NAME.match(names[0]).group(1)
         label = (c.get("Labels") or {}).get(layout.LABEL_INSTANCE)
+        host_service = (c.get("Labels") or {}).get(layout.LABEL_HOST_SERVICE)
         companion = (c.get("Labels") or {}).get(layout.LABEL_COMPANION)
         created = c.get("Created")
         running = c.get("State") == "running"
@@ -188,6 +189,7 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
             "digest": digests.get(c.get("ImageID")),
             "labelled_instance": int(label) if label and label.isdigit() else None,
             "companion": companion,
+            "host_service": host_service,
         }
     return out
 
@@ -265,6 +267,8 @@ def build(
     by_id = {}
     comp_containers = {}
     for name, c in containers.items():
+        if c.get("host_service"):  # the host's Hub cache: not an instance, never a stray
+            continue
         if c.get("companion") and c.get("labelled_instance") is not None:
             comp_containers[(c["labelled_instance"], c["companion"])] = c
             continue
@@ -567,6 +571,12 @@ def gather(
         },
         # where the host serves this status live (the dashboard refreshes from it), if it does
         "status_url": read_status_url(config_dir),
+        # the host's own services that run in containers (the Hub cache)
+        "host_services": [
+            {"name": c["host_service"], "container": name, "state": c["state"], "uptime_s": c["uptime_s"]}
+            for name, c in sorted(containers.items())
+            if c.get("host_service")
+        ],
         "errors": errors,
     }
 

@@ -26,6 +26,27 @@ def changed_files(files: dict, read) -> list:
     return out
 
 
+def directories_to_fix(directories: list, stat=os.stat) -> list:
+    """The directories ({path, uid, gid, mode}) that are missing or owned or moded otherwise."""
+    out = []
+    for d in directories:
+        try:
+            st = stat(d["path"])
+        except OSError:
+            out.append(d)
+            continue
+        if (st.st_uid, st.st_gid, st.st_mode & 0o7777) != (int(d["uid"]), int(d["gid"]), int(str(d["mode"]), 8)):
+            out.append(d)
+    return out
+
+
+def fix_directory(d: dict) -> None:
+    """Created (with parents) or re-owned; what is inside is kept as it is."""
+    os.makedirs(d["path"], mode=0o755, exist_ok=True)
+    os.chown(d["path"], int(d["uid"]), int(d["gid"]))
+    os.chmod(d["path"], int(str(d["mode"]), 8))
+
+
 def actions(state: str, show: dict, files_changed: list, removable: list) -> list:
     """systemctl verbs, in order, for the unit as `show` describes it (ActiveState, UnitFileState, LoadState).
 

@@ -39,6 +39,13 @@ STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"
 STATUS_ENV = "status.env"
 K_STATUS_URL = "ISAAC_SIM_STATUS_URL"
+# NVIDIA's Hub Workstation Cache, one per host, shared by its 6.x instances (a host service)
+HUB_UNIT = "isaac-sim-hub.service"
+HUB_CONTAINER = "isaac-sim-hub"
+HUB_PORT = 14090
+HUB_DROPIN = "isaac-sim@.service.d/hub.conf"
+HUB_MOUNT = "/var/cache/hub"
+LABEL_HOST_SERVICE = "org.isaacsim.fleet.host-service"
 
 UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
@@ -51,7 +58,7 @@ COMPANION_UNIT_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@(\d+)\.service$")
 COMPANION_ENV_RE = re.compile(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.env$")
 COMPANION_TEMPLATE_GLOB = "isaac-sim-*@.service"
 # names a companion may not take: the collection's own units and scripts
-RESERVED_COMPANIONS = ("metrics", "run", "ready", "ports", "status")
+RESERVED_COMPANIONS = ("metrics", "run", "ready", "ports", "status", "hub")
 
 # env-file keys: the unit, the scripts and the status module read these
 K_INSTANCE = "ISAAC_SIM_INSTANCE"
@@ -146,6 +153,9 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "status_script": STATUS_SCRIPT,
         "status_env": f"{CONFIG_DIR}/{STATUS_ENV}",
         "k_status_url": K_STATUS_URL,
+        "hub_unit": HUB_UNIT,
+        "hub_dropin": HUB_DROPIN,
+        "hub_dir": f"{data_root}/hub-cache",
     }
 
 
@@ -393,6 +403,56 @@ StartLimitIntervalSec=0
     }
 [Install]
 WantedBy={owner}
+"""
+
+
+def render_hub_unit(hub: dict, managed: str) -> str:
+    """NVIDIA's Hub Workstation Cache as one unit per host (their docs run it with docker run):
+    host networking, user 1234, the host's cache directory at /var/cache/hub. Its start ends
+    when it listens, so the instances that want it start after it answers."""
+    wait = (
+        f"for i in $$(seq 1 120); do (exec 3<>/dev/tcp/127.0.0.1/{HUB_PORT}) 2>/dev/null && exit 0; sleep 0.5; done; "
+        f"echo 'the Hub cache did not listen on {HUB_PORT} within 60 s' >&2; exit 1"
+    )
+    run = [
+        "/usr/bin/docker run --rm",
+        f"--name={HUB_CONTAINER}",
+        "--network=host",
+        "--pull=never",
+        "--user=1234:1234",
+        "--security-opt=no-new-privileges",
+        f"--label={LABEL_HOST_SERVICE}=hub",
+        f"--volume={hub['dir']}:{HUB_MOUNT}:rw",
+        hub["image"],
+    ]
+    return f"""# {managed}
+# NVIDIA's Hub Workstation Cache for this host's Isaac Sim instances (isaac_sim_hub_cache_enabled).
+[Unit]
+Description=NVIDIA Hub Workstation Cache for the Isaac Sim instances of this host
+Requires=docker.service
+After=docker.service network-online.target
+Wants=network-online.target
+
+[Service]
+ExecStartPre=-/usr/bin/docker rm -f {HUB_CONTAINER}
+ExecStart={" ".join(run)}
+ExecStartPost=/bin/bash -c "{wait}"
+ExecStop=-/usr/bin/docker stop -t 10 {HUB_CONTAINER}
+Restart=always
+RestartSec=5
+TimeoutStartSec=90
+
+[Install]
+WantedBy=multi-user.target
+"""
+
+
+def render_hub_dropin(managed: str) -> str:
+    """Every instance wants the Hub cache and starts after it (a drop-in: no instance restarts for it)."""
+    return f"""# {managed}
+[Unit]
+Wants={HUB_UNIT}
+After={HUB_UNIT}
 """
 
 

@@ -264,6 +264,49 @@ def _status_endpoint(cfg, blocks, comp_specs, stride, held) -> tuple[dict, list]
     }, errors
 
 
+def _hub_cache(cfg, release, blocks, held) -> tuple[dict, list]:
+    """(NVIDIA's Hub Workstation Cache for this host, errors). Off: {"enabled": False}."""
+    want = cfg.get("hub_cache") or {}
+    if not want.get("enabled"):
+        return {"enabled": False}, []
+    errors = []
+    if "cache/hub" not in RELEASES[release]["mounts"]:
+        errors.append(
+            f"isaac_sim_hub_cache_enabled: Isaac Sim {release} has no Hub client to use it (6.x has). "
+            "Fix: set isaac_sim_hub_cache_enabled: false, or deploy 6.x."
+        )
+    image = str(want.get("image") or "")
+    if parse_image(image) is None:
+        errors.append(
+            f"isaac_sim_hub_cache_image: {image!r} is not a valid image reference. "
+            "Fix: use NVIDIA's, nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0, or your registry's copy."
+        )
+    directory = str(want.get("dir") or f"{cfg['data_root']}/hub-cache")
+    if not directory.startswith("/") or re.search(r"\s|:", directory):
+        errors.append(
+            f"isaac_sim_hub_cache_dir: {directory!r} must be an absolute path without spaces or colons. "
+            "Fix: use e.g. /var/lib/isaac-sim/hub-cache."
+        )
+    port = layout.HUB_PORT
+    taken = {p: f"instance {i} {kind}" for i, block in blocks.items() for kind, p in block.items()}
+    if port in taken:
+        errors.append(
+            f"isaac_sim_hub_cache_enabled: the Hub cache listens on {port}, which is also {taken[port]}'s port. "
+            "Fix: move that base (isaac_sim_port_bases)."
+        )
+    elif ("tcp", port) in held and not held[("tcp", port)].get("ours"):
+        errors.append(
+            f"isaac_sim_hub_cache_enabled: {port}/tcp, the Hub cache's port, is already held on this host by "
+            f"{held[('tcp', port)].get('process') or 'another process'} (a Hub cache started by hand?). "
+            "Fix: stop it; the collection runs the host's one Hub cache."
+        )
+    hub = {"enabled": True, "image": image, "dir": directory, "port": port}
+    # rendered here, so the role writes exactly what the layout defines
+    hub["unit"] = layout.render_hub_unit(hub, "Ansible managed (isaacsim.fleet)")
+    hub["dropin"] = layout.render_hub_dropin("Ansible managed (isaacsim.fleet)")
+    return hub, errors
+
+
 def instance_profiles(release, count, default, per_instance) -> tuple[dict, list]:
     """({instance: profile}, errors): isaac_sim_profile for every instance, but where
     isaac_sim_instance_profiles names another."""
@@ -491,11 +534,14 @@ def build(cfg: dict, host: dict) -> dict:
         errors += _check_companion_ports(comp_specs, blocks, stride, held)
     status, status_errors = _status_endpoint(cfg, blocks, comp_specs, stride, held)
     errors += status_errors
+    hub, hub_errors = _hub_cache(cfg, release, blocks, held)
+    errors += hub_errors
 
     if errors:
         raise PlanError(errors)
 
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
+    sized["hub_dir"] = hub.get("dir")
     warnings = _needs(release, profile, memory, gpus, host)
     instances = [_instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i)) for i in range(count)]
     for inst in instances:
@@ -537,6 +583,7 @@ def build(cfg: dict, host: dict) -> dict:
         # one unit template per companion name, with the timeouts it is started and stopped with
         "companion_units": companion_units,
         "status_server": status,
+        "hub_cache": hub,
         "warnings": warnings,
     }
 
@@ -614,8 +661,10 @@ def _instance(cfg, profile, mode, i, ports, gpu):
     docker += [f"--env={name}" for name in env_names]
     dirs = []
     for sub, target in profile["mounts"].items():
-        dirs.append(f"{root}/{sub}")
-        docker.append(f"--volume={root}/{sub}:{target}:rw")
+        # the host's one Hub cache, shared with the Hub service (NVIDIA: the same directory in both)
+        source = cfg["hub_dir"] if sub == "cache/hub" and cfg.get("hub_dir") else f"{root}/{sub}"
+        dirs.append(source)
+        docker.append(f"--volume={source}:{target}:rw")
     probe = launch["health_port"]
     docker += [
         f"--health-cmd={healthcheck(cfg['release'], ports.get(probe))}",

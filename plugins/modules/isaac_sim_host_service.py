@@ -28,6 +28,13 @@ options:
         file among them.
     type: dict
     default: {}
+  directories:
+    description:
+      - Directories the service needs before it starts - C(path), C(uid), C(gid), C(mode) (octal string). Created
+        when missing and re-owned when owned otherwise; never emptied, and kept with O(state=absent).
+    type: list
+    elements: dict
+    default: []
   remove:
     description: Further paths (files or directories) to remove with O(state=absent).
     type: list
@@ -59,7 +66,8 @@ changed_files:
   type: list
   elements: str
 actions:
-  description: What was done, in order (write, daemon-reload, enable, start, restart, stop, disable, remove).
+  description: What was done, in order (directories, write, daemon-reload, enable, start, restart, stop, disable,
+    remove).
   returned: always
   type: list
   elements: str
@@ -76,6 +84,7 @@ def main():
         argument_spec=dict(
             name=dict(type="str", required=True),
             files=dict(type="dict", default={}),
+            directories=dict(type="list", elements="dict", default=[]),
             remove=dict(type="list", elements="path", default=[]),
             state=dict(type="str", choices=["started", "absent"], default="started"),
         ),
@@ -101,7 +110,12 @@ def main():
         changed_files = gone
     else:
         changed_files = host_service.changed_files(files, host_service.read_file)
+        fix = host_service.directories_to_fix(p["directories"])
         verbs = host_service.actions("started", show, changed_files, [])
+        if fix:
+            # before anything starts: the service may need them (a container's mount)
+            verbs = ["directories"] + [v for v in verbs if v != "restart"]
+            verbs += [] if "start" in verbs else (["restart"] if show.get("ActiveState") == "active" else [])
 
     diff = {
         "before": "".join(f"{path}\n" for path in changed_files if host_service.read_file(path) is not None),
@@ -109,7 +123,10 @@ def main():
     }
     if not module.check_mode:
         for verb in verbs:
-            if verb == "write":
+            if verb == "directories":
+                for d in fix:
+                    host_service.fix_directory(d)
+            elif verb == "write":
                 for path in changed_files:
                     host_service.write_file(path, files[path]["content"], files[path]["mode"])
             elif verb == "remove":

@@ -97,6 +97,12 @@ public_address:
   returned: always
   type: str
   sample: 10.0.0.12
+host_services:
+  description: The host's own services that run in containers, such as NVIDIA's Hub cache (C(name), C(container),
+    C(state), C(uptime_s)); never listed as instances or strays.
+  returned: always
+  type: list
+  elements: dict
 status_url:
   description: Where this host serves the same status live, read-only (the isaac_sim role's status endpoint); null when
     it does not.

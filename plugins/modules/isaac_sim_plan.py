@@ -129,6 +129,12 @@ options:
         host's listening sockets.
     type: dict
     default: {enabled: false}
+  hub_cache:
+    description:
+      - NVIDIA's Hub Workstation Cache, one per host for its 6.x instances - C(enabled), C(image), C(dir) (empty -
+        C(DATA_ROOT/hub-cache)). Its port (14090) is checked against the instances' blocks and the host's sockets.
+    type: dict
+    default: {enabled: false}
   web_viewer_image:
     description:
       - NVIDIA's web viewer image (built once by P(isaacsim.fleet.web_viewer_image#role)); for 6.x each instance
@@ -269,6 +275,7 @@ def main():
             profile=dict(type="str", default="streaming"),
             instance_profiles=dict(type="dict", default={}),
             status_server=dict(type="dict", default={"enabled": False}),
+            hub_cache=dict(type="dict", default={"enabled": False}),
             web_viewer_image=dict(type="str", default=""),
             config_dir=dict(type="path", default="/etc/isaac-sim"),
             systemd_dir=dict(type="path", default="/etc/systemd/system"),
@@ -304,6 +311,8 @@ def main():
     has_viewer = p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]
     if p["web_viewer_image"] and streams and has_viewer:
         wanted_images.insert(0, p["web_viewer_image"])
+    if p["hub_cache"].get("enabled") and p["hub_cache"].get("image"):
+        wanted_images.insert(0, p["hub_cache"]["image"])
     for ref in dict.fromkeys(str(r) for r in wanted_images):
         present = False
         if docker:
@@ -313,6 +322,7 @@ def main():
             host["companion_images_missing"].append(ref)
     host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
     host["status_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.STATUS_UNIT))
+    host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
     # instances serving now: a Docker restart on this host waits for the canary batches
     systemctl = module.get_bin_path("systemctl")
     host["serving"] = 0
@@ -327,6 +337,8 @@ def main():
         wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
         if p["status_server"].get("enabled") and str(p["status_server"].get("port", "")).isdigit():
             wanted.add(("tcp", int(p["status_server"]["port"])))
+        if p["hub_cache"].get("enabled"):
+            wanted.add(("tcp", layout.HUB_PORT))
         for spec in p["companions"] if isinstance(p["companions"], list) else []:
             for proto, base in companions.own_ports(spec if isinstance(spec, dict) else {}).values():
                 wanted |= {(proto, base + i * max(p["port_stride"], 1)) for i in blocks}

@@ -159,6 +159,25 @@ def test_a_headless_instance_reports_its_profile_and_no_url():
     assert list(records(envs={1: streaming})["isaac-sim-1"]["urls"]) == ["signal", "stream"]
 
 
+def test_the_hub_cache_container_is_a_host_service_never_a_stray():
+    raw = [
+        {
+            "Id": "f" * 64,
+            "Names": ["/isaac-sim-hub"],
+            "State": "running",
+            "Status": "Up 5 minutes",
+            "Created": NOW - 300,
+            "Image": "hub:2.0.0",
+            "ImageID": "sha256:1",
+            "Labels": {"org.isaacsim.fleet.host-service": "hub"},
+        }
+    ]
+    hub = fleet_status.parse_containers(raw, [], NOW)
+    assert hub["isaac-sim-hub"]["host_service"] == "hub"
+    found = records(containers=dict(containers(), **hub))
+    assert "isaac-sim-hub" not in found and found.keys() == records().keys()
+
+
 def test_2023_instance_gets_the_browser_client_url():
     e = dict(env(0), ISAAC_SIM_RELEASE="2023.1")
     for k in [k for k in e if k.startswith("ISAAC_SIM_PORT_")]:

@@ -50,3 +50,17 @@ def test_changed_files_compare_content_and_mode(tmp_path):
     host_service.write_file(mode, "x\n", "0755")
     assert os.stat(mode).st_mode & 0o777 == 0o755
     assert host_service.remove(str(tmp_path)) and not os.path.exists(same)
+
+
+def test_directories_are_created_or_reowned_and_kept(tmp_path):
+    uid, gid = os.getuid(), os.getgid()
+    hub = tmp_path / "hub-cache"
+    wanted = [{"path": str(hub), "uid": uid, "gid": gid, "mode": "0750"}]
+    assert host_service.directories_to_fix(wanted) == wanted
+    host_service.fix_directory(wanted[0])
+    (hub / "kept").write_text("cache")
+    assert host_service.directories_to_fix(wanted) == []
+    os.chmod(hub, 0o777)
+    assert host_service.directories_to_fix(wanted) == wanted
+    host_service.fix_directory(wanted[0])
+    assert (hub / "kept").read_text() == "cache" and os.stat(hub).st_mode & 0o777 == 0o750

@@ -351,3 +351,44 @@ def test_the_status_endpoint_listens_on_the_public_address_and_says_its_url():
 def test_bad_status_endpoint_settings_are_refused_before_any_change(settings, host, wanted):
     text = "\n".join(errors_of(cfg(status_server=dict(STATUS, **settings)), host))
     assert wanted in text and "Fix:" in text, text
+
+
+HUB = {"enabled": True, "image": "nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0", "dir": ""}
+
+
+def test_the_hub_cache_is_one_directory_shared_by_every_6x_instance():
+    result = plan.build(cfg(hub_cache=HUB), HOST)
+    hub = result["hub_cache"]
+    assert hub["dir"] == "/var/lib/isaac-sim/hub-cache" and hub["port"] == 14090
+    for inst in result["instances"]:
+        assert "--volume=/var/lib/isaac-sim/hub-cache:/var/cache/hub:rw" in inst["docker_args"]
+        assert "/var/lib/isaac-sim/hub-cache" in inst["dirs"]
+        assert not any("/cache/hub:" in a for a in inst["docker_args"] if "hub-cache" not in a)
+    assert "--user=1234:1234" in hub["unit"] and "--network=host" in hub["unit"]
+    assert "ExecStartPost=" in hub["unit"] and "14090" in hub["unit"]
+    assert hub["dropin"].endswith("Wants=isaac-sim-hub.service\nAfter=isaac-sim-hub.service\n")
+    # off: each instance keeps its own Hub cache, as NVIDIA's compose recipe does
+    inst = plan.build(cfg(), HOST)["instances"][1]
+    assert "--volume=/var/lib/isaac-sim/instance-1/cache/hub:/var/cache/hub:rw" in inst["docker_args"]
+
+
+@pytest.mark.parametrize(
+    "over, host, wanted",
+    [
+        (
+            {"release": "5.x", "image": "nvcr.io/nvidia/isaac-sim:5.1.0"},
+            HOST,
+            "isaac_sim_hub_cache_enabled: Isaac Sim 5.x has no Hub client",
+        ),
+        ({"hub_cache": dict(HUB, image="Hub Cache")}, HOST, "isaac_sim_hub_cache_image: 'Hub Cache' is not a valid"),
+        ({"hub_cache": dict(HUB, dir="hub")}, HOST, "isaac_sim_hub_cache_dir: 'hub' must be an absolute path"),
+        (
+            {},
+            dict(HOST, ports_held=[{"proto": "tcp", "port": 14090, "process": "hub (pid 9)", "ours": False}]),
+            "isaac_sim_hub_cache_enabled: 14090/tcp, the Hub cache's port, is already held on this host by hub (pid 9)",
+        ),
+    ],
+)
+def test_bad_hub_cache_settings_are_refused(over, host, wanted):
+    text = "\n".join(errors_of(cfg(**dict({"hub_cache": HUB}, **over)), host))
+    assert wanted in text and "Fix:" in text, text
