@@ -33,7 +33,7 @@ def duration(seconds) -> str:
 def primary_url(inst: dict) -> str:
     """What a person points a client at: the browser client where the release serves one, else the signal address."""
     urls = inst.get("urls") or {}
-    for key in ("webrtc_client", "signal", "web_viewer"):
+    for key in ("webrtc_client", "signal", "native", "web_viewer"):
         if urls.get(key):
             return urls[key]
     return "-"

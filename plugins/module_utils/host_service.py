@@ -16,6 +16,12 @@ import tempfile
 UNIT_SUFFIXES = (".service", ".timer", ".socket")
 
 
+def is_unit_file(path: str) -> bool:
+    """A file systemd reads only on daemon-reload: a unit, or a drop-in (UNIT.d/NAME.conf)."""
+    parent = os.path.basename(os.path.dirname(path))
+    return path.endswith(UNIT_SUFFIXES) or (path.endswith(".conf") and parent.endswith(".d"))
+
+
 def changed_files(files: dict, read) -> list:
     """The paths whose content or mode differ from what is wanted. read(path) -> (content, mode) or None."""
     out = []
@@ -47,13 +53,14 @@ def fix_directory(d: dict) -> None:
     os.chmod(d["path"], int(str(d["mode"]), 8))
 
 
-def actions(state: str, show: dict, files_changed: list, removable: list) -> list:
-    """systemctl verbs, in order, for the unit as `show` describes it (ActiveState, UnitFileState, LoadState).
+def actions(state: str, show: dict, files_changed: list, removable: list, directories: bool = False) -> list:
+    """Steps, in order, for the unit as `show` describes it (ActiveState, UnitFileState, LoadState).
 
-    started: enabled and running, restarted when one of its files changed while it ran.
+    started: its directories made first (they may be a container's mounts), enabled and running,
+    restarted when one of its files or directories changed while it ran.
     absent: stopped and disabled, before its files go.
     """
-    units_changed = any(p.endswith(UNIT_SUFFIXES) for p in files_changed + (removable if state == "absent" else []))
+    units_changed = any(is_unit_file(p) for p in files_changed + (removable if state == "absent" else []))
     active = show.get("ActiveState") in ("active", "activating", "reloading")
     enabled = show.get("UnitFileState") == "enabled"
     verbs = []
@@ -67,6 +74,8 @@ def actions(state: str, show: dict, files_changed: list, removable: list) -> lis
         if units_changed:
             verbs.append("daemon-reload")
         return verbs
+    if directories:
+        verbs.append("directories")
     if files_changed:
         verbs.append("write")
     if units_changed:
@@ -75,7 +84,7 @@ def actions(state: str, show: dict, files_changed: list, removable: list) -> lis
         verbs.append("enable")
     if not active:
         verbs.append("start")
-    elif files_changed:
+    elif files_changed or directories:
         verbs.append("restart")
     return verbs
 

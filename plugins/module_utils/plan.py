@@ -10,6 +10,7 @@ Every error names the variable to change and how.
 from __future__ import annotations
 
 import ipaddress
+import os
 import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, layout, status_server
@@ -210,17 +211,22 @@ def _check_companion_ports(specs, blocks, stride, held) -> list:
     return errors
 
 
-def _status_endpoint(cfg, blocks, comp_specs, stride, held) -> tuple[dict, list]:
+def _taken(blocks, comp_specs, stride) -> dict:
+    """{port: whose} for every port of the instances' blocks and their companions."""
+    taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    for spec in comp_specs:
+        for port_name, (_proto, base) in companions.own_ports(spec).items():
+            taken.update({base + i * stride: f"instance {i} companion {spec['name']} {port_name}" for i in blocks})
+    return taken
+
+
+def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
     """(the host's status endpoint as the role installs it, errors). Off: {"enabled": False}."""
     want = cfg.get("status_server") or {}
     if not want.get("enabled"):
         return {"enabled": False}, []
     errors = []
     port = as_int(want.get("port"))
-    taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
-    for spec in comp_specs:
-        for port_name, (_proto, base) in companions.own_ports(spec).items():
-            taken.update({base + i * stride: f"instance {i} companion {spec['name']} {port_name}" for i in blocks})
     if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
         errors.append(
             f"isaac_sim_status_server_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
@@ -236,13 +242,15 @@ def _status_endpoint(cfg, blocks, comp_specs, stride, held) -> tuple[dict, list]
             f"isaac_sim_status_server_port: {port}/tcp is already held on this host by "
             f"{held[('tcp', port)].get('process') or 'another process'}. Fix: stop it, or choose another port."
         )
-    address = str(want.get("address") or cfg.get("public_address") or "")
+    # every address by default: the public address may be a name, or a NAT address the host does
+    # not have; who may read is the allow list's business
+    address = str(want.get("address") or "0.0.0.0")
     try:
         bound = ipaddress.ip_address(address)
     except ValueError:
         errors.append(
-            f"isaac_sim_status_server_address: {address!r} is not an IP address of this host. Fix: give one "
-            "(empty: isaac_sim_public_address), or 0.0.0.0 to listen on every address."
+            f"isaac_sim_status_server_address: {address!r} is not an IP address. Fix: give one of this host's "
+            "addresses, or leave it empty to listen on every address."
         )
         bound = None
     networks, net_errors = status_server.parse_networks(want.get("allow"))
@@ -260,11 +268,37 @@ def _status_endpoint(cfg, blocks, comp_specs, stride, held) -> tuple[dict, list]
         "address": address,
         "port": port,
         "allow": [str(n) for n in networks],
+        "origins": [str(o) for o in want.get("origins") or []],
         "url": f"http://{host}:{port}/status",
     }, errors
 
 
-def _hub_cache(cfg, release, blocks, held) -> tuple[dict, list]:
+# where a shared cache must never go: it is chowned to the container user
+_SYSTEM_DIRS = {
+    "/",
+    "/bin",
+    "/boot",
+    "/dev",
+    "/etc",
+    "/home",
+    "/lib",
+    "/lib64",
+    "/opt",
+    "/proc",
+    "/root",
+    "/run",
+    "/sbin",
+    "/srv",
+    "/sys",
+    "/tmp",
+    "/usr",
+    "/var",
+    "/var/lib",
+    "/var/cache",
+}
+
+
+def _hub_cache(cfg, release, taken, held) -> tuple[dict, list]:
     """(NVIDIA's Hub Workstation Cache for this host, errors). Off: {"enabled": False}."""
     want = cfg.get("hub_cache") or {}
     if not want.get("enabled"):
@@ -282,13 +316,21 @@ def _hub_cache(cfg, release, blocks, held) -> tuple[dict, list]:
             "Fix: use NVIDIA's, nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0, or your registry's copy."
         )
     directory = str(want.get("dir") or f"{cfg['data_root']}/hub-cache")
-    if not directory.startswith("/") or re.search(r"\s|:", directory):
+    root = cfg["data_root"].rstrip("/")
+    if (
+        not directory.startswith("/")
+        or re.search(r"\s|:", directory)
+        or os.path.normpath(directory) != directory
+        or directory in _SYSTEM_DIRS
+        or directory == root
+        or re.match(re.escape(root) + r"/instance-\d+(/|$)", directory)
+    ):
         errors.append(
-            f"isaac_sim_hub_cache_dir: {directory!r} must be an absolute path without spaces or colons. "
-            "Fix: use e.g. /var/lib/isaac-sim/hub-cache."
+            f"isaac_sim_hub_cache_dir: {directory!r} must be a directory of its own: an absolute, normalised path "
+            "without spaces or colons, not a system directory, the data root or an instance's directory (it is "
+            "handed to user 1234). Fix: use e.g. /var/lib/isaac-sim/hub-cache."
         )
     port = layout.HUB_PORT
-    taken = {p: f"instance {i} {kind}" for i, block in blocks.items() for kind, p in block.items()}
     if port in taken:
         errors.append(
             f"isaac_sim_hub_cache_enabled: the Hub cache listens on {port}, which is also {taken[port]}'s port. "
@@ -532,10 +574,13 @@ def build(cfg: dict, host: dict) -> dict:
     )
     if not errors:
         errors += _check_companion_ports(comp_specs, blocks, stride, held)
-    status, status_errors = _status_endpoint(cfg, blocks, comp_specs, stride, held)
-    errors += status_errors
-    hub, hub_errors = _hub_cache(cfg, release, blocks, held)
+    taken = _taken(blocks, comp_specs, stride)
+    hub, hub_errors = _hub_cache(cfg, release, taken, held)
     errors += hub_errors
+    if hub["enabled"]:
+        taken[layout.HUB_PORT] = "the Hub cache"
+    status, status_errors = _status_endpoint(cfg, taken, held)
+    errors += status_errors
 
     if errors:
         raise PlanError(errors)

@@ -10,6 +10,7 @@ costs the host one status read per period.
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import ipaddress
 import json
@@ -66,10 +67,24 @@ class Cache:
             return self._body
 
 
-def handler(cache: Cache, networks):
+FORBIDDEN = (
+    b"HTTP/1.0 403 Forbidden\r\nContent-Type: text/plain\r\nConnection: close\r\n\r\n"
+    b"forbidden: this address is not in isaac_sim_status_server_allow\n"
+)
+
+
+def cors_origin(origin, origins):
+    """The Access-Control-Allow-Origin to send: the page's origin when it is one allowed, else none.
+    "null" is a dashboard opened as a file (and any sandboxed frame: see the README)."""
+    return origin if origin is not None and origin in origins else None
+
+
+def handler(cache: Cache, networks, origins=("null",)):
     class Handler(http.server.BaseHTTPRequestHandler):
         server_version = "isaac-sim-status"
         sys_version = ""
+        # a client that connects and sends nothing does not keep a thread for long
+        timeout = 10
 
         def _send(self, code, body: bytes, content_type="text/plain; charset=utf-8", extra=()):
             self.send_response(code)
@@ -77,8 +92,11 @@ def handler(cache: Cache, networks):
             self.send_header("Content-Length", str(len(body)))
             self.send_header("Cache-Control", "no-store")
             self.send_header("X-Content-Type-Options", "nosniff")
-            # read-only data for a page opened from a file or another host: any origin may read it
-            self.send_header("Access-Control-Allow-Origin", "*")
+            # which pages may read it in a browser: the dashboard's origin only
+            allow_origin = cors_origin(self.headers.get("Origin"), origins)
+            if allow_origin:
+                self.send_header("Access-Control-Allow-Origin", allow_origin)
+                self.send_header("Vary", "Origin")
             for name, value in extra:
                 self.send_header(name, value)
             self.end_headers()
@@ -118,10 +136,24 @@ def handler(cache: Cache, networks):
     return Handler
 
 
-def server(address: str, port: int, cache: Cache, networks) -> http.server.ThreadingHTTPServer:
-    srv_class = http.server.ThreadingHTTPServer
+class _Server(http.server.ThreadingHTTPServer):
+    networks: list = []
+
+    def verify_request(self, request, client_address):
+        # a client outside the allowed networks is answered 403 and dropped before a byte of its
+        # request is read: it never holds a thread
+        if allowed(client_address[0], self.networks):
+            return True
+        with contextlib.suppress(OSError):
+            request.sendall(FORBIDDEN)
+        return False
+
+
+def server(address: str, port: int, cache: Cache, networks, origins=("null",)) -> http.server.ThreadingHTTPServer:
+    srv_class = _Server
     if ":" in address:
-        srv_class = type("V6", (http.server.ThreadingHTTPServer,), {"address_family": socket.AF_INET6})
-    srv = srv_class((address, port), handler(cache, networks))
+        srv_class = type("V6", (_Server,), {"address_family": socket.AF_INET6})
+    srv = srv_class((address, port), handler(cache, networks, tuple(origins)))
+    srv.networks = networks
     srv.daemon_threads = True
     return srv

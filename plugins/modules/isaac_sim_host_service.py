@@ -92,6 +92,9 @@ def main():
     )
     p = module.params
     files = {}
+    for path in list(p["files"]) + p["remove"] + [d.get("path", "") for d in p["directories"]]:
+        if not str(path).startswith("/"):
+            module.fail_json(msg=f"{path!r} is not an absolute path. Fix: give every file and directory in full.")
     for path, spec in p["files"].items():
         spec = spec if isinstance(spec, dict) else {"content": spec}
         if "content" not in spec:
@@ -111,11 +114,7 @@ def main():
     else:
         changed_files = host_service.changed_files(files, host_service.read_file)
         fix = host_service.directories_to_fix(p["directories"])
-        verbs = host_service.actions("started", show, changed_files, [])
-        if fix:
-            # before anything starts: the service may need them (a container's mount)
-            verbs = ["directories"] + [v for v in verbs if v != "restart"]
-            verbs += [] if "start" in verbs else (["restart"] if show.get("ActiveState") == "active" else [])
+        verbs = host_service.actions("started", show, changed_files, [], directories=bool(fix))
 
     diff = {
         "before": "".join(f"{path}\n" for path in changed_files if host_service.read_file(path) is not None),

@@ -5,11 +5,13 @@ script's kit flags or ISAACSIM_* variables ask for, so a port that answers
 proves the settings were passed the release's way.
 """
 
+import re
 import socket
 import urllib.request
 
 import pytest
 import testbed
+from dashboard import OUTPUT, check_dashboard, dashboard
 from testbed import INSTANCES, registry_image, sh
 
 
@@ -29,7 +31,7 @@ def refused(ip, port) -> bool:
     return False
 
 
-def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, restore_default):
+def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, restore_default, tmp_path):
     # instances 0-2 the WebRTC browser client (the default profile), instance 3 the native livestream
     result = testbed.run_playbook(
         host,
@@ -59,6 +61,15 @@ def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, 
             with socket.create_connection((ip, 48013), timeout=2) as conn:
                 assert conn.recv(64).startswith(b"isaac-sim-standin native")
             assert refused(ip, 8214) and refused(ip, 8014)
+    # the dashboard embeds each WebRTC instance's own browser client and shows the native address
+    _run, out = dashboard(host, tmp_path)
+    expected = {i["id"]: i for i in testbed.info(host)["instances"]}
+    found = check_dashboard(out / "status.html", expected, OUTPUT / "dashboard-2023.1.png")
+    assert sorted(found["frames"]) == sorted(expected[i]["urls"]["webrtc_client"] for i in range(3))
+    assert all(re.search(r"server=\d+\.\d+\.\d+\.\d+", src) for src in found["frames"])
+    # the frames really loaded each instance's own client page
+    assert len(found["frame_text"]) == 3 and all(found["frame_text"]), found["frame_text"]
+    assert ("3", "native", f"{ip}:48013") in found["addresses"]
 
 
 def test_a_release_switch_goes_through_the_lifecycle_and_a_failed_one_goes_back(host, restore_default):

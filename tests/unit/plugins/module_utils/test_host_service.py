@@ -25,10 +25,25 @@ NEW = {"ActiveState": "inactive", "UnitFileState": "", "LoadState": "not-found"}
         (RUNNING, [UNIT], ["write", "daemon-reload", "restart"]),
         # stopped by hand: started again, files unchanged
         (dict(RUNNING, ActiveState="failed"), [], ["start"]),
+        # a drop-in is read on daemon-reload only, as a unit is
+        (RUNNING, ["/etc/systemd/system/isaac-sim@.service.d/hub.conf"], ["write", "daemon-reload", "restart"]),
     ],
 )
 def test_started(show, changed, expected):
     assert host_service.actions("started", show, changed, []) == expected
+
+
+@pytest.mark.parametrize(
+    "show, expected",
+    [
+        (NEW, ["directories", "enable", "start"]),
+        (RUNNING, ["directories", "restart"]),
+        # caught activating: restarted, with its mount there this time
+        (dict(RUNNING, ActiveState="activating"), ["directories", "restart"]),
+    ],
+)
+def test_directories_come_first_and_a_running_service_restarts_on_them(show, expected):
+    assert host_service.actions("started", show, [], [], directories=True) == expected
 
 
 def test_absent_stops_and_disables_before_removing():

@@ -316,20 +316,24 @@ def test_the_healthcheck_is_nvidias_plus_the_port_answering():
     assert "/dev/tcp/127.0.0.1/8211" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
 
 
-STATUS = {"enabled": True, "port": 8290, "address": "", "allow": ["10.0.0.0/8"]}
+STATUS = {"enabled": True, "port": 8290, "address": "", "allow": ["10.0.0.0/8"], "origins": ["null"]}
 
 
-def test_the_status_endpoint_listens_on_the_public_address_and_says_its_url():
+def test_the_status_endpoint_listens_on_every_address_and_says_its_url_at_the_public_one():
     result = plan.build(cfg(status_server=STATUS), HOST)
     assert result["status_server"] == {
         "enabled": True,
-        "address": "10.0.0.5",
+        "address": "0.0.0.0",
         "port": 8290,
         "allow": ["10.0.0.0/8"],
+        "origins": ["null"],
         "url": "http://10.0.0.5:8290/status",
     }
-    every = plan.build(cfg(status_server=dict(STATUS, address="0.0.0.0")), HOST)["status_server"]
-    assert every["address"] == "0.0.0.0" and every["url"] == "http://10.0.0.5:8290/status"
+    # the public address may be a name: only the URL uses it
+    named = plan.build(cfg(public_address="gpu-1.lab", status_server=STATUS), HOST)["status_server"]
+    assert named["url"] == "http://gpu-1.lab:8290/status"
+    one = plan.build(cfg(status_server=dict(STATUS, address="10.0.0.5")), HOST)["status_server"]
+    assert one["address"] == "10.0.0.5" and one["url"] == "http://10.0.0.5:8290/status"
     assert plan.build(cfg(), HOST)["status_server"] == {"enabled": False}
 
 
@@ -381,7 +385,16 @@ def test_the_hub_cache_is_one_directory_shared_by_every_6x_instance():
             "isaac_sim_hub_cache_enabled: Isaac Sim 5.x has no Hub client",
         ),
         ({"hub_cache": dict(HUB, image="Hub Cache")}, HOST, "isaac_sim_hub_cache_image: 'Hub Cache' is not a valid"),
-        ({"hub_cache": dict(HUB, dir="hub")}, HOST, "isaac_sim_hub_cache_dir: 'hub' must be an absolute path"),
+        ({"hub_cache": dict(HUB, dir="hub")}, HOST, "isaac_sim_hub_cache_dir: 'hub' must be a directory of its own"),
+        ({"hub_cache": dict(HUB, dir="/etc")}, HOST, "isaac_sim_hub_cache_dir: '/etc' must be a directory of its own"),
+        ({"hub_cache": dict(HUB, dir="/srv/a/../b")}, HOST, "'/srv/a/../b' must be a directory of its own"),
+        ({"hub_cache": dict(HUB, dir="/var/lib/isaac-sim")}, HOST, "'/var/lib/isaac-sim' must be a directory"),
+        ({"hub_cache": dict(HUB, dir="/var/lib/isaac-sim/instance-0/hub")}, HOST, "instance-0/hub' must be"),
+        (
+            {"status_server": {"enabled": True, "port": 14090, "allow": ["10.0.0.0/8"]}},
+            HOST,
+            "isaac_sim_status_server_port: 14090 is also the Hub cache's port",
+        ),
         (
             {},
             dict(HOST, ports_held=[{"proto": "tcp", "port": 14090, "process": "hub (pid 9)", "ours": False}]),

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import socket
 import threading
+import time
 import urllib.error
 import urllib.request
 
@@ -26,8 +28,8 @@ def serving(read, allow=("127.0.0.0/8",), ttl=60.0):
         srv.server_close()
 
 
-def call(url, method="GET"):
-    request = urllib.request.Request(url, method=method)
+def call(url, method="GET", origin=None):
+    request = urllib.request.Request(url, method=method, headers={"Origin": origin} if origin else {})
     try:
         with urllib.request.urlopen(request, timeout=5) as response:
             return response.status, dict(response.headers), response.read()
@@ -35,13 +37,16 @@ def call(url, method="GET"):
         return exc.code, dict(exc.headers), exc.read()
 
 
-def test_status_is_json_readable_from_any_page_and_read_once_per_period():
+def test_status_is_json_readable_by_the_dashboard_only_and_read_once_per_period():
     with serving(lambda: {"host": "gpu-1", "instances": [{"id": 0, "state": "ready"}]}) as (url, cache):
         code, headers, body = call(url + "/status")
         assert code == 200 and headers["Content-Type"] == "application/json"
         assert json.loads(body) == {"host": "gpu-1", "instances": [{"id": 0, "state": "ready"}]}
-        # a dashboard opened from a file (origin null) or another host may read it
-        assert headers["Access-Control-Allow-Origin"] == "*" and headers["Cache-Control"] == "no-store"
+        assert headers["Cache-Control"] == "no-store" and "Access-Control-Allow-Origin" not in headers
+        # a browser lets a page read it only when the answer names the page's origin: the dashboard
+        # opened as a file ("null"), not a web site the operator happens to visit
+        assert call(url + "/status", origin="null")[1]["Access-Control-Allow-Origin"] == "null"
+        assert "Access-Control-Allow-Origin" not in call(url + "/status", origin="https://evil.example")[1]
         for _n in range(5):
             assert call(url + "/status")[0] == 200
         assert cache.reads == 1
@@ -68,6 +73,21 @@ def test_read_only_one_path_and_only_the_networks_allowed():
         code, _headers, body = call(url + "/status")
         assert code == 403 and b"isaac_sim_status_server_allow" in body
         assert cache.reads == 0
+
+
+def test_a_refused_or_silent_client_holds_no_thread():
+    with serving(lambda: {}, allow=("10.20.0.0/16",)) as (url, _cache):
+        port = int(url.rsplit(":", 1)[1])
+        before = threading.active_count()
+        idle = [socket.create_connection(("127.0.0.1", port)) for _n in range(5)]
+        try:
+            # answered and closed at once, without reading a request
+            assert idle[0].recv(64).startswith(b"HTTP/1.0 403")
+            time.sleep(0.2)
+            assert threading.active_count() == before
+        finally:
+            for conn in idle:
+                conn.close()
 
 
 def test_a_failed_read_is_503_and_the_server_keeps_serving():
