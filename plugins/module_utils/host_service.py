@@ -120,5 +120,9 @@ def remove(path: str) -> bool:
         return True
     if os.path.lexists(path):
         os.unlink(path)
+        # a drop-in directory left empty goes too (one with other drop-ins stays)
+        parent = os.path.dirname(path)
+        if parent.endswith(".d") and not os.listdir(parent):
+            os.rmdir(parent)
         return True
     return False

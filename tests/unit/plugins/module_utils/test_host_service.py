@@ -79,3 +79,13 @@ def test_directories_are_created_or_reowned_and_kept(tmp_path):
     assert host_service.directories_to_fix(wanted) == wanted
     host_service.fix_directory(wanted[0])
     assert (hub / "kept").read_text() == "cache" and os.stat(hub).st_mode & 0o777 == 0o750
+
+
+def test_removing_the_last_drop_in_removes_its_directory_and_no_other(tmp_path):
+    ours, theirs = tmp_path / "isaac-sim@.service.d", tmp_path / "docker.service.d"
+    for d in (ours, theirs):
+        d.mkdir()
+        (d / "hub.conf").write_text("[Unit]\n")
+    (theirs / "site.conf").write_text("[Unit]\n")
+    assert host_service.remove(str(ours / "hub.conf")) and not ours.exists()
+    assert host_service.remove(str(theirs / "hub.conf")) and (theirs / "site.conf").exists()
