@@ -254,8 +254,11 @@ def _fill(text, values: dict, where, errors) -> str:
     return PLACEHOLDER_RE.sub(one, str(text))
 
 
-def for_instance(spec, i, instance_ports, instance_gpu, stride, public, uid_gid, data_root, release_ports) -> tuple:
-    """(planned companion of instance i, errors)."""
+def for_instance(
+    spec, i, instance_ports, instance_gpu, stride, public, uid_gid, data_root, release_ports, network="host"
+) -> tuple:
+    """(planned companion of instance i, errors). network: Docker's --network for it (the host's,
+    or container:NAME, its instance's namespace when the instance has an address of its own)."""
     errors = []
     name = spec["name"]
     where = f"{VAR}[{name}]"
@@ -275,7 +278,7 @@ def for_instance(spec, i, instance_ports, instance_gpu, stride, public, uid_gid,
     values.update({f"port.{k}": v for k, v in ports.items()})
     container = layout.companion_container(i, name)
     docker = [
-        "--network=host",
+        f"--network={network}",
         "--pull=never",
         f"--label={layout.LABEL_INSTANCE}={i}",
         f"--label={layout.LABEL_COMPANION}={name}",

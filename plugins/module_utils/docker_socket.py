@@ -21,7 +21,9 @@ API_VERSION = "1.41"
 
 
 class DockerError(Exception):
-    pass
+    def __init__(self, message, status=None):
+        super().__init__(message)
+        self.status = status
 
 
 class _UnixConnection(http.client.HTTPConnection):
@@ -55,7 +57,7 @@ class DockerSocket:
         finally:
             conn.close()
         if resp.status != 200:
-            raise DockerError(f"Docker answered {resp.status} to GET {endpoint}: {body[:200]!r}")
+            raise DockerError(f"Docker answered {resp.status} to GET {endpoint}: {body[:200]!r}", resp.status)
         return json.loads(body)
 
     def containers(self, name_prefix: str):
@@ -66,3 +68,12 @@ class DockerSocket:
     def images(self):
         """Every image with its repo digests: one call."""
         return self.get("/images/json")
+
+    def network(self, name: str):
+        """The network `name` as Docker describes it (docker network inspect's object), or None: one call."""
+        try:
+            return self.get(f"/networks/{quote(name)}")
+        except DockerError as exc:
+            if exc.status == 404:
+                return None
+            raise

@@ -36,7 +36,7 @@ def summary_lines(plan: dict, host: str) -> list:
     lines = []
     for inst in plan["instances"]:
         served = [port for c in inst.get("companions", []) for port in c["ports"].values()]
-        eps = endpoints(plan["release"], inst["ports"], host, served, inst.get("listens"))
+        eps = endpoints(plan["release"], inst["ports"], inst.get("address") or host, served, inst.get("listens"))
         gpu = "-" if inst.get("gpu") is None else inst["gpu"]
         mode = "" if inst.get("profile", "streaming") == "streaming" else f" profile={inst['profile']}"
         lines.append(f"{inst['name']} gpu={gpu}{mode} " + " ".join(f"{k}={v}" for k, v in eps.items()))

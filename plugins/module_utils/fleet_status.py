@@ -307,7 +307,9 @@ def build(
         )
         ports = ports_of(env)
         release = env.get(layout.K_RELEASE)
-        address = address_override or env.get(layout.K_PUBLIC_ADDRESS) or default_address
+        # an instance with an address of its own is reached there, whatever the host is called
+        own = env.get(layout.K_ADDRESS) or None
+        address = own or address_override or env.get(layout.K_PUBLIC_ADDRESS) or default_address
         comps = (
             companion_records(
                 key, companion_envs or {}, companion_units or {}, comp_containers, companion_markers or set()
@@ -354,6 +356,7 @@ def build(
                 "profile": env.get(layout.K_PROFILE) or ("streaming" if env else None),
                 "ports": ports,
                 "public_address": address,
+                "address": own,
                 "urls": urls,
                 "gpu": int(gpu_index) if gpu_index.isdigit() else None,
                 "gpu_memory_used_mib": sum(p["used_mib"] or 0 for p in procs) if procs else (0 if gpu else None),

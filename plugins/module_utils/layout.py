@@ -46,6 +46,9 @@ HUB_PORT = 14090
 HUB_DROPIN = "isaac-sim@.service.d/hub.conf"
 HUB_MOUNT = "/var/cache/hub"
 LABEL_HOST_SERVICE = "org.isaacsim.fleet.host-service"
+# the Docker network that gives instances addresses of their own (isaac_sim_network_mode: macvlan)
+NETWORK = "isaac-sim-macvlan"
+LABEL_NETWORK = "org.isaacsim.fleet.network"
 
 UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
@@ -72,6 +75,8 @@ K_PORTS = "ISAAC_SIM_PORTS"
 K_PROFILE = "ISAAC_SIM_PROFILE"
 K_GPU = "ISAAC_SIM_GPU"
 K_PUBLIC_ADDRESS = "ISAAC_SIM_PUBLIC_ADDRESS"
+# the instance's own address (macvlan); empty: it shares the host's network
+K_ADDRESS = "ISAAC_SIM_ADDRESS"
 K_READY_TIMEOUT = "ISAAC_SIM_READY_TIMEOUT"
 K_READY_PATTERN = "ISAAC_SIM_READY_PATTERN"
 K_READY_MARKER = "ISAAC_SIM_READY_MARKER"
@@ -156,6 +161,7 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "hub_unit": HUB_UNIT,
         "hub_dropin": HUB_DROPIN,
         "hub_dir": f"{data_root}/hub-cache",
+        "network": NETWORK,
     }
 
 
@@ -271,7 +277,7 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
     lines += [
         f"{K_PROFILE}={quote(instance.get('profile', 'streaming'))}",
         f"{K_GPU}={'' if instance.get('gpu') is None else instance['gpu']}",
-        f"{K_PUBLIC_ADDRESS}={quote(plan.get('public_address') or '')}",
+        f"{K_PUBLIC_ADDRESS}={quote(instance.get('address') or plan.get('public_address') or '')}",
         f"{K_READY_TIMEOUT}={settings['ready_timeout']}",
         f"{K_READY_PATTERN}={quote(plan['ready_pattern'])}",
         f"{K_READY_MARKER}={quote(marker(i))}",
@@ -280,8 +286,11 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{K_UNHEALTHY_RESTART}={settings['unhealthy_restart']}",
         f"{K_DOCKER_ARGS}={quote(join_args(instance['docker_args']))}",
         f"{K_APP_ARGS}={quote(join_args(instance['app_args']))}",
-        "# Container environment (passed by name with docker run --env NAME)",
     ]
+    # only when set: an instance on the host's network keeps the env file it had
+    if instance.get("address"):
+        lines.append(f"{K_ADDRESS}={quote(instance['address'])}")
+    lines.append("# Container environment (passed by name with docker run --env NAME)")
     lines += [f"{name}={quote(value)}" for name, value in instance["container_env"].items()]
     lines += [f"{name}={quote(value)}" for name, value in (secret_env or {}).items()]
     return "\n".join(lines) + "\n"

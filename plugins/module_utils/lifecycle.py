@@ -263,9 +263,20 @@ def user_of(text) -> str:
 
 
 def ports_of(text) -> set:
-    """The port numbers an env file gives its instance (protocol left out: the safe side)."""
+    """(address, port) for each port an env file gives its instance (protocol left out: the safe
+    side). The address is the instance's own ("" on the host's network): the same port at two
+    addresses is no clash."""
     env = layout.parse(text or "")
-    return {int(v) for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX) and v.isdigit()}
+    address = env.get(layout.K_ADDRESS, "")
+    return {(address, int(v)) for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX) and v.isdigit()}
+
+
+def _port_text(port) -> str:
+    """49100, or 10.0.0.5:49100 for a port at an instance's own address."""
+    if isinstance(port, tuple):
+        address, number = port
+        return f"{address}:{number}" if address else str(number)
+    return str(port)
 
 
 def port_order(old: dict, new: dict, roll: list, start: list) -> tuple:
@@ -297,9 +308,10 @@ def port_order(old: dict, new: dict, roll: list, start: list) -> tuple:
             i = min(pending, key=lambda x: (len(blocked(x)), x))
             gone = sorted(blocked(i))
             steps.append(("stop", gone))
+            freed = sorted(new[i] & set().union(*(holding[j] for j in gone)))
             notes.append(
                 f"{', '.join(layout.container(j) for j in gone)} stopped before {layout.container(i)} to free "
-                f"port(s) {', '.join(str(p) for p in sorted(new[i] & set().union(*(holding[j] for j in gone))))}: "
+                f"port(s) {', '.join(_port_text(p) for p in freed)}: "
                 f"the host is below N-1 until they start again on their new ports"
             )
             for j in gone:

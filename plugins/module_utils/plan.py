@@ -13,7 +13,7 @@ import ipaddress
 import os
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, layout, status_server
+from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, layout, network, status_server
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import (
     ENV,
     KIT,
@@ -131,7 +131,7 @@ def port_blocks(release: str, count: int, bases: dict, stride: int):
     return {i: {kind: int(base) + i * stride for kind, base in merged.items()} for i in range(count)}
 
 
-def _check_ports(release, blocks, bases, stride, held):
+def _check_ports(release, blocks, bases, stride, held, shared=True):
     errors = []
     profile = RELEASES[release]["ports"]
     unknown = sorted(set(bases or {}) - set(profile))
@@ -156,10 +156,14 @@ def _check_ports(release, blocks, bases, stride, held):
                 continue
             if port in seen:
                 j, other = seen[port]
-                errors.append(
-                    f"isaac_sim_port_bases: instance {i} {kind} port {port} overlaps instance {j} {other} port. "
+                fix = (
                     f"Fix: move the port bases apart by at least isaac_sim_instance_count * isaac_sim_port_stride "
                     f"({len(blocks) * stride}), or change isaac_sim_port_stride."
+                    if shared
+                    else "Fix: give each port kind a base of its own (each instance has every port at its address)."
+                )
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port} overlaps instance {j} {other} port. {fix}"
                 )
             else:
                 seen[port] = (i, kind)
@@ -176,17 +180,23 @@ def _check_ports(release, blocks, bases, stride, held):
     return errors
 
 
-def _check_companion_ports(specs, blocks, stride, held) -> list:
+def _check_companion_ports(specs, blocks, stride, held, shared=True) -> list:
     """Errors for companion ports outside the port range, on another instance's or companion's
-    port, or held by a process that is not ours."""
+    port, or held by a process that is not ours. shared: the instances share the host's network
+    (else each has its own address, and only its own ports can collide)."""
     errors = []
-    taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    every = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    taken_in = {
+        i: every if shared else {port: f"instance {i} {kind}" for kind, port in block.items()}
+        for i, block in blocks.items()
+    }
     for spec in specs:
         for port_name, (proto, base) in companions.own_ports(spec).items():
             where = f"{companions.VAR}[{spec['name']}].ports.{port_name}"
             for i in blocks:
                 if not companions.wanted_on(spec, i):
                     continue
+                taken = taken_in[i]
                 port = base + i * stride
                 if not PORT_MIN <= port <= PORT_MAX:
                     errors.append(
@@ -202,7 +212,7 @@ def _check_companion_ports(specs, blocks, stride, held) -> list:
                     )
                     continue
                 taken[port] = f"instance {i} companion {spec['name']} {port_name}"
-                owner = held.get((proto, port))
+                owner = held.get((proto, port)) if shared else None
                 if owner is not None and not owner.get("ours"):
                     errors.append(
                         f"{where}: instance {i}'s port {port}/{proto} is already held on this host by "
@@ -329,6 +339,12 @@ def _hub_cache(cfg, release, taken, held) -> tuple[dict, list]:
             f"isaac_sim_hub_cache_dir: {directory!r} must be a directory of its own: an absolute, normalised path "
             "without spaces or colons, not a system directory, the data root or an instance's directory (it is "
             "handed to user 1234). Fix: use e.g. /var/lib/isaac-sim/hub-cache."
+        )
+    if cfg.get("network_mode") == network.MACVLAN:
+        errors.append(
+            "isaac_sim_hub_cache_enabled: the instances have addresses of their own (isaac_sim_network_mode: "
+            "macvlan), and macvlan keeps a host and its own containers apart, so they could not reach the host's "
+            "Hub cache. Fix: set isaac_sim_hub_cache_enabled: false, or isaac_sim_network_mode: host."
         )
     port = layout.HUB_PORT
     if port in taken:
@@ -517,8 +533,12 @@ def build(cfg: dict, host: dict) -> dict:
                 f"(letters, digits, _; the {layout.RESERVED_PREFIX} prefix is the collection's own). Fix: rename it."
             )
 
+    net, addresses, net_errors = network.plan(cfg, host, list(range(max(count, 0))))
+    errors += net_errors
+    # own addresses: every instance keeps the release's ports, and nothing on the host can hold them
+    shared = net["mode"] == network.HOST
     bases = cfg.get("port_bases") or {}
-    stride = cfg.get("port_stride", 1)
+    stride = cfg.get("port_stride", 1) if shared else 0
     blocks = port_blocks(release, max(count, 0), {k: v for k, v in bases.items() if k in profile["ports"]}, stride)
     # a port can be held twice (our viewer on the host's address, another process on 0.0.0.0):
     # the foreign holder is the one that counts
@@ -527,7 +547,10 @@ def build(cfg: dict, host: dict) -> dict:
         key = (p["proto"], p["port"])
         if key not in held or held[key].get("ours"):
             held[key] = p
-    errors += _check_ports(release, blocks, bases, stride, held)
+    if shared:
+        errors += _check_ports(release, blocks, bases, stride, held)
+    else:  # one block stands for all: the same ports at other addresses
+        errors += _check_ports(release, {0: blocks[0]} if blocks else {}, bases, 1, {}, shared=False)
 
     gpus = {}
     if cfg.get("gpu_enabled") and host.get("nvidia_smi") is False:
@@ -573,8 +596,9 @@ def build(cfg: dict, host: dict) -> dict:
         comp_specs, release_ports, max(as_int(cfg["max_instances"]) or 0, 1), cfg.get("gpu_enabled")
     )
     if not errors:
-        errors += _check_companion_ports(comp_specs, blocks, stride, held)
-    taken = _taken(blocks, comp_specs, stride)
+        errors += _check_companion_ports(comp_specs, blocks, stride, held, shared)
+    # the host's own services (status endpoint, Hub) share its network with the instances, or not
+    taken = _taken(blocks, comp_specs, stride) if shared else {}
     hub, hub_errors = _hub_cache(cfg, release, taken, held)
     errors += hub_errors
     if hub["enabled"]:
@@ -588,7 +612,9 @@ def build(cfg: dict, host: dict) -> dict:
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
     sized["hub_dir"] = hub.get("dir")
     warnings = _needs(release, profile, memory, gpus, host)
-    instances = [_instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i)) for i in range(count)]
+    instances = [
+        _instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i), addresses.get(i)) for i in range(count)
+    ]
     for inst in instances:
         inst["companions"] = []
         for spec in comp_specs:
@@ -600,10 +626,12 @@ def build(cfg: dict, host: dict) -> dict:
                 inst["ports"],
                 inst["gpu"],
                 stride,
-                cfg.get("public_address") or "",
+                inst["address"] or cfg.get("public_address") or "",
                 (profile["uid"], profile["gid"]),
                 data_root,
                 release_ports,
+                # with an address of its own, an instance's companions share its network namespace
+                "host" if shared else f"container:{inst['name']}",
             )
             errors += comp_errors
             inst["companions"].append(planned)
@@ -629,6 +657,7 @@ def build(cfg: dict, host: dict) -> dict:
         "companion_units": companion_units,
         "status_server": status,
         "hub_cache": hub,
+        "network": net,
         "warnings": warnings,
     }
 
@@ -659,12 +688,13 @@ def _needs(release, profile, memory, gpus, host) -> list:
     return warnings
 
 
-def _instance(cfg, profile, mode, i, ports, gpu):
-    """One instance of release profile `profile`, run as `mode` (isaac_sim_profile)."""
+def _instance(cfg, profile, mode, i, ports, gpu, address=None):
+    """One instance of release profile `profile`, run as `mode` (isaac_sim_profile); with an
+    address, on the macvlan network at that address, else on the host's network."""
     launch = profile["profiles"][mode]
     root = layout.data_dir(i, cfg["data_root"])
-    docker = [
-        "--network=host",
+    docker = [f"--network={layout.NETWORK}", f"--ip={address}"] if address else ["--network=host"]
+    docker += [
         "--pull=never",
         f"--memory={cfg['memory_limit']}",
         f"--memory-swap={cfg['memory_limit']}",
@@ -691,7 +721,7 @@ def _instance(cfg, profile, mode, i, ports, gpu):
         elif how == ENV:
             container_env[setting] = str(port)
             env_names.append(setting)
-    public = cfg.get("public_address")
+    public = address or cfg.get("public_address")
     if public and launch["opens"]:
         how, setting = profile["public_address"]
         if how == KIT:
@@ -727,6 +757,7 @@ def _instance(cfg, profile, mode, i, ports, gpu):
         "name": layout.container(i),
         "ports": ports,
         "protocols": {kind: profile["ports"][kind][0] for kind in ports},
+        "address": address,
         "profile": mode,
         # the ports Isaac Sim itself opens in this profile (web_viewer is kept for a companion)
         "listens": [kind for kind in ports if kind in launch["opens"]],

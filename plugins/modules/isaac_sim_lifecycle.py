@@ -23,6 +23,9 @@ description:
     stopped, disabled and their env files removed (scale-down), before anything starts.
   - With O(defer_running), a host where a serving instance would restart is left unchanged and reported as
     RV(deferred), so the playbook can roll it in canary batches.
+  - With addresses of their own (the plan's C(network)), the Docker macvlan network is created before the first
+    instance changes, and removed once no instance wants it and nobody is on it; a network in use is never
+    changed under its containers.
   - O(action=restart) restarts O(ids) one at a time, each ready and soaked. O(action=start) starts them together,
     O(action=stop) stops them (they stay enabled), O(action=remove) stops, disables and forgets them; caches, logs
     and data stay unless O(purge).
@@ -147,6 +150,13 @@ directories:
   returned: action is apply
   type: list
   elements: str
+network:
+  description:
+    - What was done to the instances' macvlan network C(isaac-sim-macvlan) - C(create), C(recreate) (nobody was on
+      it), C(remove) (no instance wants it and nobody is on it), C(kept) (no longer wanted, but a container is still
+      on it), or null. In check mode, what would be done.
+  returned: action is apply or remove
+  type: str
 """
 
 import os
@@ -154,7 +164,8 @@ import shutil
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle
+from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle, network
+from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
 
 def _host(module):
@@ -244,6 +255,29 @@ def _want(module, host, found):
     }
 
 
+def _network(module):
+    """Our macvlan network as Docker has it now, or None."""
+    try:
+        return network.parse_network(DockerSocket().network(layout.NETWORK))
+    except DockerError as exc:
+        module.fail_json(msg=f"could not ask Docker for the network {layout.NETWORK}: {exc}")
+
+
+def _drop_network(module, host):
+    """Remove our network when nobody is on it any more: 'remove', 'kept' (someone is), or None."""
+    found = _network(module)
+    if not found or not found.get("ours"):
+        return None
+    if found["containers"]:
+        return "kept"
+    if module.check_mode:
+        return "remove"
+    rc, _out, err = host.run(network.remove_argv())
+    if rc != 0:
+        module.fail_json(msg=f"could not remove the network {layout.NETWORK}: {err.strip()}")
+    return "remove"
+
+
 def _directories(plan):
     """(paths, uid, gid) of the instances' own directories, owned by the release's container user."""
     paths = [inst["root"] for inst in plan["instances"]] + [d for inst in plan["instances"] for d in inst["dirs"]]
@@ -287,9 +321,26 @@ def main():
         want = _want(module, host, found)
         paths, uid, gid = _directories(p["plan"])
         dir_changes = dirs.wanted_changes(paths, uid, gid, 0o750)
+        wanted_net = p["plan"].get("network") or {"mode": network.HOST}
+        net_todo = network.action(wanted_net, _network(module))
+        if net_todo == "conflict":  # the plan refuses it; only a change made since gets here
+            module.fail_json(
+                msg=f"the network {layout.NETWORK} differs from the plan's and is in use; nothing was changed. "
+                "Fix: plan again (isaac_sim_plan says how to move the instances off it)."
+            )
+        creates = net_todo in ("create", "recreate")
         applied = []
 
         def prepare():
+            if creates:
+                if net_todo == "recreate":
+                    host.run(network.remove_argv())
+                rc, _out, err = host.run(network.create_argv(wanted_net))
+                if rc != 0:
+                    module.fail_json(
+                        msg=f"could not create the network {layout.NETWORK} ({wanted_net['parent']}, "
+                        f"{wanted_net['subnet']}): {err.strip()}; nothing else was changed"
+                    )
             dirs.apply(dir_changes, uid, gid, 0o750)
             applied.append(True)
 
@@ -306,15 +357,21 @@ def main():
         diff = _diff(host, want["files"]) if module._diff else None
         try:
             result = lifecycle.apply(host, want, check=module.check_mode)
-            if dir_changes and not applied and not module.check_mode and not result["deferred"]:
+            if (dir_changes or creates) and not applied and not module.check_mode and not result["deferred"]:
                 prepare()
         except OSError as exc:
             module.fail_json(msg=f"could not write the host's files: {exc}", **out)
+        net_done = net_todo if creates else None
+        # once every instance is off it (the plan moved them to the host's network)
+        if net_todo == "remove" and not result["deferred"] and not result["failed"]:
+            net_done = "remove" if module.check_mode else _drop_network(module, host)
+        host_changed = bool(dir_changes or creates or net_done == "remove") and not result["deferred"]
         out.update(
             plan=result["plan"],
             deferred=result["deferred"],
             directories=sorted({path for path, _what in dir_changes}),
-            changed=result["changed"] or (bool(dir_changes) and not result["deferred"]),
+            network=None if result["deferred"] else net_done,
+            changed=result["changed"] or host_changed,
         )
         if diff:
             out["diff"] = diff
@@ -336,8 +393,10 @@ def main():
             lifecycle.stop(host, p["ids"])
         else:
             lifecycle.remove(host, p["ids"], p["purge"], p["data_root"], companions=found)
+            # the last instance on it gone (cleanup, scale to 0): the network goes too
+            out["network"] = _drop_network(module, host)
         result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
-        out["changed"] = bool(p["ids"])
+        out["changed"] = bool(p["ids"]) or out.get("network") == "remove"
 
     out.update(done=result["done"], failed_instance=result["failed"], untouched=result["untouched"])
     if p["action"] == "restart":

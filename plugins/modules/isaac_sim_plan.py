@@ -142,6 +142,37 @@ options:
         URL is reported.
     type: str
     default: ""
+  network_mode:
+    description:
+      - C(host) - the instances share the host's network, each on its own port block. C(macvlan) - each instance
+        gets an address of its own on the host's LAN (a Docker macvlan network on O(macvlan_parent)) and keeps the
+        release's default ports, so clients fixed to one port (NVIDIA's WebRTC Streaming Client, 49100) reach
+        every instance; its companions share its address.
+    type: str
+    default: host
+  macvlan_parent:
+    description: The interface on the instances' LAN; empty - the interface of the host's IPv4 default route.
+    type: str
+    default: ""
+  macvlan_subnet:
+    description: The LAN's IPv4 network; empty - the network of O(macvlan_parent)'s first address.
+    type: str
+    default: ""
+  macvlan_gateway:
+    description: The LAN's router; empty - the gateway of the host's default route (when it is on the parent).
+    type: str
+    default: ""
+  address_pool:
+    description:
+      - Addresses for the instances in O(network_mode=macvlan) - single addresses, C(FIRST-LAST) ranges or CIDR
+        blocks, taken in order, instance 0 first. Addresses of the host, the gateway, or of another container
+        on the network are skipped; too few usable ones is an error.
+    type: raw
+    default: []
+  instance_addresses:
+    description: Instance number to address, for instances whose address is fixed (taken before the pool).
+    type: dict
+    default: {}
   ready_timeout:
     description: Seconds an instance may take to print its ready line.
     type: raw
@@ -234,7 +265,15 @@ host:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import companions, fleet_status, hostprobe, layout, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils import (
+    companions,
+    fleet_status,
+    hostprobe,
+    layout,
+    network,
+    plan,
+)
+from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, default_image
 
 
@@ -277,6 +316,12 @@ def main():
             status_server=dict(type="dict", default={"enabled": False}),
             hub_cache=dict(type="dict", default={"enabled": False}),
             web_viewer_image=dict(type="str", default=""),
+            network_mode=dict(type="str", default="host"),
+            macvlan_parent=dict(type="str", default=""),
+            macvlan_subnet=dict(type="str", default=""),
+            macvlan_gateway=dict(type="str", default=""),
+            address_pool=dict(type="raw", default=[]),
+            instance_addresses=dict(type="dict", default={}),
             config_dir=dict(type="path", default="/etc/isaac-sim"),
             systemd_dir=dict(type="path", default="/etc/systemd/system"),
         ),
@@ -331,15 +376,34 @@ def main():
         rc, out, _err = module.run_command(argv)
         host["serving"] = len([line for line in out.splitlines() if line.strip()]) if rc == 0 else 0
 
+    own_addresses = p["network_mode"] == network.MACVLAN
+    if own_addresses:
+        # the LAN the instances join: interfaces, their addresses, the default route, our network
+        host["interfaces"] = sorted(os.listdir("/sys/class/net")) if os.path.isdir("/sys/class/net") else []
+        ip = module.get_bin_path("ip")
+        if ip:
+            host["links"] = network.parse_links(module.run_command([ip, "-j", "-4", "addr", "show"])[1])
+            host["default_route"] = network.parse_default_route(
+                module.run_command([ip, "-j", "-4", "route", "show", "default"])[1]
+            )
+        if docker:
+            try:
+                host["network"] = network.parse_network(DockerSocket().network(layout.NETWORK))
+            except DockerError as exc:
+                module.fail_json(msg=f"could not ask Docker for the network {layout.NETWORK}: {exc}")
+
     if p["check_host_ports"] and p["release"] in RELEASES:
         profile = RELEASES[p["release"]]["ports"]
         blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), p["port_bases"], max(p["port_stride"], 1))
-        wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
+        # with addresses of their own, the instances' and companions' ports are not the host's
+        wanted = set()
+        if not own_addresses:
+            wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
         if p["status_server"].get("enabled") and str(p["status_server"].get("port", "")).isdigit():
             wanted.add(("tcp", int(p["status_server"]["port"])))
         if p["hub_cache"].get("enabled"):
             wanted.add(("tcp", layout.HUB_PORT))
-        for spec in p["companions"] if isinstance(p["companions"], list) else []:
+        for spec in p["companions"] if isinstance(p["companions"], list) and not own_addresses else []:
             for proto, base in companions.own_ports(spec if isinstance(spec, dict) else {}).values():
                 wanted |= {(proto, base + i * max(p["port_stride"], 1)) for i in blocks}
 

@@ -22,70 +22,9 @@ import time
 
 import pytest
 import testbed
+from fleethosts import INSTANCES, PLAIN, SIGNAL, all_ready, containers, hosts, ip, playbook, playbook_argv, sh, squash
 from portwatch import Watcher
 from testbed import ROOT, client
-
-INSTANCES = 4
-SIGNAL = 49100
-
-
-def hosts() -> list:
-    out = subprocess.run(
-        ["ansible-inventory", "-i", testbed.inventory(), "--list"], capture_output=True, text=True, check=True, cwd=ROOT
-    )
-    return sorted(json.loads(out.stdout)["isaac_sim_hosts"]["hosts"])
-
-
-def sh(host: str, command: str) -> str:
-    code, out = client().containers.get(host).exec_run(["sh", "-c", command])
-    if code != 0:
-        raise AssertionError(f"{command!r} on {host} failed ({code}): {out.decode()}")
-    return out.decode()
-
-
-def ip(host: str) -> str:
-    return client().containers.get(host).attrs["NetworkSettings"]["IPAddress"]
-
-
-def containers(host: str) -> dict:
-    """The instances' containers (not their companions'): {name: (id, image)}."""
-    out = sh(host, "docker ps --no-trunc --filter name=isaac-sim- --format '{{.Names}} {{.ID}} {{.Image}}'")
-    found = (line.split() for line in out.strip().splitlines())
-    return {name: (cid, image) for name, cid, image in found if re.fullmatch(r"isaac-sim-\d+", name)}
-
-
-def all_ready(host: str) -> bool:
-    out = sh(host, "systemctl is-active isaac-sim@0 isaac-sim@1 isaac-sim@2 isaac-sim@3; ls /run/isaac-sim")
-    return out.count("active\n") == INSTANCES and all(f"instance-{i}.ready" in out for i in range(INSTANCES))
-
-
-def playbook_argv(name: str, extra: dict | None, limit: str | None) -> list:
-    cmd = ["ansible-playbook", "-i", testbed.inventory(), str(ROOT / "playbooks" / name)]
-    if extra:
-        cmd += ["-e", json.dumps(extra)]
-    return cmd + (["--limit", limit] if limit else [])
-
-
-PLAIN = {"ANSIBLE_FORCE_COLOR": "0", "ANSIBLE_NOCOLOR": "1"}
-
-
-def squash(text: str) -> str:
-    """Output with every run of whitespace made one space: Ansible wraps long messages."""
-    return re.sub(r"\s+", " ", text)
-
-
-def playbook(name: str, extra: dict | None = None, limit: str | None = None) -> subprocess.CompletedProcess:
-    """Run unattended: stdin is not a terminal, as under cron or CI."""
-    return subprocess.run(
-        playbook_argv(name, extra, limit),
-        capture_output=True,
-        text=True,
-        env=dict(os.environ, **PLAIN),
-        timeout=1500,
-        cwd=ROOT,
-        stdin=subprocess.DEVNULL,
-        check=False,
-    )
 
 
 def playbook_on_a_terminal(name: str, extra: dict, prompt: str, answer) -> tuple:

@@ -75,6 +75,15 @@ def test_public_address_override_applies_to_every_url():
     assert r["urls"]["signal"] == "sim-7.example.org:49100"
 
 
+def test_an_instance_with_an_address_of_its_own_is_reached_there_whatever_the_override():
+    envs = {i: env(i) for i in range(4)}
+    envs[1] = dict(envs[1], ISAAC_SIM_ADDRESS="10.0.0.51")
+    found = {r["name"]: r for r in build_records(envs=envs, address_override="sim-7.example.org")}
+    assert found["isaac-sim-1"]["address"] == "10.0.0.51"
+    assert found["isaac-sim-1"]["urls"]["signal"] == "10.0.0.51:49101"
+    assert found["isaac-sim-0"]["address"] is None and found["isaac-sim-0"]["urls"]["signal"].startswith("sim-7")
+
+
 def test_stopped_instance_reports_stopped_and_not_ready():
     r = records()["isaac-sim-3"]
     assert r["state"] == "stopped" and r["ready"] is False and r["container"] is None

@@ -579,3 +579,20 @@ def test_a_new_companion_that_fails_leaves_before_its_new_template_is_taken_back
     assert h.log.index("systemctl disable --now isaac-sim-viewer@0.service") < h.log.index(f"rm {VIEWER_UNIT}")
     assert VIEWER_UNIT not in h.files and layout.companion_env_file(0, "viewer") not in h.files
     assert h.units[0]["ActiveState"] == "active"
+
+
+def test_moving_to_own_addresses_keeps_the_port_numbers_and_blocks_nobody():
+    text = env("reg/isaac-sim:5.1.0", "sha256:x", f"{layout.K_PORT_PREFIX}SIGNAL=49100\n{layout.K_ADDRESS}=10.0.0.51\n")
+    assert lifecycle.ports_of(text) == {("10.0.0.51", 49100)}
+    old = {i: {("", 49100 + i)} for i in range(4)}
+    new = {i: {(f"10.0.0.{50 + i}", 49100)} for i in range(4)}
+    steps, notes = lifecycle.port_order(old, new, [0, 1, 2, 3], [])
+    assert steps == [("roll", 0), ("roll", 1), ("roll", 2), ("roll", 3)] and notes == []
+    # two instances that swap addresses: the same port at the same address is held
+    steps, notes = lifecycle.port_order(
+        {0: {("10.0.0.50", 49100)}, 1: {("10.0.0.51", 49100)}},
+        {0: {("10.0.0.51", 49100)}, 1: {("10.0.0.50", 49100)}},
+        [0, 1],
+        [],
+    )
+    assert steps[0] == ("stop", [1]) and "port(s) 10.0.0.51:49100" in notes[0]

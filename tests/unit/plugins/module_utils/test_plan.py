@@ -1,5 +1,5 @@
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils import plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, plan
 from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, release_of_tag
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 
@@ -405,3 +405,67 @@ def test_the_hub_cache_is_one_directory_shared_by_every_6x_instance():
 def test_bad_hub_cache_settings_are_refused(over, host, wanted):
     text = "\n".join(errors_of(cfg(**dict({"hub_cache": HUB}, **over)), host))
     assert wanted in text and "Fix:" in text, text
+
+
+# a host on 10.0.0.0/24 whose default route is on eth0, as the plan module finds it
+LAN_HOST = dict(
+    HOST,
+    interfaces=["lo", "eth0"],
+    links={"lo": [("127.0.0.1", 8)], "eth0": [("10.0.0.5", 24)]},
+    default_route={"dev": "eth0", "gateway": "10.0.0.1"},
+    network=None,
+    # a foreign process on the first block's signal port does not matter at the instances' own addresses
+    ports_held=[{"proto": "tcp", "port": 49100, "process": "nginx (pid 7)", "ours": False}],
+)
+OWN = {"network_mode": "macvlan", "address_pool": ["10.0.0.50-10.0.0.60"]}
+
+
+def test_own_addresses_keep_the_release_ports_and_companions_share_the_instance_s_namespace():
+    c = cfg(
+        release="5.x",
+        image="nvcr.io/nvidia/isaac-sim:5.1.0",
+        companions=[{"name": "bridge", "image": "reg/bridge:1", "ports": {"dds": 7400}, "env": {"SIM": "{host}"}}],
+        **OWN,
+    )
+    result = plan.build(c, LAN_HOST)
+    assert result["network"]["parent"] == "eth0" and result["network"]["subnet"] == "10.0.0.0/24"
+    for i, inst in enumerate(result["instances"]):
+        address = f"10.0.0.{50 + i}"
+        assert inst["address"] == address
+        assert inst["ports"] == {"signal": 49100, "stream": 47998, "http": 8011}
+        assert inst["docker_args"][:2] == ["--network=isaac-sim-macvlan", f"--ip={address}"]
+        assert "--network=host" not in inst["docker_args"]
+        # the stream's public address is the instance's own
+        assert f"--/app/livestream/publicEndpointAddress={address}" in inst["app_args"]
+        bridge = inst["companions"][0]
+        assert bridge["docker_args"][0] == f"--network=container:isaac-sim-{i}"
+        assert bridge["ports"] == {"dds": 7400} and bridge["container_env"]["SIM"] == address
+    env = layout.render_env(result["instances"][2], result, "sha256:x", {}, "managed")
+    assert 'ISAAC_SIM_ADDRESS="10.0.0.52"' in env and 'ISAAC_SIM_PUBLIC_ADDRESS="10.0.0.52"' in env
+    # on the host's network the env file has no address line: deployed hosts keep their files
+    shared = plan.build(cfg(), HOST)
+    assert "ISAAC_SIM_ADDRESS" not in layout.render_env(shared["instances"][0], shared, "sha256:x", {}, "m")
+    assert shared["network"] == {"mode": "host", "found": False}
+
+
+def test_the_6x_viewer_is_told_its_instance_s_address_and_the_hub_cache_is_refused():
+    c = cfg(web_viewer_image="reg.lab/viewer:1", **OWN)
+    viewer = plan.build(c, LAN_HOST)["instances"][1]["companions"][0]
+    assert viewer["container_env"]["ISAACSIM_HOST"] == "10.0.0.51"
+    assert viewer["ports"] == {"http": 8210} and viewer["docker_args"][0] == "--network=container:isaac-sim-1"
+    errors = errors_of(cfg(hub_cache=HUB, **OWN), LAN_HOST)
+    assert any(e.startswith("isaac_sim_hub_cache_enabled: the instances have addresses of their own") for e in errors)
+
+
+def test_own_addresses_still_check_ports_inside_one_block_and_the_pool():
+    errors = errors_of(cfg(port_bases={"signal": 47998}, **OWN), LAN_HOST)
+    assert errors == [
+        "isaac_sim_port_bases: instance 0 stream port 47998 overlaps instance 0 signal port. Fix: give each port kind "
+        "a base of its own (each instance has every port at its address)."
+    ]
+    errors = errors_of(cfg(network_mode="macvlan", address_pool=["10.0.0.50"]), LAN_HOST)
+    assert errors == [
+        "isaac_sim_address_pool: 1 usable address(es) for the 4 instance(s) that need one from the pool "
+        "(0, 1, 2, 3). Fix: add addresses of 10.0.0.0/24 that no machine uses, or give instances "
+        "isaac_sim_instance_addresses."
+    ]
