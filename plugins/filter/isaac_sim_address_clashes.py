@@ -17,7 +17,7 @@ description:
 positional: _input, hosts
 options:
   _input:
-    description: The plans, in the order of O(hosts); a host without a plan may be missing.
+    description: The plans, in the order of O(hosts); a host without a plan gives an empty mapping.
     type: list
     elements: dict
     required: true
@@ -30,7 +30,7 @@ options:
 
 EXAMPLES = r"""
 msg: >-
-  {{ ansible_play_hosts | map('extract', hostvars, 'plan')
+  {{ ansible_play_hosts | map('extract', hostvars) | map(attribute='plan', default={})
      | isaacsim.fleet.isaac_sim_address_clashes(ansible_play_hosts) }}
 """
 

@@ -319,8 +319,11 @@ def render_companion_env(companion: dict, plan: dict, managed: str) -> str:
         f"{K_UNHEALTHY_RESTART}={settings['unhealthy_restart'] if companion['health_interval'] else 0}",
         f"{K_DOCKER_ARGS}={quote(join_args(companion['docker_args']))}",
         f"{K_APP_ARGS}={quote(join_args(companion['app_args']))}",
-        "# Container environment (passed by name with docker run --env NAME)",
     ]
+    # in its instance's network namespace: isaac-sim-ports has no host port to check
+    if companion.get("address"):
+        lines.append(f"{K_ADDRESS}={quote(companion['address'])}")
+    lines.append("# Container environment (passed by name with docker run --env NAME)")
     lines += [f"{key}={quote(value)}" for key, value in companion["container_env"].items()]
     return "\n".join(lines) + "\n"
 

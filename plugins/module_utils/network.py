@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
 
@@ -22,6 +23,8 @@ HOST, MACVLAN = "host", "macvlan"
 MODES = (HOST, MACVLAN)
 # a pool is expanded only as far as the instances need; a range longer than this is a typo
 MAX_RANGE = 65536
+# the containers that may be on our network: the instances (their companions join their namespace)
+_INSTANCE = re.compile(r"^/?" + re.escape(layout.CONTAINER_PREFIX) + r"\d+$")
 
 
 def _address(text, where, errors):
@@ -218,6 +221,16 @@ def plan(cfg: dict, host: dict, ids: list) -> tuple:
             f"isaac_sim_macvlan_subnet: empty, and {parent} has no IPv4 address to take the LAN's network from. "
             "Fix: give the LAN's network, e.g. 192.168.10.0/24."
         )
+    # a typo in the subnet would give every instance an address nobody can reach, and they would
+    # still all become ready (readiness is seen from inside the container)
+    if subnet is not None and links.get(parent):
+        on_parent = [ipaddress.IPv4Network(f"{a}/{p}", strict=False) for a, p in links[parent]]
+        if not any(subnet.overlaps(net) for net in on_parent):
+            errors.append(
+                f"isaac_sim_macvlan_subnet: {subnet} is not a network of {parent}, which is on "
+                f"{', '.join(str(n) for n in on_parent)}: the instances' addresses would be unreachable. Fix: give "
+                f"{parent}'s network, or the interface on {subnet} as isaac_sim_macvlan_parent."
+            )
     gateway = None
     given_gateway = cfg.get("macvlan_gateway") or (route.get("gateway") if route.get("dev") == parent else None)
     if given_gateway:
@@ -240,7 +253,7 @@ def plan(cfg: dict, host: dict, ids: list) -> tuple:
     taken_by_others = {}
     if found:
         taken_by_others = {
-            a: name for name, a in found.get("containers", {}).items() if a and not layout.CONTAINER_RE.match(name)
+            a: name for name, a in found.get("containers", {}).items() if a and not _INSTANCE.match(name)
         }
 
     def unusable(address):

@@ -221,6 +221,26 @@ def _check_companion_ports(specs, blocks, stride, held, shared=True) -> list:
     return errors
 
 
+# docker run options a container in another's network namespace (--network=container:) cannot take
+_NAMESPACE_OPTIONS = ("-p", "--publish", "-P", "--publish-all", "-h", "--hostname", "--dns", "--add-host",
+                      "--network", "--net", "--ip", "--mac-address", "--expose")  # fmt: skip
+
+
+def _namespace_conflicts(specs) -> list:
+    """Errors for companion docker_args that Docker refuses beside --network=container:."""
+    errors = []
+    for spec in specs:
+        for arg in spec.get("docker_args") or [] if isinstance(spec, dict) else []:
+            option = str(arg).split("=", 1)[0]
+            if option in _NAMESPACE_OPTIONS:
+                errors.append(
+                    f"{companions.VAR}[{spec.get('name')}].docker_args: {option} cannot be given to a companion of "
+                    "an instance with its own address (isaac_sim_network_mode: macvlan): it shares the instance's "
+                    "network, address and name. Fix: remove it; the companion is reached at the instance's address."
+                )
+    return errors
+
+
 def _taken(blocks, comp_specs, stride) -> dict:
     """{port: whose} for every port of the instances' blocks and their companions."""
     taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
@@ -595,6 +615,8 @@ def build(cfg: dict, host: dict) -> dict:
     errors += companions.check(
         comp_specs, release_ports, max(as_int(cfg["max_instances"]) or 0, 1), cfg.get("gpu_enabled")
     )
+    if not shared:
+        errors += _namespace_conflicts(comp_specs)
     if not errors:
         errors += _check_companion_ports(comp_specs, blocks, stride, held, shared)
     # the host's own services (status endpoint, Hub) share its network with the instances, or not
@@ -634,6 +656,8 @@ def build(cfg: dict, host: dict) -> dict:
                 "host" if shared else f"container:{inst['name']}",
             )
             errors += comp_errors
+            # on its instance's address: no host port of its own to check at start
+            planned["address"] = inst["address"]
             inst["companions"].append(planned)
             inst["dirs"] += planned["dirs"]
     # one unit template per companion, even one no instance of this host has yet

@@ -255,20 +255,41 @@ def _want(module, host, found):
     }
 
 
-def _network(module):
-    """Our macvlan network as Docker has it now, or None."""
+def _network(module, needed):
+    """Our macvlan network as Docker has it now, or None. Without Docker (a fresh host, in check
+    mode) there is none; that is an error only when the instances need it."""
     try:
         return network.parse_network(DockerSocket().network(layout.NETWORK))
     except DockerError as exc:
-        module.fail_json(msg=f"could not ask Docker for the network {layout.NETWORK}: {exc}")
+        if needed:
+            module.fail_json(msg=f"could not ask Docker for the network {layout.NETWORK}: {exc}")
+        return None
+
+
+def _addressed_instances():
+    """Instances whose env file gives them an address of their own: stopped or crash-looping ones
+    have no container on the network, and still need it."""
+    found = []
+    for name in sorted(os.listdir(layout.CONFIG_DIR)) if os.path.isdir(layout.CONFIG_DIR) else []:
+        i = layout.instance_id(layout.ENV_FILE_RE, name)
+        if i is None:
+            continue
+        try:
+            with open(os.path.join(layout.CONFIG_DIR, name)) as fh:
+                if layout.parse(fh.read()).get(layout.K_ADDRESS):
+                    found.append(i)
+        except OSError:
+            continue
+    return found
 
 
 def _drop_network(module, host):
-    """Remove our network when nobody is on it any more: 'remove', 'kept' (someone is), or None."""
-    found = _network(module)
+    """Remove our network when nobody is on it and no instance is set to use it: 'remove',
+    'kept' (a container is on it, or an instance is set to use it), or None."""
+    found = _network(module, needed=False)
     if not found or not found.get("ours"):
         return None
-    if found["containers"]:
+    if found["containers"] or _addressed_instances():
         return "kept"
     if module.check_mode:
         return "remove"
@@ -322,7 +343,7 @@ def main():
         paths, uid, gid = _directories(p["plan"])
         dir_changes = dirs.wanted_changes(paths, uid, gid, 0o750)
         wanted_net = p["plan"].get("network") or {"mode": network.HOST}
-        net_todo = network.action(wanted_net, _network(module))
+        net_todo = network.action(wanted_net, _network(module, needed=wanted_net["mode"] == network.MACVLAN))
         if net_todo == "conflict":  # the plan refuses it; only a change made since gets here
             module.fail_json(
                 msg=f"the network {layout.NETWORK} differs from the plan's and is in use; nothing was changed. "

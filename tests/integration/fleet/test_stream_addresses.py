@@ -52,11 +52,15 @@ def own(host: str, addresses: list, **extra) -> dict:
 
 
 def tcp(from_host: str, address: str, port: int) -> str:
-    """What a client on from_host reads from address:port: the first line, or "refused"."""
+    """What a client on from_host reads from address:port: its first line, "refused" when the address
+    answers that nothing listens there, "timeout" when nothing answers at all."""
+    probe = f"exec 3<>/dev/tcp/{address}/{port} && printf 'hello\\r\\n' >&3 && head -c 200 <&3"
     out = sh(
         from_host,
-        f"timeout 5 bash -c 'exec 3<>/dev/tcp/{address}/{port} && printf \"hello\\r\\n\" >&3 && head -c 200 <&3'"
-        " 2>/dev/null || echo refused",
+        f'out=$(timeout 5 bash -c "{probe}" 2>&1); rc=$?; '
+        'if [ "$rc" = 124 ]; then echo timeout; '
+        'elif printf %s "$out" | grep -q "Connection refused"; then echo refused; '
+        'else printf "%s\\n" "$out"; fi',
     )
     return out.strip()
 
@@ -107,8 +111,16 @@ def test_each_instance_answers_at_its_own_address_and_at_no_other(fleet):
     untouched = containers(second)
     run = playbook("deploy.yml", own(first, addresses, isaac_sim_web_viewer_image=viewer_image(first)), limit=first)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
-    # one instance at a time, through the lifecycle
-    assert "isaac-sim-0" in run.stdout and containers(second) == untouched
+    assert containers(second) == untouched
+    # one instance at a time, through the lifecycle: each new container started only once the
+    # one before it was ready again (the markers hold the second the readiness gate passed)
+    started = [
+        float(sh(first, f"date -d \"$(docker inspect -f '{{{{.State.StartedAt}}}}' isaac-sim-{i})\" +%s.%N"))
+        for i in range(INSTANCES)
+    ]
+    ready = [int(sh(first, f"cat /run/isaac-sim/instance-{i}.ready")) for i in range(INSTANCES)]
+    for i in range(1, INSTANCES):
+        assert started[i] >= ready[i - 1], f"isaac-sim-{i} started before isaac-sim-{i - 1} was ready"
 
     network = json.loads(sh(first, "docker network inspect isaac-sim-macvlan"))[0]
     assert network["Driver"] == "macvlan" and network["Options"]["parent"] == "eth0"

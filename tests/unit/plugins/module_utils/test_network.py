@@ -152,3 +152,17 @@ def test_an_address_on_two_hosts_is_a_clash():
         "isaac_sim_address_pool / isaac_sim_instance_addresses: 10.20.0.51 is given to isaac-sim-1 on a and "
         "isaac-sim-0 on b. Fix: give each host a pool of its own."
     ]
+
+
+def test_a_subnet_the_parent_is_not_on_is_refused_and_a_foreign_container_named_like_ours_counts():
+    _n, _a, errors = network.plan(cfg(macvlan_subnet="10.2.0.0/24", macvlan_gateway="10.2.0.1"), HOST, [0])
+    # and the pool of 10.20.0.x is outside it too
+    assert len(errors) == 2 and errors[1].startswith("isaac_sim_address_pool: 0 usable address(es)")
+    assert errors[:1] == [
+        "isaac_sim_macvlan_subnet: 10.2.0.0/24 is not a network of eth0, which is on 10.20.0.0/24: the instances' "
+        "addresses would be unreachable. Fix: give eth0's network, or the interface on 10.2.0.0/24 as "
+        "isaac_sim_macvlan_parent."
+    ]
+    host = dict(HOST, network=dict(_net(), ours=True, containers={"isaac-sim-web": "10.20.0.50"}))
+    _n, addresses, _e = network.plan(cfg(), host, [0])
+    assert addresses == {0: "10.20.0.51"}

@@ -469,3 +469,19 @@ def test_own_addresses_still_check_ports_inside_one_block_and_the_pool():
         "(0, 1, 2, 3). Fix: add addresses of 10.0.0.0/24 that no machine uses, or give instances "
         "isaac_sim_instance_addresses."
     ]
+
+
+def test_companions_of_instances_with_own_addresses_check_no_host_port_and_take_no_network_options():
+    c = cfg(web_viewer_image="reg.lab/viewer:1", **OWN)
+    result = plan.build(c, LAN_HOST)
+    viewer = result["instances"][0]["companions"][0]
+    assert 'ISAAC_SIM_ADDRESS="10.0.0.50"' in layout.render_companion_env(viewer, result, "m")
+    shared = plan.build(cfg(web_viewer_image="reg.lab/viewer:1"), HOST)
+    assert "ISAAC_SIM_ADDRESS" not in layout.render_companion_env(shared["instances"][0]["companions"][0], shared, "m")
+    bad = [{"name": "bridge", "image": "reg/bridge:1", "docker_args": ["-p", "7400:7400", "--hostname=robot"]}]
+    errors = errors_of(cfg(companions=bad, **OWN), LAN_HOST)
+    assert [e.split(":")[0] for e in errors] == ["isaac_sim_companions[bridge].docker_args"] * 2
+    assert "-p cannot be given to a companion of an instance with its own address" in errors[0]
+    assert plan.build(cfg(companions=bad), HOST)["instances"][0]["companions"][0]["docker_args"][-1] == (
+        "--hostname=robot"
+    )
