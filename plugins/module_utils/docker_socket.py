@@ -65,6 +65,24 @@ class DockerSocket:
         filters = quote(json.dumps({"name": [name_prefix]}))
         return self.get(f"/containers/json?all=1&filters={filters}")
 
+    def labelled(self, label: str):
+        """Every container (running or not) carrying label (KEY or KEY=VALUE): one call."""
+        filters = quote(json.dumps({"label": [label]}))
+        return self.get(f"/containers/json?all=1&filters={filters}")
+
+    def stats(self, container: str):
+        """One sample of a container's CPU and memory use (one-shot: no wait for a second sample)."""
+        return self.get(f"/containers/{quote(container)}/stats?stream=false&one-shot=true")
+
+    def image(self, name: str):
+        """The image `name` as docker image inspect describes it, or None: one call."""
+        try:
+            return self.get(f"/images/{quote(name)}/json")
+        except DockerError as exc:
+            if exc.status == 404:
+                return None
+            raise
+
     def images(self):
         """Every image with its repo digests: one call."""
         return self.get("/images/json")

@@ -190,6 +190,9 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
             "labelled_instance": int(label) if label and label.isdigit() else None,
             "companion": companion,
             "host_service": host_service,
+            # a container of a test run (an experience), with its service
+            "test_run": (c.get("Labels") or {}).get(layout.LABEL_RUN),
+            "test_service": (c.get("Labels") or {}).get(layout.LABEL_RUN_SERVICE),
         }
     return out
 
@@ -267,7 +270,7 @@ def build(
     by_id = {}
     comp_containers = {}
     for name, c in containers.items():
-        if c.get("host_service"):  # the host's Hub cache: not an instance, never a stray
+        if c.get("host_service") or c.get("test_run"):  # the Hub cache, a test run: never a stray
             continue
         if c.get("companion") and c.get("labelled_instance") is not None:
             comp_containers[(c["labelled_instance"], c["companion"])] = c
@@ -579,6 +582,12 @@ def gather(
             {"name": c["host_service"], "container": name, "state": c["state"], "uptime_s": c["uptime_s"]}
             for name, c in sorted(containers.items())
             if c.get("host_service")
+        ],
+        # containers of the test runs going on (playbooks/experience.yml)
+        "test_runs": [
+            {"run": c["test_run"], "service": c["test_service"], "container": name, "state": c["state"]}
+            for name, c in sorted(containers.items())
+            if c.get("test_run")
         ],
         "errors": errors,
     }

@@ -50,6 +50,14 @@ LABEL_HOST_SERVICE = "org.isaacsim.fleet.host-service"
 NETWORK = "isaac-sim-macvlan"
 LABEL_NETWORK = "org.isaacsim.fleet.network"
 
+# test runs (experiences): one unit per service, in /run so a run does not outlive a reboot
+RUN_UNIT_DIR = "/run/systemd/system"
+RUN_PREFIX = "isaac-sim-run-"
+LABEL_RUN = "org.isaacsim.fleet.run"
+LABEL_RUN_SERVICE = "org.isaacsim.fleet.run-service"
+RUN_OUTPUTS = "/isaacsim-fleet/outputs"
+RUN_ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,62}$")
+
 UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
 ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env$")
@@ -88,6 +96,9 @@ K_APP_ARGS = "ISAAC_SIM_APP_ARGS"
 K_COMPANION = "ISAAC_SIM_COMPANION"
 # given to a companion's container: its instance's public address
 K_HOST = "ISAAC_SIM_HOST"
+# given to a test run's containers
+K_RUN = "ISAAC_SIM_RUN"
+K_RUN_OUTPUTS = "ISAAC_SIM_RUN_OUTPUTS"
 RESERVED_PREFIX = "ISAAC_SIM_"
 
 
@@ -133,6 +144,23 @@ def companion_marker(i: int, name: str, run_dir: str = RUN_DIR) -> str:
 
 def companion_data_dir(i: int, name: str, data_root: str = DATA_ROOT) -> str:
     return os.path.join(data_dir(i, data_root), "companions", name)
+
+
+def run_name(run: str, service: str | None = None) -> str:
+    """A run's network (service None), or one service's unit stem and container name."""
+    return f"{RUN_PREFIX}{run}" + (f"-{service}" if service else "")
+
+
+def run_unit(run: str, service: str) -> str:
+    return f"{run_name(run, service)}.service"
+
+
+def run_volume(run: str, volume: str) -> str:
+    return f"{run_name(run)}-{volume}"
+
+
+def run_dir(run: str, data_root: str = DATA_ROOT) -> str:
+    return os.path.join(data_root, "runs", run)
 
 
 def instance_id(pattern: re.Pattern, name: str):

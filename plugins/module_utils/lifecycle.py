@@ -22,7 +22,10 @@ the unit tests to a scripted one.
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
+import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
 
@@ -42,6 +45,44 @@ class Host:
     def __init__(self, run, read, write, remove, mode, exists, sleep, now, wall):
         self.run, self.read, self.write, self.remove, self.mode = run, read, write, remove, mode
         self.exists, self.sleep, self.now, self.wall = exists, sleep, now, wall
+
+
+def bind(module) -> Host:
+    """The real host, for a module running on it."""
+
+    def run(argv):
+        return module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:])
+
+    def read(path):
+        try:
+            with open(path) as fh:
+                return fh.read()
+        except OSError:
+            return None
+
+    def write(path, text, mode):
+        directory = os.path.dirname(path)
+        os.makedirs(directory, mode=0o755, exist_ok=True)
+        tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+
+    def remove(path):
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path):
+            os.unlink(path)
+
+    def mode(path):
+        try:
+            return os.stat(path).st_mode & 0o777
+        except OSError:
+            return None
+
+    return Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
 
 
 PROPS = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"

@@ -103,6 +103,12 @@ host_services:
   returned: always
   type: list
   elements: dict
+test_runs:
+  description: The containers of test runs going on (C(run), C(service), C(container), C(state)); never listed as
+    instances or strays.
+  returned: always
+  type: list
+  elements: dict
 status_url:
   description: Where this host serves the same status live, read-only (the isaac_sim role's status endpoint); null when
     it does not.

@@ -160,48 +160,10 @@ network:
 """
 
 import os
-import shutil
-import time
 
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle, network
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
-
-
-def _host(module):
-    def run(argv):
-        return module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:])
-
-    def read(path):
-        try:
-            with open(path) as fh:
-                return fh.read()
-        except OSError:
-            return None
-
-    def write(path, text, mode):
-        directory = os.path.dirname(path)
-        os.makedirs(directory, mode=0o755, exist_ok=True)
-        tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
-
-    def remove(path):
-        if os.path.isdir(path) and not os.path.islink(path):
-            shutil.rmtree(path)
-        elif os.path.lexists(path):
-            os.unlink(path)
-
-    def mode(path):
-        try:
-            return os.stat(path).st_mode & 0o777
-        except OSError:
-            return None
-
-    return lifecycle.Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
 
 
 def _want(module, host, found):
@@ -334,7 +296,7 @@ def main():
         supports_check_mode=True,
     )
     p = module.params
-    host = _host(module)
+    host = lifecycle.bind(module)
     out = dict(changed=False, done=[], failed_instance=None, untouched=[])
     found = hostprobe.existing_companions(layout.CONFIG_DIR)
 

@@ -187,6 +187,28 @@ def test_the_hub_cache_container_is_a_host_service_never_a_stray():
     assert "isaac-sim-hub" not in found and found.keys() == records().keys()
 
 
+def test_a_test_run_s_containers_are_listed_as_such_never_as_strays():
+    raw = [
+        {
+            "Id": "e" * 64,
+            "Names": ["/isaac-sim-run-pick-20261123-101500-ab12-planner"],
+            "State": "running",
+            "Status": "Up 5 seconds",
+            "Created": NOW - 5,
+            "Image": "reg/planner:1",
+            "ImageID": "sha256:2",
+            "Labels": {
+                "org.isaacsim.fleet.run": "pick-20261123-101500-ab12",
+                "org.isaacsim.fleet.run-service": "planner",
+            },
+        }
+    ]
+    run = fleet_status.parse_containers(raw, [], NOW)
+    assert run["isaac-sim-run-pick-20261123-101500-ab12-planner"]["test_service"] == "planner"
+    found = records(containers=dict(containers(), **run))
+    assert found.keys() == records().keys()
+
+
 def test_2023_instance_gets_the_browser_client_url():
     e = dict(env(0), ISAAC_SIM_RELEASE="2023.1")
     for k in [k for k in e if k.startswith("ISAAC_SIM_PORT_")]:

@@ -1,0 +1,477 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""One test run of an experience on one host, from start to verdict to clean host.
+
+The engine is systemd: each service of the experience becomes a unit in /run/systemd/system
+whose ExecStart is the service's `docker run` in the foreground, so systemd restarts it (by
+the compose restart policy), the journal keeps its log and `systemctl stop` stops it. The
+run gets its own bridge network (services reach each other by service name) and its own
+named volumes. The judge (judge.py) decides the verdict from what the units do; this module
+starts the units the judge names, samples CPU and memory through Docker's stats, and after
+the verdict stops every container and removes the units, the network and the volumes,
+keeping the logs, exit codes, metrics and a JUnit file in the run's directory.
+
+The host is reached through lifecycle.Host (run, read, write, remove, ...) and a Docker API
+client (get), so the unit tests drive it with scripted ones.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from xml.sax.saxutils import escape, quoteattr
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import judge, layout
+
+DOCKER = "/usr/bin/docker"
+PROPS = "Id,LoadState,ActiveState,SubState,NRestarts,Result,ExecMainCode,ExecMainStatus"
+CLD_EXITED = "1"  # ExecMainCode: the main process exited (else it was killed: status is the signal)
+_HEALTH = re.compile(r"\((healthy|unhealthy|health: starting)\)")
+_SLUG = re.compile(r"[^a-z0-9]+")
+
+
+def run_id(name: str, stamp: str, token: str) -> str:
+    """A run's name: the experience's, a time stamp and a random token (unit and Docker safe)."""
+    slug = _SLUG.sub("-", name.lower()).strip("-")[:32].strip("-") or "run"
+    return f"{slug}-{stamp}-{token}"
+
+
+def systemd_quote(word: str) -> str:
+    """One word of an ExecStart= line that systemd passes on exactly (specifiers and
+    variables escaped, C escapes inside double quotes)."""
+    text = str(word).replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
+    return '"' + text.replace("%", "%%").replace("$", "$$") + '"'
+
+
+def _size(value) -> str:
+    return str(value).replace(" ", "")
+
+
+def docker_argv(run: str, name: str, svc: dict, *, outputs: str, simulator=None, gpus=()) -> list:
+    """The `docker run` of one service (foreground: the unit's main process is the container).
+
+    simulator: {"service": name, "address": ..., "env": {...}} when the run borrows an instance.
+    gpus: the host's GPU ids given to this service (dedicated).
+    """
+    container = layout.run_name(run, name)
+    argv = [
+        DOCKER,
+        "run",
+        f"--name={container}",
+        f"--network={layout.run_name(run)}",
+        f"--network-alias={name}",
+        f"--hostname={name}",
+        "--pull=never",
+        "--security-opt=no-new-privileges",
+        f"--label={layout.LABEL_RUN}={run}",
+        f"--label={layout.LABEL_RUN_SERVICE}={name}",
+        f"--mount=type=bind,source={outputs},target={layout.RUN_OUTPUTS}",
+    ]
+    for key, value in sorted((svc.get("labels") or {}).items()):
+        argv.append(f"--label={key}={value}")
+    env = dict(svc["environment"])
+    if simulator:
+        argv.append(f"--add-host={simulator['service']}:{simulator['address']}")
+        env.update(simulator["env"])
+    env[layout.K_RUN] = run
+    env[layout.K_RUN_OUTPUTS] = layout.RUN_OUTPUTS
+    argv += [f"--env={key}={value}" for key, value in env.items()]
+    if svc.get("working_dir"):
+        argv.append(f"--workdir={svc['working_dir']}")
+    if svc.get("user"):
+        argv.append(f"--user={svc['user']}")
+    if svc.get("shm_size"):
+        argv.append(f"--shm-size={_size(svc['shm_size'])}")
+    if svc.get("memory"):
+        argv.append(f"--memory={_size(svc['memory'])}")
+    if svc.get("cpus"):
+        argv.append(f"--cpus={svc['cpus']}")
+    if svc.get("init"):
+        argv.append("--init")
+    if svc.get("stop_signal"):
+        argv.append(f"--stop-signal={svc['stop_signal']}")
+    argv.append(f"--stop-timeout={math.ceil(svc.get('stop_grace_period') or 10)}")
+    if gpus:
+        # the quotes keep the comma inside one --gpus value (Docker reads it as CSV)
+        argv.append(f'--gpus="device={",".join(str(g) for g in gpus)}"')
+    for volume, target, read_only in svc["volumes"]:
+        ro = ",readonly" if read_only else ""
+        argv.append(f"--mount=type=volume,source={layout.run_volume(run, volume)},target={target}{ro}")
+    argv += [f"--tmpfs={target}" for target in svc["tmpfs"]]
+    health = svc.get("healthcheck")
+    if health:
+        argv += [
+            f"--health-cmd={health['test']}",
+            f"--health-interval={health['interval']:g}s",
+            f"--health-timeout={health['timeout']:g}s",
+            f"--health-retries={health['retries']}",
+            f"--health-start-period={health['start_period']:g}s",
+        ]
+    entrypoint, command = svc.get("entrypoint"), svc.get("command") or []
+    if entrypoint is not None:
+        argv.append(f"--entrypoint={entrypoint[0] if entrypoint else ''}")
+        return argv + [svc["image"]] + list(entrypoint[1:]) + list(command)
+    return argv + [svc["image"]] + list(command)
+
+
+def unit_text(run: str, name: str, svc: dict, argv: list) -> str:
+    """The service's unit: systemd runs, restarts (compose's policy) and stops its container."""
+    container = layout.run_name(run, name)
+    grace = math.ceil(svc.get("stop_grace_period") or 10)
+    if svc["restart"] == "no":
+        restart, limit = "no", ""
+    else:
+        # every policy restarts on failure only: a service may finish (exit 0) at any time
+        retries = svc.get("restart_retries") or 0
+        limit = f"StartLimitIntervalSec=1d\nStartLimitBurst={retries + 1}\n" if retries else "StartLimitIntervalSec=0\n"
+        restart = "on-failure"
+    return (
+        "[Unit]\n"
+        f"Description=isaacsim.fleet test run {run}: service {name}\n"
+        f"{limit}"
+        "\n[Service]\n"
+        "Type=exec\n"
+        f"ExecStartPre=-{DOCKER} rm -f {container}\n"
+        f"ExecStart={' '.join(systemd_quote(w) for w in argv)}\n"
+        f"ExecStop=-{DOCKER} stop --time={grace} {container}\n"
+        f"ExecStopPost=-{DOCKER} rm -f {container}\n"
+        f"Restart={restart}\n"
+        "RestartSec=1\n"
+        f"TimeoutStopSec={grace + 30}\n"
+    )
+
+
+def observe(shown: dict, containers: list, run: str, services, started, ran) -> dict:
+    """{service: judge.observation} from `systemctl show` of the run's units and Docker's list
+    of the run's containers. started: services the runner started; ran: those seen running."""
+    by_service = {}
+    for c in containers:
+        svc = (c.get("Labels") or {}).get(layout.LABEL_RUN_SERVICE)
+        if svc:
+            by_service[svc] = c
+    out = {}
+    for name in services:
+        props = shown.get(layout.run_unit(run, name)) or {}
+        restarts = int(props.get("NRestarts") or 0)
+        if name not in started:
+            out[name] = judge.observation()
+            continue
+        state, sub = props.get("ActiveState", ""), props.get("SubState", "")
+        code = None
+        if props.get("ExecMainCode") not in (None, "", "0"):
+            status = int(props.get("ExecMainStatus") or 0)
+            code = status if props["ExecMainCode"] == CLD_EXITED else 128 + status
+        container = by_service.get(name) or {}
+        health = None
+        match = _HEALTH.search(container.get("Status") or "")
+        if match:
+            health = "starting" if match.group(1) == "health: starting" else match.group(1)
+        if state == "activating" and sub == "auto-restart":
+            obs = judge.observation(judge.RESTARTING, code, restarts, None, True)
+        elif state in ("inactive", "failed") and code is not None:
+            obs = judge.observation(judge.EXITED, code, restarts, None, True)
+        elif state == "active" and container.get("State") == "running":
+            ran.add(name)
+            obs = judge.observation(judge.RUNNING, None, restarts, health, True)
+        else:
+            obs = judge.observation(judge.STARTING, None, restarts, None, name in ran)
+        out[name] = obs
+    return out
+
+
+def stats_sample(stats: dict):
+    """(cpu nanoseconds used so far, memory bytes in use) from Docker's stats of a container,
+    memory counted as `docker stats` does (without the page cache it can drop)."""
+    cpu = int(((stats.get("cpu_stats") or {}).get("cpu_usage") or {}).get("total_usage") or 0)
+    memory = stats.get("memory_stats") or {}
+    detail = memory.get("stats") or {}
+    cache = detail.get("total_inactive_file", detail.get("inactive_file", 0)) or 0
+    return cpu, max(int(memory.get("usage") or 0) - int(cache), 0)
+
+
+class Metrics:
+    """CPU (percent of one core, between samples) and memory per service over the run."""
+
+    def __init__(self):
+        self.rows = []  # [seconds, service, cpu percent, memory bytes]
+        self._last = {}
+
+    def add(self, seconds: float, service: str, cpu_ns: int, memory: int, container_id: str):
+        last = self._last.get(service)
+        self._last[service] = (seconds, cpu_ns, container_id)
+        cpu = None
+        if last and last[2] == container_id and seconds > last[0] and cpu_ns >= last[1]:
+            cpu = round((cpu_ns - last[1]) / ((seconds - last[0]) * 1e9) * 100, 1)
+        self.rows.append([round(seconds, 3), service, cpu, memory])
+
+    def summary(self) -> dict:
+        out = {}
+        for _t, svc, cpu, mem in self.rows:
+            s = out.setdefault(svc, {"samples": 0, "cpu_peak_percent": 0.0, "memory_peak_bytes": 0, "_cpu": []})
+            s["samples"] += 1
+            s["memory_peak_bytes"] = max(s["memory_peak_bytes"], mem)
+            if cpu is not None:
+                s["_cpu"].append(cpu)
+                s["cpu_peak_percent"] = max(s["cpu_peak_percent"], cpu)
+        for s in out.values():
+            cpus = s.pop("_cpu")
+            s["cpu_mean_percent"] = round(sum(cpus) / len(cpus), 1) if cpus else None
+        return out
+
+    def csv(self) -> str:
+        lines = ["seconds,service,cpu_percent,memory_bytes"]
+        lines += [f"{t},{svc},{'' if cpu is None else cpu},{mem}" for t, svc, cpu, mem in self.rows]
+        return "\n".join(lines) + "\n"
+
+
+def junit(result: dict) -> str:
+    """A JUnit XML file of one run: one test case, failed or errored with the verdict's reason,
+    the orchestrators' log tails as its output."""
+    verdict = result["verdict"]
+    name = result["experience"]
+    failures = 1 if verdict["result"] in (judge.FAILED, judge.TIMEOUT) else 0
+    errors = 1 if verdict["result"] == judge.ERROR else 0
+    case = (
+        f"  <testcase classname={quoteattr('isaacsim.fleet.' + result['host'])} name={quoteattr(name)} "
+        f'time="{verdict["seconds"]:.3f}">\n'
+    )
+    message = quoteattr(verdict["reason"])
+    if failures:
+        case += f"    <failure message={message} type={quoteattr(verdict['result'])}/>\n"
+    if errors:
+        case += f'    <error message={message} type="error"/>\n'
+    props = "".join(
+        f"      <property name={quoteattr(k)} value={quoteattr(str(v))}/>\n"
+        for k, v in (("run", result["run"]), ("host", result["host"]), ("result", verdict["result"]))
+    )
+    out = escape(result.get("orchestrator_output") or "")
+    case += f"    <system-out>{out}</system-out>\n  </testcase>\n"
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        f'<testsuite name="isaacsim.fleet experiences" tests="1" failures="{failures}" errors="{errors}" '
+        f'skipped="0" time="{verdict["seconds"]:.3f}">\n'
+        f"  <properties>\n{props}  </properties>\n{case}</testsuite>\n"
+    )
+
+
+def preflight(api, experience: dict, gpus_free, pull=None) -> list:
+    """Errors that stop a run before anything is created: images neither on the host nor
+    pullable (pull(image) -> error text or None), more GPUs than the host can give the run."""
+    errors = []
+    for image in experience["images"]:
+        if api.image(image) is not None:
+            continue
+        why = pull(image) if pull else "it is not on this host"
+        if why:
+            errors.append(
+                f"{experience['name']}: image {image} cannot be had ({why}). Fix: correct the image name or tag, or "
+                "push the image to the fleet's registry."
+            )
+    wanted = experience["gpus"]
+    if wanted > len(gpus_free):
+        errors.append(
+            f"{experience['name']}: the services ask for {wanted} dedicated GPU(s); this host has {len(gpus_free)} "
+            "free. Fix: ask for fewer, or run it where more GPUs are free."
+        )
+    return errors
+
+
+def _gpu_share(experience: dict, gpus_free) -> dict:
+    """Dedicated GPU ids per service, in service order."""
+    free, out = list(gpus_free), {}
+    for name in experience["order"]:
+        svc = experience["services"][name]
+        ids = [g for g in svc["gpu_device_ids"] if g in free] if svc["gpu_device_ids"] else []
+        for g in ids:
+            free.remove(g)
+        need = svc["gpus"] - len(ids)
+        out[name], free = ids + free[:need], free[need:]
+    return out
+
+
+def _as_run(experience: dict) -> str:
+    """The compose file as run (interpolated, experience environment applied), as YAML (JSON is YAML)."""
+    services = {}
+    for name, svc in experience["services"].items():
+        services[name] = {k: v for k, v in svc.items() if v not in (None, [], {}, False) and k not in ("name",)}
+    return json.dumps({"name": experience["name"], "services": services, "volumes": experience["volumes"]}, indent=2)
+
+
+def execute(
+    host,
+    api,
+    experience: dict,
+    run: str,
+    *,
+    hostname: str,
+    timeout: float,
+    data_root: str,
+    simulator=None,
+    gpus_free=(),
+    poll: float = 0.5,
+    metrics_every: float = 2.0,
+) -> dict:
+    """Run one experience to its verdict and leave the host as it was, but for the run's directory
+    (logs, exit codes, metrics, the compose file as run, junit.xml). Returns the run's result."""
+    services = [s for s in experience["order"] if s != experience.get("simulator")]
+    units = [layout.run_unit(run, s) for s in services]
+    directory = layout.run_dir(run, data_root)
+    outputs = f"{directory}/outputs"
+    share = _gpu_share(experience, gpus_free)
+    created = {"network": False, "volumes": [], "units": []}
+
+    def docker(*args, check=True):
+        rc, out, err = host.run([DOCKER, *args])
+        if rc != 0 and check:
+            raise RuntimeError(f"docker {' '.join(args)} failed ({rc}): {(err or out).strip()}")
+        return out
+
+    result = {"run": run, "host": hostname, "experience": experience["name"], "directory": directory}
+    metrics = Metrics()
+    judgement = None
+    try:
+        host.run(["mkdir", "-p", "-m", "0755", directory])
+        # any uid a service runs as writes its outputs here
+        host.run(["mkdir", "-p", "-m", "1777", outputs])
+        host.run(["chmod", "1777", outputs])
+        host.write(f"{directory}/compose.yml", _as_run(experience) + "\n", 0o644)
+        labels = [f"--label={layout.LABEL_RUN}={run}"]
+        docker("network", "create", "--driver=bridge", *labels, layout.run_name(run))
+        created["network"] = True
+        for volume in experience["volumes"]:
+            docker("volume", "create", *labels, layout.run_volume(run, volume))
+            created["volumes"].append(volume)
+        for name in services:
+            svc = experience["services"][name]
+            argv = docker_argv(run, name, svc, outputs=outputs, simulator=simulator, gpus=share.get(name, ()))
+            host.write(f"{layout.RUN_UNIT_DIR}/{layout.run_unit(run, name)}", unit_text(run, name, svc, argv), 0o644)
+            created["units"].append(name)
+        host.run(["systemctl", "daemon-reload"])
+
+        start = host.now()
+        judgement = judge.Judge(experience, timeout, start)
+        started, ran = set(), set()
+        last_metrics = -metrics_every
+        observations = {}
+        while True:
+            now = host.now()
+            _rc, out, _err = host.run(["systemctl", "show", "-p", PROPS] + units)
+            shown = _shown(out)
+            found = api.labelled(f"{layout.LABEL_RUN}={run}")
+            observations = observe(shown, found, run, services, started, ran)
+            if experience.get("simulator"):
+                observations[experience["simulator"]] = simulator_state(host, simulator)
+            to_start = judgement.step(now, observations)
+            if judgement.verdict:
+                break
+            if to_start:
+                host.run(["systemctl", "start", "--no-block"] + [layout.run_unit(run, s) for s in to_start])
+                started.update(to_start)
+            if now - last_metrics >= metrics_every:
+                last_metrics = now
+                for c in found:
+                    svc = (c.get("Labels") or {}).get(layout.LABEL_RUN_SERVICE)
+                    if c.get("State") != "running" or not svc:
+                        continue
+                    try:
+                        cpu, memory = stats_sample(api.stats(c["Id"]))
+                    except Exception:  # noqa: BLE001 - a container that just exited has no stats
+                        continue
+                    metrics.add(now - start, svc, cpu, memory, c["Id"])
+            host.sleep(poll)
+        result["verdict"] = judgement.verdict
+    finally:
+        teardown(host, run, services, created, docker)
+    result["services"] = {}
+    logs = {}
+    for name in services:
+        _rc, log, _err = host.run(["journalctl", "--no-pager", "-o", "short-iso", "-u", layout.run_unit(run, name)])
+        logs[name] = log
+        host.write(f"{directory}/{run}-{name}.log", log, 0o644)
+        obs = observations.get(name) or judge.observation()
+        result["services"][name] = {
+            "orchestrator": name in experience["orchestrators"],
+            "started": name in judgement.started,
+            "exit_code": obs["exit_code"] if obs["state"] == judge.EXITED else None,
+            "last_exit_code": obs["exit_code"],
+            "restarts": obs["restarts"],
+            "state_at_verdict": obs["state"],
+        }
+    result["events"] = judgement.events
+    result["metrics"] = metrics.summary()
+    result["orchestrator_output"] = "".join(
+        f"--- {name} ---\n" + "\n".join(logs.get(name, "").splitlines()[-40:]) + "\n"
+        for name in experience["orchestrators"]
+    )
+    host.write(f"{directory}/metrics.csv", metrics.csv(), 0o644)
+    host.write(f"{directory}/result.json", json.dumps(result, indent=2) + "\n", 0o644)
+    host.write(f"{directory}/junit.xml", junit(result), 0o644)
+    result["artefacts"] = sorted(
+        [f"{run}-{name}.log" for name in services] + ["compose.yml", "metrics.csv", "result.json", "junit.xml"]
+    )
+    return result
+
+
+def simulator_state(host, simulator) -> dict:
+    """The borrowed instance as the judge sees the simulator service: running while its unit is active."""
+    _rc, out, _err = host.run(["systemctl", "is-active", layout.unit(simulator["instance"])])
+    state = judge.RUNNING if out.strip() == "active" else judge.EXITED
+    return judge.observation(state, None, 0, "healthy" if state == judge.RUNNING else None, True)
+
+
+def _shown(out: str) -> dict:
+    found = {}
+    for block in re.split(r"\n\s*\n", (out or "").strip()):
+        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+        if fields.get("Id"):
+            found[fields["Id"]] = fields
+    return found
+
+
+def teardown(host, run: str, services, created: dict, docker) -> None:
+    """Stop every container of the run and remove its units, network and volumes (logs stay in
+    the journal and the run's directory). Safe to call on a half-created run."""
+    units = [layout.run_unit(run, s) for s in created["units"]]
+    if units:
+        # one job for all: systemd stops them together, each with its grace period
+        host.run(["systemctl", "stop"] + units)
+    for c in docker("ps", "-aq", f"--filter=label={layout.LABEL_RUN}={run}", check=False).split():
+        docker("rm", "-f", c, check=False)
+    for name in created["units"]:
+        host.remove(f"{layout.RUN_UNIT_DIR}/{layout.run_unit(run, name)}")
+    if units:
+        host.run(["systemctl", "daemon-reload"])
+        host.run(["systemctl", "reset-failed"] + units)
+    for volume in created["volumes"]:
+        docker("volume", "rm", "-f", layout.run_volume(run, volume), check=False)
+    if created["network"]:
+        docker("network", "rm", layout.run_name(run), check=False)
+
+
+def _bytes(n) -> str:
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{n} B"
+
+
+def summary_lines(result: dict) -> list:
+    """A run for a person: its verdict, then one row per service."""
+    verdict = result.get("verdict") or {}
+    lines = [
+        f"{result.get('experience')} on {result.get('host')} ({result.get('run')}): "
+        f"{verdict.get('result', '?').upper()} - {verdict.get('reason', '')} ({verdict.get('seconds', 0):.1f} s)",
+        f"{'service':<20} {'role':<12} {'exit':>5} {'restarts':>8} {'cpu peak':>9} {'memory peak':>12}",
+    ]
+    for name, svc in sorted((result.get("services") or {}).items()):
+        m = (result.get("metrics") or {}).get(name) or {}
+        code = svc.get("exit_code")
+        exit_text = "-" if code is None else str(code)
+        if not svc.get("started"):
+            exit_text = "not started"
+        cpu = f"{m['cpu_peak_percent']:.0f}%" if m.get("samples") else "-"
+        mem = _bytes(m["memory_peak_bytes"]) if m.get("samples") else "-"
+        role = "orchestrator" if svc.get("orchestrator") else "service"
+        lines.append(f"{name:<20} {role:<12} {exit_text:>5} {svc.get('restarts', 0):>8} {cpu:>9} {mem:>12}")
+    return lines

@@ -1,0 +1,261 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_experience
+short_description: Run one experience (a compose file judged by its test orchestrators) on a host to its verdict
+version_added: "0.4.0"
+description:
+  - Reads the team's compose file as the fleet runs it; what cannot be honoured is an error and nothing starts,
+    what is ignored comes back in RV(warnings).
+  - Each service becomes a systemd unit in C(/run/systemd/system) running its container in the foreground, on a
+    network and named volumes of the run's own; systemd restarts services by their compose restart policy and
+    the journal keeps their logs.
+  - The run is judged by the reference platform's rules - any orchestrator exiting non-zero fails it, all
+    orchestrators exiting 0 pass it, a non-orchestrator's failure fails it unless it has a restart policy -
+    or times out; then every container is stopped and the units, network and volumes are removed.
+  - The run's directory on the host keeps each service's log, the compose file as run, metrics over time
+    (C(metrics.csv)), C(result.json) and C(junit.xml). A failed verdict is a result, not a module failure.
+  - Never restarts an Isaac Sim instance; a borrowed instance (O(instance)) is returned in RV(restart_instance)
+    for M(isaacsim.fleet.isaac_sim_lifecycle) to restart clean.
+  - Run it with C(async) so a long run survives the controller's connection.
+author: isaacsim.fleet contributors (@isaacsim-fleet)
+options:
+  compose:
+    description: The compose file, parsed (for example C(lookup('file', path) | from_yaml)).
+    type: dict
+    required: true
+  name:
+    description: The experience's name (in the run's name, the artefacts and JUnit).
+    type: str
+    required: true
+  environment:
+    description: The experience's environment; overrides every service's and is given to each.
+    type: dict
+    default: {}
+  profiles:
+    description: The compose profiles the experience runs.
+    type: list
+    elements: str
+    default: []
+  run:
+    description: The run's name (lower case letters, digits and dashes); made from O(name) and the time when unset.
+    type: str
+  timeout:
+    description: Seconds from the first service's start until the run is stopped and judged C(timeout).
+    type: float
+    default: 600
+  instance:
+    description:
+      - The Isaac Sim instance the simulator service (C(image=isaac-sim)) borrows; it must be ready and not lent
+        to another run. Its address and ports reach every service as C(ISAAC_SIM_HOST) and
+        C(ISAAC_SIM_PORT_<NAME>), and the simulator's service name resolves to the host.
+    type: int
+  gpus:
+    description: The host's GPU ids this run may give its services (each service that reserves GPUs gets its own).
+    type: list
+    elements: str
+    default: []
+  data_root:
+    description: Where runs keep their directories (C(DATA_ROOT/runs/RUN)).
+    type: path
+    default: /var/lib/isaac-sim
+  pull:
+    description:
+      - Pull the services' images missing on the host, before anything starts; one that cannot be pulled is an error.
+    type: bool
+    default: true
+  poll:
+    description: Seconds between two looks at the run's services.
+    type: float
+    default: 0.5
+  metrics_interval:
+    description: Seconds between two CPU and memory samples of each running container.
+    type: float
+    default: 2
+notes:
+  - Check mode reads the file and checks the images and GPUs on the host; nothing starts.
+"""
+
+EXAMPLES = r"""
+- name: Run the pick-and-place test against instance 0
+  isaacsim.fleet.isaac_sim_experience:
+    compose: "{{ lookup('ansible.builtin.file', 'experiences/pick.yml') | from_yaml }}"
+    name: pick
+    environment: {SEED: "42"}
+    instance: 0
+    timeout: 900
+  async: 1200
+  poll: 5
+  register: pick
+"""
+
+RETURN = r"""
+run:
+  description: The run's name.
+  returned: always
+  type: str
+verdict:
+  description: C(result) (passed, failed, timeout or error), C(service) that decided it, C(reason), C(seconds).
+  returned: when the run started
+  type: dict
+services:
+  description: Per service - orchestrator, started, exit_code (when it had exited at the verdict), restarts.
+  returned: when the run started
+  type: dict
+events:
+  description: The run's timeline - [seconds, service, what happened].
+  returned: when the run started
+  type: list
+  elements: list
+metrics:
+  description: Per service - samples, cpu_peak_percent, cpu_mean_percent (of one core), memory_peak_bytes.
+  returned: when the run started
+  type: dict
+directory:
+  description: The run's directory on the host.
+  returned: always
+  type: str
+artefacts:
+  description: File names in RV(directory) to bring back.
+  returned: when the run started
+  type: list
+  elements: str
+warnings:
+  description: What the fleet ignores in the file, and why.
+  returned: always
+  type: list
+  elements: str
+restart_instance:
+  description: The borrowed instance, to be restarted clean through the lifecycle; null when none was borrowed.
+  returned: always
+  type: int
+"""
+
+import os
+import secrets
+import time
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, layout, lifecycle, testrun
+from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
+
+
+def _simulator(module, host, exp, instance):
+    """What the services are given of the borrowed instance; fails the module when it cannot be lent."""
+    if exp["simulator"] is None:
+        return None
+    if instance is None:
+        module.fail_json(
+            msg=f"{exp['name']}: service {exp['simulator']} is the simulator (image: isaac-sim), and no instance was "
+            "given to borrow. Fix: set instance (isaac_sim_experience_instance) to a ready instance of the host."
+        )
+    env = layout.parse(host.read(layout.env_file(instance)) or "")
+    if not env:
+        module.fail_json(msg=f"instance: {instance} is not configured on this host. Fix: pick one of its instances.")
+    if not os.path.exists(layout.marker(instance)):
+        module.fail_json(msg=f"instance: isaac-sim@{instance} is not ready, so it cannot be lent. Fix: start it first.")
+    if env.get(layout.K_ADDRESS):
+        module.fail_json(
+            msg=f"instance: isaac-sim@{instance} has an address of its own (macvlan), which the run's containers on "
+            "this host cannot reach. Fix: borrow an instance on the host's network."
+        )
+    ports = {k[len(layout.K_PORT_PREFIX) :]: v for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX)}
+    given = {layout.K_HOST: exp["simulator"], layout.K_INSTANCE: str(instance)}
+    given.update({f"{layout.K_PORT_PREFIX}{k}": v for k, v in ports.items()})
+    return {"service": exp["simulator"], "address": "host-gateway", "env": given, "instance": instance}
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec={
+            "compose": {"type": "dict", "required": True},
+            "name": {"type": "str", "required": True},
+            "environment": {"type": "dict", "default": {}},
+            "profiles": {"type": "list", "elements": "str", "default": []},
+            "run": {"type": "str"},
+            "timeout": {"type": "float", "default": 600},
+            "instance": {"type": "int"},
+            "gpus": {"type": "list", "elements": "str", "default": []},
+            "data_root": {"type": "path", "default": layout.DATA_ROOT},
+            "pull": {"type": "bool", "default": True},
+            "poll": {"type": "float", "default": 0.5},
+            "metrics_interval": {"type": "float", "default": 2},
+        },
+        supports_check_mode=True,
+    )
+    p = module.params
+    exp, errors, warnings = experience.read(p["compose"], p["environment"], p["profiles"], p["name"])
+    run = p["run"] or testrun.run_id(p["name"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
+    if not layout.RUN_ID_RE.match(run):
+        errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
+    if p["timeout"] <= 0:
+        errors.append(f"timeout: {p['timeout']:g}. Fix: a number of seconds above 0.")
+    base = {
+        "run": run,
+        "directory": layout.run_dir(run, p["data_root"]),
+        "warnings": warnings,
+        "restart_instance": None,
+    }
+    if errors:
+        module.fail_json(msg=" ".join(errors), errors=errors, **base)
+    host = lifecycle.bind(module)
+    api = DockerSocket()
+
+    def pull(image):
+        if module.check_mode or not p["pull"]:
+            return "it is not on this host"
+        rc, out, err = host.run([testrun.DOCKER, "pull", "--quiet", image])
+        return None if rc == 0 else (err or out).strip().splitlines()[-1] if (err or out).strip() else f"exit {rc}"
+
+    try:
+        errors = testrun.preflight(api, exp, p["gpus"], pull)
+    except DockerError as exc:
+        module.fail_json(msg=f"Docker cannot be asked about the images: {exc}", **base)
+    if errors:
+        module.fail_json(msg=" ".join(errors), errors=errors, **base)
+    simulator = _simulator(module, host, exp, p["instance"])
+    if module.check_mode:
+        module.exit_json(changed=True, order=exp["order"], **base)
+    borrowed = None
+    if simulator:
+        borrowed = f"{layout.RUN_DIR}/instance-{simulator['instance']}.lent"
+        lender = host.read(borrowed)
+        if lender:
+            module.fail_json(
+                msg=f"instance: isaac-sim@{simulator['instance']} is lent to run {lender.strip()}. "
+                "Fix: pick a free one.",
+                **base,
+            )
+        host.write(borrowed, run + "\n", 0o644)
+        base["restart_instance"] = simulator["instance"]
+    try:
+        result = testrun.execute(
+            host,
+            api,
+            exp,
+            run,
+            hostname=os.uname().nodename,
+            timeout=p["timeout"],
+            data_root=p["data_root"],
+            simulator=simulator,
+            gpus_free=p["gpus"],
+            poll=p["poll"],
+            metrics_every=p["metrics_interval"],
+        )
+    except (RuntimeError, DockerError) as exc:
+        module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)
+    finally:
+        if borrowed:
+            host.remove(borrowed)
+    result.pop("orchestrator_output", None)
+    base.update(result)
+    module.exit_json(changed=True, **base)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""Test runs (experiences) on a real systemd host: each compose file in
+tests/fixtures/experiences runs through playbooks/experience.yml and ends in the verdict the
+reference platform's rules give, with every container, unit, network and volume of the run
+gone and its artefacts (logs, exit codes, metrics, JUnit) on the controller."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import pytest
+from testbed import ROOT, all_ready, container_id, registry_image, run_playbook, sh
+
+FIXTURES = ROOT / "tests" / "fixtures" / "experiences"
+
+
+def run(host, tmp_path, name, timeout=60, **extra):
+    env = {"IMAGE": registry_image(host, "6.0.1"), **extra.pop("env", {})}
+    vars_ = {
+        "experience_file": str(FIXTURES / f"{name}.yml"),
+        "experience_environment": env,
+        "experience_timeout": timeout,
+        "experience_artefacts_dir": str(tmp_path),
+        **extra,
+    }
+    result = run_playbook(host, vars_, playbook="playbooks/experience.yml")
+    runs = sorted(p for p in tmp_path.iterdir() if p.is_dir()) if tmp_path.exists() else []
+    outcome = json.loads((runs[-1] / "result.json").read_text()) if runs else None
+    return result, outcome, runs[-1] if runs else None
+
+
+def left_behind(host) -> str:
+    """Anything of any run still on the host: containers, networks, volumes, units."""
+    return sh(
+        host,
+        "docker ps -aq --filter label=org.isaacsim.fleet.run; "
+        "docker network ls -q --filter label=org.isaacsim.fleet.run; "
+        "docker volume ls -q --filter label=org.isaacsim.fleet.run; "
+        "ls /run/systemd/system | grep isaac-sim-run- || true; "
+        "systemctl list-units --all --no-legend 'isaac-sim-run-*' | grep . || true",
+    ).stdout.strip()
+
+
+def test_a_passing_run_stops_the_companion_still_running_and_brings_everything_back(host, tmp_path):
+    result, outcome, directory = run(host, tmp_path, "pass")
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert outcome["verdict"]["result"] == "passed", outcome["events"]
+    services = outcome["services"]
+    assert services["check"]["exit_code"] == 0
+    assert services["robot"]["exit_code"] is None and services["robot"]["state_at_verdict"] == "running"
+    # compose's order: check started only once robot was healthy
+    starts = {svc: t for t, svc, what in outcome["events"] if what.startswith("started")}
+    assert starts["check"] > starts["robot"]
+    files = {p.name for p in directory.iterdir()}
+    run_id = outcome["run"]
+    assert {f"{run_id}-robot.log", f"{run_id}-check.log", "compose.yml", "metrics.csv", "junit.xml"} <= files
+    assert "check passed" in (directory / f"{run_id}-check.log").read_text()
+    assert "robot up" in (directory / f"{run_id}-robot.log").read_text()
+    junit = ET.parse(directory / "junit.xml").getroot()
+    assert junit.get("tests") == "1" and junit.get("failures") == "0"
+    # CPU and memory sampled over the run; the check burned CPU for a while
+    assert outcome["metrics"]["robot"]["samples"] >= 2 and outcome["metrics"]["robot"]["memory_peak_bytes"] > 0
+    assert "PASSED" in result.stdout and "robot" in result.stdout  # the summary table
+    assert left_behind(host) == ""
+    # the run's directory is on the controller, no longer on the host
+    assert sh(host, f"test -e /var/lib/isaac-sim/runs/{run_id}", check=False).rc != 0
+
+
+def test_an_orchestrator_exiting_3_fails_the_run_and_the_play(host, tmp_path):
+    result, outcome, directory = run(host, tmp_path, "fail")
+    assert result.returncode != 0
+    assert outcome["verdict"]["reason"] == "orchestrator check exited with 3"
+    assert "fail on isaacsim-test-1: failed - orchestrator check exited with 3" in " ".join(result.stdout.split())
+    junit = ET.parse(directory / "junit.xml").getroot()
+    assert junit.find("testcase/failure").get("message") == "orchestrator check exited with 3"
+    assert "fault found" in junit.find("testcase/system-out").text
+    assert left_behind(host) == ""
+
+
+@pytest.mark.parametrize(("restart", "verdict"), [("no", "failed"), ("on-failure", "passed")])
+def test_a_crashing_service_fails_the_run_unless_it_has_a_restart_policy(host, tmp_path, restart, verdict):
+    _result, outcome, _directory = run(host, tmp_path, "crash", env={"CRASH_RESTART": restart})
+    assert outcome["verdict"]["result"] == verdict, outcome["events"]
+    if restart == "no":
+        assert outcome["verdict"]["reason"] == "crasher exited with 2"
+    else:
+        assert outcome["services"]["crasher"]["restarts"] >= 1
+    assert left_behind(host) == ""
+
+
+def test_a_dependency_that_gets_ready_late_holds_back_what_needs_it(host, tmp_path):
+    _result, outcome, directory = run(host, tmp_path, "late")
+    assert outcome["verdict"]["result"] == "passed", outcome["events"]
+    starts = {svc: t for t, svc, what in outcome["events"] if what.startswith("started")}
+    assert starts["app"] - starts["db"] >= 4.5  # db is healthy 5 s after it starts
+    assert "db not ready" not in (directory / f"{outcome['run']}-app.log").read_text()
+    assert left_behind(host) == ""
+
+
+def test_a_run_that_never_ends_times_out_and_is_stopped(host, tmp_path):
+    result, outcome, _directory = run(host, tmp_path, "hang", timeout=6)
+    assert result.returncode != 0
+    assert outcome["verdict"]["result"] == "timeout"
+    assert outcome["verdict"]["reason"] == "timed out after 6 s with check still running"
+    assert left_behind(host) == ""
+
+
+def test_the_simulator_is_a_borrowed_instance_restarted_clean_after_the_run(host, tmp_path):
+    before = container_id(host, "isaac-sim-0")
+    result, outcome, directory = run(host, tmp_path, "sim", experience_instance=0)
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert outcome["verdict"]["result"] == "passed", outcome
+    # the orchestrator reached instance 0 by the simulator's service name
+    log = (directory / f"{outcome['run']}-check.log").read_text()
+    assert "simulator says: isaac-sim-standin signal" in log
+    all_ready(host, ids=[0])
+    assert container_id(host, "isaac-sim-0") != before
+    assert sh(host, "ls /run/isaac-sim").stdout.count(".lent") == 0
+    assert left_behind(host) == ""
+
+
+def test_bad_experiences_are_refused_before_any_container_starts(host, tmp_path):
+    registry = registry_image(host, "x").split("/", 1)[0]
+    result, outcome, _directory = run(host, tmp_path, "bad")
+    text = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode != 0 and outcome is None
+    assert "depends_on goes round in a cycle: a -> b -> a" in text
+    assert "no test orchestrator" in text
+    assert "./src is a path on the machine the file was written on" in text
+    result, outcome, _directory = run(host, tmp_path, "missing", env={"REGISTRY": registry})
+    text = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode != 0 and outcome is None
+    assert f"image {registry}/fixtures/no-such-image:1 cannot be had" in text
+    result, outcome, _directory = run(host, tmp_path, "sim", experience_instance=7)
+    text = " ".join((result.stdout + result.stderr).split())
+    assert "instance: 7 is not configured on this host" in text
+    assert left_behind(host) == ""

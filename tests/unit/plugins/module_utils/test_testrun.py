@@ -1,0 +1,296 @@
+"""A test run's pieces (docker run, unit, observations, metrics, JUnit) and the whole run
+against a scripted host. The real thing runs in the molecule scenarios."""
+
+import xml.etree.ElementTree as ET
+
+import yaml
+from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, judge, layout, testrun
+
+PAIR = yaml.safe_load(
+    """
+services:
+  robot:
+    image: reg/robot:1
+    environment: {MODE: "a $$HOME \\"q\\" 50% back\\\\slash"}
+    restart: on-failure:2
+    volumes: [maps:/maps:ro]
+    healthcheck: {test: ["CMD", "test", "-e", "/tmp/up"], interval: 1s, retries: 5}
+    deploy: {resources: {reservations: {devices: [{capabilities: [gpu], count: 1}]}, limits: {memory: 1 g}}}
+  check:
+    image: reg/check:1
+    entrypoint: ["sh", "-c"]
+    command: ["exit 0"]
+    labels: {isaacsim.fleet/test-orchestrator: "true"}
+    depends_on: {robot: {condition: service_healthy}}
+volumes:
+  maps: {}
+"""
+)
+
+
+def read(compose=PAIR, **kw):
+    exp, errors, _warnings = experience.read(compose, name="pair", **kw)
+    assert errors == []
+    return exp
+
+
+def test_run_names_are_unit_and_docker_safe():
+    run = testrun.run_id("Pick & Place (v2)", "20261123-101500", "ab12")
+    assert run == "pick-place-v2-20261123-101500-ab12" and layout.RUN_ID_RE.match(run)
+    assert layout.run_unit(run, "robot") == f"isaac-sim-run-{run}-robot.service"
+    assert testrun.run_id("???", "20261123-101500", "ab12").startswith("run-")
+
+
+def test_a_word_reaches_docker_as_it_is_written():
+    assert testrun.systemd_quote('a $HOME "q" 50% back\\slash\nnext') == (
+        '"a $$HOME \\"q\\" 50%% back\\\\slash\\nnext"'
+    )
+
+
+def test_docker_run_of_a_service_carries_what_compose_says_and_what_the_run_adds():
+    exp = read(env={"SEED": "7"})
+    sim = {"service": "isaac-sim", "address": "host-gateway", "env": {"ISAAC_SIM_HOST": "isaac-sim"}}
+    argv = testrun.docker_argv("r1", "robot", exp["services"]["robot"], outputs="/o", simulator=sim, gpus=["0"])
+    assert argv[:3] == ["/usr/bin/docker", "run", "--name=isaac-sim-run-r1-robot"]
+    for word in (
+        "--network=isaac-sim-run-r1",
+        "--network-alias=robot",
+        "--label=org.isaacsim.fleet.run=r1",
+        "--mount=type=bind,source=/o,target=/isaacsim-fleet/outputs",
+        "--add-host=isaac-sim:host-gateway",
+        '--env=MODE=a $HOME "q" 50% back\\slash',
+        "--env=SEED=7",
+        "--env=ISAAC_SIM_HOST=isaac-sim",
+        "--env=ISAAC_SIM_RUN=r1",
+        "--memory=1g",
+        '--gpus="device=0"',
+        "--mount=type=volume,source=isaac-sim-run-r1-maps,target=/maps,readonly",
+        "--health-cmd=test -e /tmp/up",
+        "--health-interval=1s",
+        "--health-retries=5",
+        "--security-opt=no-new-privileges",
+    ):
+        assert word in argv, word
+    assert argv[-1] == "reg/robot:1"
+    check = testrun.docker_argv("r1", "check", exp["services"]["check"], outputs="/o")
+    # compose's entrypoint list: the first word is docker's --entrypoint, the rest lead the command
+    assert check[-4:] == ["--entrypoint=sh", "reg/check:1", "-c", "exit 0"]
+
+
+def test_the_unit_restarts_by_the_compose_policy_and_never_after_a_zero_exit():
+    exp = read()
+    robot = testrun.unit_text("r1", "robot", exp["services"]["robot"], ["/usr/bin/docker", "run", "x"])
+    assert "Restart=on-failure\n" in robot and "StartLimitBurst=3\n" in robot  # on-failure:2 = 3 starts
+    assert 'ExecStart="/usr/bin/docker" "run" "x"\n' in robot
+    assert "ExecStopPost=-/usr/bin/docker rm -f isaac-sim-run-r1-robot\n" in robot
+    check = testrun.unit_text("r1", "check", exp["services"]["check"], ["x"])
+    assert "Restart=no\n" in check and "StartLimit" not in check
+
+
+def show(unit, active, sub, code="0", status="0", restarts="0"):
+    return {
+        "Id": unit,
+        "ActiveState": active,
+        "SubState": sub,
+        "ExecMainCode": code,
+        "ExecMainStatus": status,
+        "NRestarts": restarts,
+    }
+
+
+def test_observations_from_systemd_and_docker():
+    def u(service):
+        return layout.run_unit("r1", service)
+
+    shown = {
+        u("a"): show(u("a"), "active", "running"),
+        u("b"): show(u("b"), "activating", "auto-restart", "1", "2", "1"),
+        u("c"): show(u("c"), "failed", "failed", "1", "3"),
+        u("d"): show(u("d"), "inactive", "dead", "2", "9"),
+        u("e"): show(u("e"), "active", "running"),
+    }
+    found = [
+        {"Labels": {layout.LABEL_RUN_SERVICE: "a"}, "State": "running", "Status": "Up 3 seconds (healthy)"},
+        {"Labels": {layout.LABEL_RUN_SERVICE: "e"}, "State": "created", "Status": "Created"},
+    ]
+    ran = set()
+    seen = testrun.observe(shown, found, "r1", "abcdef", {"a", "b", "c", "d", "e"}, ran)
+    assert seen["a"] == judge.observation(judge.RUNNING, None, 0, "healthy", True) and ran == {"a"}
+    assert seen["b"]["state"] == judge.RESTARTING and seen["b"]["exit_code"] == 2 and seen["b"]["restarts"] == 1
+    assert seen["c"]["state"] == judge.EXITED and seen["c"]["exit_code"] == 3
+    assert seen["d"]["exit_code"] == 137  # killed by signal 9
+    assert seen["e"]["state"] == judge.STARTING  # unit up, container not running yet
+    assert seen["f"]["state"] == judge.WAITING  # not started by the runner
+
+
+def test_memory_is_counted_as_docker_stats_does_on_cgroup_v1_and_v2():
+    v1 = {
+        "cpu_stats": {"cpu_usage": {"total_usage": 5}},
+        "memory_stats": {"usage": 100, "stats": {"total_inactive_file": 30}},
+    }
+    v2 = {
+        "cpu_stats": {"cpu_usage": {"total_usage": 5}},
+        "memory_stats": {"usage": 100, "stats": {"inactive_file": 40}},
+    }
+    assert testrun.stats_sample(v1) == (5, 70) and testrun.stats_sample(v2) == (5, 60)
+    assert testrun.stats_sample({}) == (0, 0)
+
+
+def test_cpu_is_the_share_of_one_core_between_samples_of_the_same_container():
+    m = testrun.Metrics()
+    m.add(0.0, "a", 0, 100, "c1")
+    m.add(2.0, "a", 1_000_000_000, 300, "c1")  # 1 s of CPU in 2 s
+    m.add(4.0, "a", 0, 50, "c2")  # restarted: a new container, no rate across the two
+    s = m.summary()["a"]
+    assert s == {"samples": 3, "cpu_peak_percent": 50.0, "memory_peak_bytes": 300, "cpu_mean_percent": 50.0}
+    assert m.csv().splitlines()[1:] == ["0.0,a,,100", "2.0,a,50.0,300", "4.0,a,,50"]
+
+
+def test_junit_says_why_a_run_failed():
+    result = {
+        "run": "r1",
+        "host": "h1",
+        "experience": "pair",
+        "verdict": {
+            "result": "failed",
+            "service": "check",
+            "reason": "orchestrator check exited with 3",
+            "seconds": 4.5,
+        },
+        "orchestrator_output": "--- check ---\n<boom> & done\n",
+    }
+    root = ET.fromstring(testrun.junit(result))
+    assert root.get("failures") == "1" and root.get("tests") == "1"
+    case = root.find("testcase")
+    assert case.get("name") == "pair" and case.get("classname") == "isaacsim.fleet.h1"
+    assert case.find("failure").get("message") == "orchestrator check exited with 3"
+    assert "<boom> & done" in case.find("system-out").text
+    passed = dict(result, verdict=dict(result["verdict"], result="passed"))
+    assert ET.fromstring(testrun.junit(passed)).find("testcase/failure") is None
+
+
+class ScriptedHost:
+    """systemd and Docker as a run sees them: units start when told, robot becomes healthy,
+    check exits with `check_exit` two looks later."""
+
+    def __init__(self, check_exit=0, fail_on=None):
+        self.calls, self.files, self.removed = [], {}, []
+        self.started, self.t = {}, 0.0
+        self.check_exit = check_exit
+        self.fail_on = fail_on
+        self.containers = set()
+        self.objects = set()
+
+    # lifecycle.Host's interface
+    def run(self, argv):
+        self.calls.append(argv)
+        words = " ".join(argv)
+        if self.fail_on and self.fail_on in words:
+            return 1, "", "boom"
+        if argv[:2] == ["systemctl", "start"]:
+            for unit in argv[3:]:
+                self.started[unit] = self.t
+                self.containers.add(unit)
+        if argv[:2] == ["systemctl", "stop"]:
+            self.containers.clear()
+        if argv[:2] == ["systemctl", "show"]:
+            return 0, "\n\n".join(self._show(u) for u in argv[4:]), ""
+        if argv[0] == "/usr/bin/docker" and argv[1] in ("network", "volume") and argv[2] == "create":
+            self.objects.add(argv[-1])
+        if argv[0] == "/usr/bin/docker" and argv[1] in ("network", "volume") and argv[2] == "rm":
+            self.objects.discard(argv[-1])
+        if argv[0] == "journalctl":
+            return 0, f"log of {argv[-1]}\n", ""
+        return 0, "", ""
+
+    def _show(self, unit):
+        since = self.started.get(unit)
+        if since is None:
+            return f"Id={unit}\nActiveState=inactive\nSubState=dead\nExecMainCode=0\nExecMainStatus=0\nNRestarts=0"
+        if unit.endswith("-check.service") and self.t - since >= 2:
+            return f"Id={unit}\nActiveState=inactive\nSubState=dead\nExecMainCode=1\nExecMainStatus={self.check_exit}"
+        return f"Id={unit}\nActiveState=active\nSubState=running\nExecMainCode=0\nNRestarts=0"
+
+    def write(self, path, text, mode):
+        self.files[path] = text
+
+    def remove(self, path):
+        self.removed.append(path)
+        self.files.pop(path, None)
+
+    def read(self, path):
+        return self.files.get(path)
+
+    def now(self):
+        return self.t
+
+    def sleep(self, seconds):
+        self.t += 1.0
+
+    # the Docker API client's
+    def labelled(self, label):
+        out = []
+        for unit in self.containers:
+            svc = unit[: -len(".service")].rsplit("-", 1)[1]
+            out.append(
+                {"Id": unit, "Labels": {layout.LABEL_RUN_SERVICE: svc}, "State": "running", "Status": "Up (healthy)"}
+            )
+        return out
+
+    def stats(self, cid):
+        return {"cpu_stats": {"cpu_usage": {"total_usage": int(self.t * 5e8)}}, "memory_stats": {"usage": 1000}}
+
+
+def test_a_whole_run_starts_in_order_passes_and_leaves_only_its_directory():
+    host = ScriptedHost()
+    exp = read()
+    result = testrun.execute(
+        host, host, exp, "r1", hostname="h1", timeout=60, data_root="/d", gpus_free=["0"], metrics_every=1
+    )
+    assert result["verdict"]["result"] == "passed"
+    starts = [c[3:] for c in host.calls if c[:2] == ["systemctl", "start"]]
+    assert starts == [["isaac-sim-run-r1-robot.service"], ["isaac-sim-run-r1-check.service"]]
+    assert result["services"]["check"]["exit_code"] == 0 and result["services"]["robot"]["exit_code"] is None
+    assert result["metrics"]["robot"]["cpu_peak_percent"] == 50.0
+    # torn down: units stopped and removed, network and volume gone, directory and artefacts written
+    assert ["systemctl", "stop", "isaac-sim-run-r1-robot.service", "isaac-sim-run-r1-check.service"] in host.calls
+    assert not host.objects and not any(p.startswith("/run/systemd/system/") for p in host.files)
+    for name in result["artefacts"]:
+        assert f"/d/runs/r1/{name}" in host.files, name
+    assert "r1-check.log" in result["artefacts"] and "junit.xml" in result["artefacts"]
+
+
+def test_a_failing_orchestrator_is_a_failed_run_with_every_container_stopped():
+    host = ScriptedHost(check_exit=3)
+    result = testrun.execute(host, host, read(), "r2", hostname="h1", timeout=60, data_root="/d", gpus_free=["0"])
+    assert result["verdict"]["reason"] == "orchestrator check exited with 3"
+    assert ET.fromstring(host.files["/d/runs/r2/junit.xml"]).get("failures") == "1"
+    assert not host.containers and not host.objects
+
+
+def test_a_run_that_cannot_be_set_up_leaves_nothing_behind():
+    host = ScriptedHost(fail_on="volume create")
+    try:
+        testrun.execute(host, host, read(), "r3", hostname="h1", timeout=60, data_root="/d", gpus_free=["0"])
+    except RuntimeError as exc:
+        assert "docker volume create" in str(exc)
+    else:
+        raise AssertionError("no error")
+    assert not host.objects  # the network made before the failure is removed
+
+
+def test_preflight_names_missing_images_and_gpus_the_host_cannot_give():
+    class Api:
+        def image(self, name):
+            return None if name == "reg/check:1" else {"Id": "x"}
+
+    pulled = []
+
+    def pull(image):
+        pulled.append(image)
+        return "manifest unknown"
+
+    errors = testrun.preflight(Api(), read(), gpus_free=[], pull=pull)
+    assert pulled == ["reg/check:1"]  # the image already there is not pulled again
+    assert any("image reg/check:1 cannot be had (manifest unknown)" in e for e in errors)
+    assert any("ask for 1 dedicated GPU(s); this host has 0 free" in e for e in errors)
