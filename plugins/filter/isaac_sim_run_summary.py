@@ -9,7 +9,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.testrun import summ
 DOCUMENTATION = r"""
 name: isaac_sim_run_summary
 short_description: A test run's verdict and one row per service (exit code, restarts, CPU and memory peaks)
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - Turns the result of M(isaacsim.fleet.isaac_sim_experience) into lines for the play's output.
 positional: _input

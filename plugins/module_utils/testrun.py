@@ -327,6 +327,7 @@ def execute(
             raise RuntimeError(f"docker {' '.join(args)} failed ({rc}): {(err or out).strip()}")
         return out
 
+    began = host.now()
     result = {"run": run, "host": hostname, "experience": experience["name"], "directory": directory}
     metrics = Metrics()
     judgement = None
@@ -407,6 +408,8 @@ def execute(
     host.write(f"{directory}/metrics.csv", metrics.csv(), 0o644)
     host.write(f"{directory}/result.json", json.dumps(result, indent=2) + "\n", 0o644)
     host.write(f"{directory}/junit.xml", junit(result), 0o644)
+    # the run's whole cost on the host: setting up, the run, tearing down, writing artefacts
+    result["elapsed"] = round(host.now() - began, 3)
     result["artefacts"] = sorted(
         [f"{run}-{name}.log" for name in services] + ["compose.yml", "metrics.csv", "result.json", "junit.xml"]
     )
@@ -475,3 +478,102 @@ def summary_lines(result: dict) -> list:
         role = "orchestrator" if svc.get("orchestrator") else "service"
         lines.append(f"{name:<20} {role:<12} {exit_text:>5} {svc.get('restarts', 0):>8} {cpu:>9} {mem:>12}")
     return lines
+
+
+def lend(host, service: str, instance: int, marker_exists) -> tuple:
+    """(simulator, error): what a run's services are given of a borrowed instance, or why it
+    cannot be lent. marker_exists(path) tells whether the instance is ready."""
+    env = layout.parse(host.read(layout.env_file(instance)) or "")
+    if not env:
+        return None, f"instance: {instance} is not configured on this host. Fix: pick one of its instances."
+    if not marker_exists(layout.marker(instance)):
+        return None, f"instance: isaac-sim@{instance} is not ready, so it cannot be lent. Fix: start it first."
+    if env.get(layout.K_ADDRESS):
+        return None, (
+            f"instance: isaac-sim@{instance} has an address of its own (macvlan), which the run's containers on this "
+            "host cannot reach. Fix: borrow an instance on the host's network."
+        )
+    given = {layout.K_HOST: service, layout.K_INSTANCE: str(instance)}
+    given.update({k: v for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX)})
+    return {"service": service, "address": "host-gateway", "env": given, "instance": instance}, None
+
+
+def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_instance, threading) -> list:
+    """Run a host's share of a suite, at most `parallel` at once, and return one result per run
+    (in the order given).
+
+    A run that borrows the simulator waits for a free instance of `instances`; one that reserves
+    GPUs waits for that many free ids of `gpus`. execute_one(run, instance, gpu_ids) -> result;
+    restart_instance(i) -> error or None restarts a returned instance clean, one at a time (a
+    borrowed instance serves no one, and two restarting at once would take two down). An
+    instance whose restart failed is not lent again. `threading` is the threading module.
+    """
+    lock = threading.Condition()
+    restart_lock = threading.Lock()
+    results = [None] * len(runs)
+    pending = []
+    for index, run in enumerate(runs):
+        if run["gpus"] > len(gpus) or (run["simulator"] and not instances):
+            results[index] = dict(run, error="this host cannot give it the GPUs or the instance it needs")
+        else:
+            pending.append((index, run))
+    free_instances = list(instances)
+    free_gpus = list(gpus)
+
+    def take():
+        """The next run that can start now, with what it takes; None when the queue is empty."""
+        with lock:
+            while pending:
+                for n, (index, run) in enumerate(pending):
+                    if run["simulator"] and not free_instances:
+                        continue
+                    if run["gpus"] > len(free_gpus):
+                        continue
+                    pending.pop(n)
+                    instance = free_instances.pop(0) if run["simulator"] else None
+                    ids = [free_gpus.pop(0) for _ in range(run["gpus"])]
+                    return index, run, instance, ids
+                if not free_instances and not any(not r["simulator"] for _i, r in pending) and not busy[0]:
+                    # every instance failed to come back: the rest cannot run
+                    index, run = pending.pop(0)
+                    return index, run, None, None
+                lock.wait()
+            return None
+
+    busy = [0]
+
+    def worker():
+        while True:
+            taken = take()
+            if taken is None:
+                return
+            index, run, instance, ids = taken
+            if ids is None:
+                results[index] = dict(run, error="no instance of the host could be lent (their restarts failed)")
+                continue
+            with lock:
+                busy[0] += 1
+            try:
+                results[index] = execute_one(run, instance, ids)
+            except Exception as exc:  # noqa: BLE001 - one run's failure never stops the others
+                results[index] = dict(run, error=f"{type(exc).__name__}: {exc}")
+            back = True
+            if instance is not None:
+                with restart_lock:
+                    error = restart_instance(instance)
+                if error:
+                    back = False
+                    results[index]["restart_error"] = f"isaac-sim@{instance} did not come back: {error}"
+            with lock:
+                busy[0] -= 1
+                if instance is not None and back:
+                    free_instances.append(instance)
+                free_gpus.extend(ids)
+                lock.notify_all()
+
+    workers = [threading.Thread(target=worker, daemon=True) for _ in range(max(1, parallel))]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    return results

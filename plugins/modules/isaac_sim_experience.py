@@ -8,7 +8,7 @@ DOCUMENTATION = r"""
 ---
 module: isaac_sim_experience
 short_description: Run one experience (a compose file judged by its test orchestrators) on a host to its verdict
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - Reads the team's compose file as the fleet runs it; what cannot be honoured is an error and nothing starts,
     what is ignored comes back in RV(warnings).
@@ -152,22 +152,12 @@ def _simulator(module, host, exp, instance):
     if instance is None:
         module.fail_json(
             msg=f"{exp['name']}: service {exp['simulator']} is the simulator (image: isaac-sim), and no instance was "
-            "given to borrow. Fix: set instance (isaac_sim_experience_instance) to a ready instance of the host."
+            "given to borrow. Fix: set instance (experience_instance) to a ready instance of the host."
         )
-    env = layout.parse(host.read(layout.env_file(instance)) or "")
-    if not env:
-        module.fail_json(msg=f"instance: {instance} is not configured on this host. Fix: pick one of its instances.")
-    if not os.path.exists(layout.marker(instance)):
-        module.fail_json(msg=f"instance: isaac-sim@{instance} is not ready, so it cannot be lent. Fix: start it first.")
-    if env.get(layout.K_ADDRESS):
-        module.fail_json(
-            msg=f"instance: isaac-sim@{instance} has an address of its own (macvlan), which the run's containers on "
-            "this host cannot reach. Fix: borrow an instance on the host's network."
-        )
-    ports = {k[len(layout.K_PORT_PREFIX) :]: v for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX)}
-    given = {layout.K_HOST: exp["simulator"], layout.K_INSTANCE: str(instance)}
-    given.update({f"{layout.K_PORT_PREFIX}{k}": v for k, v in ports.items()})
-    return {"service": exp["simulator"], "address": "host-gateway", "env": given, "instance": instance}
+    simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
+    if error:
+        module.fail_json(msg=error)
+    return simulator
 
 
 def main():

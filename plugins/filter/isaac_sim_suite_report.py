@@ -1,0 +1,57 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""A test suite's results as a table and one JUnit file."""
+
+from __future__ import annotations
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import suite
+
+DOCUMENTATION = r"""
+name: isaac_sim_suite_report
+short_description: A test suite's results as lines for a person and one JUnit file
+version_added: "0.3.0"
+description:
+  - For the results of M(isaacsim.fleet.isaac_sim_test_suite) on every host, C(lines) (one per run and the totals)
+    and C(junit) (a JUnit XML text with a test case per run).
+positional: _input, wall, previous
+options:
+  _input:
+    description: The results of every host, one list.
+    type: list
+    elements: dict
+    required: true
+  wall:
+    description: The suite's wall time in seconds, for the totals line.
+    type: float
+  previous:
+    description: The previous suite's results, when this one re-ran the runs that failed there.
+    type: list
+    elements: dict
+"""
+
+EXAMPLES = r"""
+report: "{{ results | isaacsim.fleet.isaac_sim_suite_report(120.5) }}"
+"""
+
+RETURN = r"""
+_value:
+  description: C(results) (merged with O(previous)), C(failed) (how many did not pass), C(lines) and C(junit).
+  type: dict
+"""
+
+
+def suite_report(results, wall=None, previous=None):
+    if previous:
+        results = suite.merge(previous, results)
+    failed = [r for r in results if suite.outcome(r) != "passed"]
+    return {
+        "results": results,
+        "failed": len(failed),
+        "lines": suite.summary_lines(results, wall),
+        "junit": suite.junit(results),
+    }
+
+
+class FilterModule:
+    def filters(self):
+        return {"isaac_sim_suite_report": suite_report}

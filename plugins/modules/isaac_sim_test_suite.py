@@ -1,0 +1,174 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_test_suite
+short_description: Run a host's share of a test suite, a bounded number of experiences at a time
+version_added: "0.3.0"
+description:
+  - Runs the given runs (experiences as M(isaacsim.fleet.isaac_sim_experience) runs them) with at most O(parallel)
+    at once. A run whose file has the simulator (C(image=isaac-sim)) waits for a free instance of O(instances) and
+    borrows it; a run that reserves GPUs waits for that many free ids of O(gpus).
+  - A borrowed instance is restarted clean after its run through the collection's one lifecycle
+    (C(module_utils/lifecycle.py), as M(isaacsim.fleet.isaac_sim_lifecycle) restarts it), one at a time; one that
+    does not come back is not lent again.
+  - One run failing, hanging (it ends at its own timeout) or not starting never stops the others.
+  - Use C(async) - a suite takes as long as its runs.
+author: isaacsim.fleet contributors (@isaacsim-fleet)
+options:
+  runs:
+    description:
+      - The runs, each with C(key) (short, unique), C(title), C(experience) (name), C(compose) (parsed),
+        C(environment), C(profiles), C(timeout), C(gpus) (count) and C(simulator) (bool), as the suite filter makes
+        them.
+    type: list
+    elements: dict
+    required: true
+  parallel:
+    description: Runs at once on this host.
+    type: int
+    default: 2
+  instances:
+    description: The instances of this host that runs may borrow.
+    type: list
+    elements: int
+    default: []
+  gpus:
+    description: The host's GPU ids that runs may reserve.
+    type: list
+    elements: str
+    default: []
+  data_root:
+    description: Where runs keep their directories.
+    type: path
+    default: /var/lib/isaac-sim
+notes:
+  - Check mode reads every file and checks the images; nothing starts.
+"""
+
+EXAMPLES = r"""
+- name: Run this host's share of the suite
+  isaacsim.fleet.isaac_sim_test_suite:
+    runs: "{{ my_share }}"
+    parallel: 2
+    instances: [0, 1]
+  async: 7200
+  poll: 5
+"""
+
+RETURN = r"""
+results:
+  description:
+    - One per run, in the order given - C(title), C(key), C(run), C(host), C(verdict), C(services), C(metrics),
+      C(directory), C(artefacts); C(error) when the run could not start, C(restart_error) when its borrowed
+      instance did not come back.
+  returned: always
+  type: list
+  elements: dict
+"""
+
+import os
+import secrets
+import threading
+import time
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, hostprobe, layout, lifecycle, testrun
+from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
+
+KEEP = ("title", "key", "experience", "timeout")
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec={
+            "runs": {"type": "list", "elements": "dict", "required": True},
+            "parallel": {"type": "int", "default": 2},
+            "instances": {"type": "list", "elements": "int", "default": []},
+            "gpus": {"type": "list", "elements": "str", "default": []},
+            "data_root": {"type": "path", "default": layout.DATA_ROOT},
+        },
+        supports_check_mode=True,
+    )
+    p = module.params
+    if p["parallel"] < 1:
+        module.fail_json(msg=f"parallel: {p['parallel']}. Fix: 1 or more runs at once.")
+    host = lifecycle.bind(module)
+    api = DockerSocket()
+    hostname = os.uname().nodename
+    read, errors = [], []
+    for run in p["runs"]:
+        exp, exp_errors, _warnings = experience.read(
+            run["compose"], run.get("environment") or {}, run.get("profiles") or [], run["experience"]
+        )
+        errors += exp_errors
+        read.append(exp)
+
+    def pull(image):
+        if module.check_mode:
+            return "it is not on this host"
+        rc, out, err = host.run([testrun.DOCKER, "pull", "--quiet", image])
+        return None if rc == 0 else ((err or out).strip().splitlines() or [f"exit {rc}"])[-1]
+
+    if not errors:
+        images = {}
+        for exp in read:
+            images.update({i: exp for i in exp["images"]})
+        try:
+            errors = testrun.preflight(api, {"name": "suite", "images": sorted(images), "gpus": 0}, p["gpus"], pull)
+        except DockerError as exc:
+            errors = [f"Docker cannot be asked about the images: {exc}"]
+    if errors:
+        module.fail_json(msg=" ".join(errors), errors=errors)
+    if module.check_mode:
+        module.exit_json(changed=bool(p["runs"]), results=[])
+    companions = hostprobe.existing_companions(layout.CONFIG_DIR)
+
+    def execute_one(run, instance, gpu_ids):
+        exp = read[run["_index"]]
+        simulator = None
+        if exp["simulator"]:
+            simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
+            if error:
+                return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
+        run_id = testrun.run_id(run["key"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
+        result = testrun.execute(
+            host,
+            api,
+            exp,
+            run_id,
+            hostname=hostname,
+            timeout=float(run["timeout"]),
+            data_root=p["data_root"],
+            simulator=simulator,
+            gpus_free=gpu_ids,
+        )
+        result.pop("orchestrator_output", None)
+        result.update({k: run[k] for k in KEEP})
+        if instance is not None:
+            result["instance"] = instance
+        return result
+
+    def restart_instance(i):
+        outcome = lifecycle.restart_each(host, [i], 0, companions=companions)
+        return outcome["failed"]["reason"] if outcome["failed"] else None
+
+    runs = [
+        dict(run, _index=n, gpus=read[n]["gpus"], simulator=read[n]["simulator"] is not None)
+        for n, run in enumerate(p["runs"])
+    ]
+    results = testrun.run_queue(
+        runs, p["parallel"], p["instances"], p["gpus"], execute_one, restart_instance, threading
+    )
+    for n, result in enumerate(results):
+        if "error" in result and "run" not in result:
+            results[n] = dict({k: runs[n][k] for k in KEEP}, host=hostname, error=result["error"])
+    module.exit_json(changed=True, results=results)
+
+
+if __name__ == "__main__":
+    main()

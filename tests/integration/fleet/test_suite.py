@@ -1,0 +1,132 @@
+"""A suite of 12 experiences over the three fleet hosts: each run's verdict, at most the
+configured number of runs at once per host (measured from the hosts' journals), every run's
+artefacts on the controller, nothing left on the hosts, and a re-run of only the failed ones."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import pytest
+import yaml
+from fleethosts import hosts, playbook, sh
+from testbed import ROOT
+
+FIXTURES = ROOT / "tests" / "fixtures" / "experiences"
+PARALLEL = 2
+# title -> the verdict the reference platform's rules give it
+EXPECTED = {
+    "pass#1": "passed",
+    "pass#2": "passed",
+    "pass#3": "passed",
+    "fail#1": "failed",
+    "fail#2": "failed",
+    "crash[CRASH_RESTART=no]": "failed",
+    "crash[CRASH_RESTART=on-failure]": "passed",
+    "late#1": "passed",
+    "late#2": "passed",
+    "hang": "timeout",
+    "sim#1": "passed",
+    "sim#2": "passed",
+}
+
+
+def image(host: str) -> str:
+    env = sh(host, "cat /etc/isaac-sim/instance-0.env")
+    line = next(x for x in env.splitlines() if x.startswith("ISAAC_SIM_IMAGE="))
+    return line.split("=", 1)[1].strip('"')
+
+
+@pytest.fixture(scope="module")
+def suite(tmp_path_factory):
+    out = tmp_path_factory.mktemp("suite")
+    spec = {
+        "environment": {"IMAGE": image(hosts()[0])},
+        "timeout": 120,
+        "experiences": [
+            {"file": str(FIXTURES / "pass.yml"), "repeat": 3},
+            {"file": str(FIXTURES / "fail.yml"), "repeat": 2},
+            {
+                "file": str(FIXTURES / "crash.yml"),
+                "parameters": [{"CRASH_RESTART": "no"}, {"CRASH_RESTART": "on-failure"}],
+            },
+            {"file": str(FIXTURES / "late.yml"), "repeat": 2},
+            {"file": str(FIXTURES / "hang.yml"), "timeout": 5},
+            {"file": str(FIXTURES / "sim.yml"), "repeat": 2},
+        ],
+    }
+    (out / "suite.yml").write_text(yaml.safe_dump(spec))
+    extra = {"test_suite_file": str(out / "suite.yml"), "test_suite_dir": str(out / "runs")}
+    since = {h: sh(h, "date +%s").strip() for h in hosts()}
+    run = playbook("test_suite.yml", dict(extra, test_suite_parallel_per_host=PARALLEL))
+    return out, extra, run, since
+
+
+def results(out) -> dict:
+    return {r["title"]: r for r in json.loads((out / "runs" / "suite.json").read_text())["results"]}
+
+
+def runs_at_once(host: str, runs: list, since: str) -> int:
+    """The most runs that were going on together on a host, from systemd's own journal lines
+    about the runs' units (first start to last stop of each run)."""
+    out = sh(host, f"journalctl -o json --no-pager --since @{since} _PID=1")
+    spans = {}
+    for line in out.splitlines():
+        entry = json.loads(line)
+        unit = entry.get("UNIT") or ""
+        for run in runs:
+            if unit.startswith(f"isaac-sim-run-{run}-"):
+                t = int(entry["__REALTIME_TIMESTAMP"]) / 1e6
+                first, last = spans.get(run, (t, t))
+                spans[run] = (min(first, t), max(last, t))
+    assert set(spans) == set(runs), f"{host}: journal has {sorted(spans)}, ran {sorted(runs)}"
+    edges = sorted([(a, 1) for a, _b in spans.values()] + [(b, -1) for _a, b in spans.values()])
+    live = peak = 0
+    for _t, step in edges:
+        live += step
+        peak = max(peak, live)
+    return peak
+
+
+def test_every_run_gets_the_verdict_the_rules_give_it(suite):
+    out, _extra, run, _since = suite
+    assert run.returncode != 0  # four runs are meant to fail
+    assert "4 of 12 runs did not pass" in " ".join(run.stdout.split()), run.stdout[-3000:]
+    found = results(out)
+    assert {t: r["verdict"]["result"] for t, r in found.items()} == EXPECTED
+    junit = ET.parse(out / "runs" / "junit.xml").getroot()
+    assert (junit.get("tests"), junit.get("failures"), junit.get("errors")) == ("12", "4", "0")
+    for title, r in found.items():
+        directory = out / "runs" / r["run"]
+        assert (directory / "junit.xml").exists() and (directory / "result.json").exists(), title
+
+
+def test_no_host_ran_more_than_its_parallel_and_every_host_took_a_share(suite):
+    out, _extra, _run, since = suite
+    by_host = {}
+    for r in results(out).values():
+        by_host.setdefault(r["host"], []).append(r["run"])
+    assert sorted(by_host) == hosts()
+    for host, runs in by_host.items():
+        assert 1 <= runs_at_once(host, runs, since[host]) <= PARALLEL, host
+
+
+def test_nothing_of_any_run_is_left_on_the_hosts_and_lent_instances_serve_again(suite):
+    for host in hosts():
+        left = sh(
+            host,
+            "docker ps -aq --filter label=org.isaacsim.fleet.run; docker network ls -q --filter "
+            "label=org.isaacsim.fleet.run; docker volume ls -q --filter label=org.isaacsim.fleet.run; "
+            "ls /run/systemd/system | grep isaac-sim-run- || true; ls /var/lib/isaac-sim/runs 2>/dev/null || true",
+        )
+        assert left.strip() == "", f"{host}: {left}"
+        assert sh(host, "ls /run/isaac-sim").count(".ready") >= 4
+
+
+def test_re_running_the_failed_ones_runs_only_those(suite):
+    out, extra, _run, _since = suite
+    first = results(out)
+    again = playbook("test_suite.yml", dict(extra, test_suite_rerun_failed=True))
+    assert again.returncode != 0
+    after = results(out)
+    rerun = {t for t in after if after[t]["run"] != first[t]["run"]}
+    assert rerun == {t for t, v in EXPECTED.items() if v != "passed"}
+    assert {t: r["verdict"]["result"] for t, r in after.items()} == EXPECTED
