@@ -9,6 +9,7 @@ import os
 
 import yaml
 from ansible.errors import AnsibleFilterError
+from ansible.utils.unsafe_proxy import wrap_var
 from ansible_collections.isaacsim.fleet.plugins.module_utils import suite
 
 DOCUMENTATION = r"""
@@ -84,7 +85,8 @@ def suite_plan(path, hosts, previous=None):
         for h, c in (hosts or {}).items()
     }
     plan, assign_errors = suite.assign(runs, caps) if not errors else ({h: [] for h in caps}, [])
-    return {"plan": plan, "runs": len(runs), "errors": errors + assign_errors}
+    # compose files are data: a healthcheck's docker --format '{{.State}}' is never a template
+    return wrap_var({"plan": plan, "runs": len(runs), "errors": errors + assign_errors})
 
 
 class FilterModule:

@@ -13,7 +13,7 @@ version_added: "0.3.0"
 description:
   - For the results of M(isaacsim.fleet.isaac_sim_test_suite) on every host, C(lines) (one per run and the totals)
     and C(junit) (a JUnit XML text with a test case per run).
-positional: _input, wall, previous
+positional: _input, wall, previous, plan, why
 options:
   _input:
     description: The results of every host, one list.
@@ -27,6 +27,12 @@ options:
     description: The previous suite's results, when this one re-ran the runs that failed there.
     type: list
     elements: dict
+  plan:
+    description: The suite's plan ({host - runs}); a planned run without a result is reported as an error.
+    type: dict
+  why:
+    description: Per host, why its share gave no results (the failed task's message).
+    type: dict
 """
 
 EXAMPLES = r"""
@@ -40,7 +46,8 @@ _value:
 """
 
 
-def suite_report(results, wall=None, previous=None):
+def suite_report(results, wall=None, previous=None, plan=None, why=None):
+    results = suite.with_missing(results, plan or {}, why or {})
     if previous:
         results = suite.merge(previous, results)
     failed = [r for r in results if suite.outcome(r) != "passed"]

@@ -388,6 +388,12 @@ def read(compose, env=None, profiles=(), name="experience") -> tuple:
                     )
                     environment.pop(key)
         environment.update(env)
+        for key, value in environment.items():
+            if "\n" in value:
+                errors.append(
+                    f"{where}.environment: {key} holds a newline, which a run cannot pass to the container. "
+                    "Fix: give the value on one line (or put the text in the image or a volume)."
+                )
         restart, retries = _restart(spec.get("restart"), f"{where}.restart", errors, warnings)
         orchestrator = _is_orchestrator(labels)
         if orchestrator and restart != "no":
@@ -486,7 +492,8 @@ def read(compose, env=None, profiles=(), name="experience") -> tuple:
         "volumes": sorted({v for s in active.values() for v, _t, _ro in s["volumes"]}),
         "orchestrators": orchestrators,
         "simulator": simulators[0] if simulators else None,
-        "gpus": sum(s["gpus"] for s in active.values()),
+        # the simulator is the borrowed instance, with its own GPU: the run reserves none for it
+        "gpus": sum(s["gpus"] for s in active.values() if not s["simulator"]),
         "order": _order(active) if not cycle else [],
         "images": sorted({s["image"] for s in active.values() if s["image"] and not s["simulator"]}),
     }

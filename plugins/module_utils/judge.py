@@ -97,6 +97,11 @@ class Judge:
         self.verdict = {"result": result, "service": service, "reason": reason, "seconds": round(now - self.t0, 3)}
         self._event(now, service, f"verdict {result}: {reason}")
 
+    def fail(self, now: float, service, reason: str):
+        """The runner could not go on (systemd or Docker refused): an error, not the test's failure."""
+        if not self.verdict:
+            self._decide(ERROR, service, reason, now)
+
     def step(self, now: float, observations: dict) -> list:
         """Take one poll's observations; returns the services to start now ([] once decided)."""
         if self.verdict:
@@ -140,14 +145,31 @@ class Judge:
             names = ", ".join(sorted(self.orchestrators))
             self._decide(PASSED, None, f"every orchestrator exited 0 ({names})", now)
             return []
+        for name, spec in self.services.items():
+            if name in self.started or name == self.simulator:
+                continue
+            for dep, cond in spec["depends_on"].items():
+                obs = observations.get(dep, observation())
+                if dep != self.simulator and obs["state"] == EXITED and not self._holds(cond, obs, dep):
+                    # it will not run again, so the condition will never hold (compose gives up too)
+                    self._decide(
+                        FAILED,
+                        name,
+                        f"{name} cannot start: {dep} {_exit_text(obs['exit_code'])} and {cond} will never hold",
+                        now,
+                    )
+                    return []
         if now - self.t0 >= self.timeout:
-            running = sorted(o for o in self.orchestrators if o not in self.done)
-            self._decide(
-                TIMEOUT,
-                running[0] if running else None,
-                f"timed out after {self.timeout:g} s with {', '.join(running)} still running",
-                now,
-            )
+            running = sorted(o for o in self.orchestrators if o not in self.done and o in self.started)
+            waiting = sorted(s for s in self.services if s not in self.started and s != self.simulator)
+            reason = f"timed out after {self.timeout:g} s"
+            if running:
+                reason += f" with {', '.join(running)} still running"
+            if waiting:
+                reason += (
+                    f"{';' if running else ','} never started (their depends_on did not hold): {', '.join(waiting)}"
+                )
+            self._decide(TIMEOUT, (running or waiting or [None])[0], reason, now)
             return []
         starting = self.startable(observations)
         for name in starting:

@@ -152,6 +152,19 @@ def _slots(cap: dict, run: dict) -> int:
     return max(1, min(cap["parallel"], cap["instances"]) if run["simulator"] else cap["parallel"])
 
 
+def with_missing(results: list, plan: dict, why: dict) -> list:
+    """The results, with an error result for every planned run that has none (its host's share
+    did not run): a suite never reports fewer runs than it planned."""
+    have = {r["title"] for r in results}
+    out = list(results)
+    for host, runs in plan.items():
+        for run in runs:
+            if run["title"] not in have:
+                reason = why.get(host) or "no result came back"
+                out.append({"title": run["title"], "key": run.get("key"), "host": host, "error": f"{host}: {reason}"})
+    return out
+
+
 def junit(results: list) -> str:
     """One JUnit file for the suite: a test case per run."""
     cases, failures, errors, total = [], 0, 0, 0.0
@@ -170,6 +183,8 @@ def junit(results: list) -> str:
             case += f'    <error message={quoteattr(v["reason"])} type="error"/>\n'
         if r.get("run"):
             case += f"    <system-out>{escape('run ' + r['run'] + ' on ' + str(r.get('host')))}</system-out>\n"
+        elif r.get("error"):
+            case += f"    <system-out>{escape(str(r['error']))}</system-out>\n"
         cases.append(case + "  </testcase>\n")
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'

@@ -27,6 +27,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import judge, layou
 DOCKER = "/usr/bin/docker"
 PROPS = "Id,LoadState,ActiveState,SubState,NRestarts,Result,ExecMainCode,ExecMainStatus"
 CLD_EXITED = "1"  # ExecMainCode: the main process exited (else it was killed: status is the signal)
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff]")
 _HEALTH = re.compile(r"\((healthy|unhealthy|health: starting)\)")
 _SLUG = re.compile(r"[^a-z0-9]+")
 
@@ -48,11 +49,36 @@ def _size(value) -> str:
     return str(value).replace(" ", "")
 
 
-def docker_argv(run: str, name: str, svc: dict, *, outputs: str, simulator=None, gpus=()) -> list:
+def service_env(run: str, svc: dict, simulator=None, gpus=()) -> dict:
+    """The environment a service's container gets: the file's (with the experience's over it),
+    the borrowed instance's address and ports, the run's name and outputs directory."""
+    env = dict(svc["environment"])
+    if simulator:
+        env.update(simulator["env"])
+    if not gpus:
+        # a default nvidia runtime would otherwise show every GPU (the instances' too) to a CUDA image
+        env.setdefault("NVIDIA_VISIBLE_DEVICES", "void")
+    env[layout.K_RUN] = run
+    env[layout.K_RUN_OUTPUTS] = layout.RUN_OUTPUTS
+    return env
+
+
+def env_file_text(env: dict) -> str:
+    """Docker's --env-file format: KEY=VALUE a line, the value taken as it is (no quotes, no
+    newlines: experience.read refuses those)."""
+    return "".join(f"{k}={v}\n" for k, v in env.items())
+
+
+def _ms(seconds) -> str:
+    return f"{max(int(round(float(seconds) * 1000)), 0)}ms"
+
+
+def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, simulator=None, gpus=()) -> list:
     """The `docker run` of one service (foreground: the unit's main process is the container).
 
-    simulator: {"service": name, "address": ..., "env": {...}} when the run borrows an instance.
-    gpus: the host's GPU ids given to this service (dedicated).
+    env_file: the service's environment, in a file only root reads (values stay off command
+    lines and unit files); simulator: {"service": name, "address": ..., "env": {...}} when the
+    run borrows an instance; gpus: the host's GPU ids given to this service (dedicated).
     """
     container = layout.run_name(run, name)
     argv = [
@@ -70,13 +96,9 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, simulator=None,
     ]
     for key, value in sorted((svc.get("labels") or {}).items()):
         argv.append(f"--label={key}={value}")
-    env = dict(svc["environment"])
     if simulator:
         argv.append(f"--add-host={simulator['service']}:{simulator['address']}")
-        env.update(simulator["env"])
-    env[layout.K_RUN] = run
-    env[layout.K_RUN_OUTPUTS] = layout.RUN_OUTPUTS
-    argv += [f"--env={key}={value}" for key, value in env.items()]
+    argv.append(f"--env-file={env_file}")
     if svc.get("working_dir"):
         argv.append(f"--workdir={svc['working_dir']}")
     if svc.get("user"):
@@ -103,10 +125,10 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, simulator=None,
     if health:
         argv += [
             f"--health-cmd={health['test']}",
-            f"--health-interval={health['interval']:g}s",
-            f"--health-timeout={health['timeout']:g}s",
+            f"--health-interval={_ms(health['interval'])}",
+            f"--health-timeout={_ms(health['timeout'])}",
             f"--health-retries={health['retries']}",
-            f"--health-start-period={health['start_period']:g}s",
+            f"--health-start-period={_ms(health['start_period'])}",
         ]
     entrypoint, command = svc.get("entrypoint"), svc.get("command") or []
     if entrypoint is not None:
@@ -132,10 +154,11 @@ def unit_text(run: str, name: str, svc: dict, argv: list) -> str:
         f"{limit}"
         "\n[Service]\n"
         "Type=exec\n"
-        f"ExecStartPre=-{DOCKER} rm -f {container}\n"
+        # -v: an image's own VOLUMEs (a database's data) go with their container
+        f"ExecStartPre=-{DOCKER} rm -f -v {container}\n"
         f"ExecStart={' '.join(systemd_quote(w) for w in argv)}\n"
         f"ExecStop=-{DOCKER} stop --time={grace} {container}\n"
-        f"ExecStopPost=-{DOCKER} rm -f {container}\n"
+        f"ExecStopPost=-{DOCKER} rm -f -v {container}\n"
         f"Restart={restart}\n"
         "RestartSec=1\n"
         f"TimeoutStopSec={grace + 30}\n"
@@ -167,7 +190,7 @@ def observe(shown: dict, containers: list, run: str, services, started, ran) -> 
         match = _HEALTH.search(container.get("Status") or "")
         if match:
             health = "starting" if match.group(1) == "health: starting" else match.group(1)
-        if state == "activating" and sub == "auto-restart":
+        if state == "activating" and sub.startswith("auto-restart"):
             obs = judge.observation(judge.RESTARTING, code, restarts, None, True)
         elif state in ("inactive", "failed") and code is not None:
             obs = judge.observation(judge.EXITED, code, restarts, None, True)
@@ -225,6 +248,11 @@ class Metrics:
         return "\n".join(lines) + "\n"
 
 
+def xml_text(text: str) -> str:
+    """Text for an XML file: escaped, without the control characters XML 1.0 forbids (a log's colours)."""
+    return escape(_NOT_XML.sub("", text or ""))
+
+
 def junit(result: dict) -> str:
     """A JUnit XML file of one run: one test case, failed or errored with the verdict's reason,
     the orchestrators' log tails as its output."""
@@ -245,7 +273,7 @@ def junit(result: dict) -> str:
         f"      <property name={quoteattr(k)} value={quoteattr(str(v))}/>\n"
         for k, v in (("run", result["run"]), ("host", result["host"]), ("result", verdict["result"]))
     )
-    out = escape(result.get("orchestrator_output") or "")
+    out = xml_text(result.get("orchestrator_output") or "")
     case += f"    <system-out>{out}</system-out>\n  </testcase>\n"
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
@@ -257,7 +285,7 @@ def junit(result: dict) -> str:
 
 def preflight(api, experience: dict, gpus_free, pull=None) -> list:
     """Errors that stop a run before anything is created: images neither on the host nor
-    pullable (pull(image) -> error text or None), more GPUs than the host can give the run."""
+    pullable (pull(image) -> error text or None), GPUs the host cannot give the run."""
     errors = []
     for image in experience["images"]:
         if api.image(image) is not None:
@@ -274,28 +302,96 @@ def preflight(api, experience: dict, gpus_free, pull=None) -> list:
             f"{experience['name']}: the services ask for {wanted} dedicated GPU(s); this host has {len(gpus_free)} "
             "free. Fix: ask for fewer, or run it where more GPUs are free."
         )
+    for name, svc in experience["services"].items():
+        missing = [g for g in svc["gpu_device_ids"] if g not in gpus_free]
+        if missing and name != experience.get("simulator"):
+            errors.append(
+                f"{experience['name']}: services.{name} asks for GPU {', '.join(missing)}, which this run cannot have "
+                f"(free: {', '.join(gpus_free) or 'none'}). Fix: ask for a count instead of device_ids."
+            )
     return errors
 
 
 def _gpu_share(experience: dict, gpus_free) -> dict:
-    """Dedicated GPU ids per service, in service order."""
+    """Dedicated GPU ids per service, in service order (the simulator is the borrowed instance: none)."""
     free, out = list(gpus_free), {}
     for name in experience["order"]:
+        if name == experience.get("simulator"):
+            continue
         svc = experience["services"][name]
-        ids = [g for g in svc["gpu_device_ids"] if g in free] if svc["gpu_device_ids"] else []
+        ids = [g for g in svc["gpu_device_ids"] if g in free]
         for g in ids:
             free.remove(g)
-        need = svc["gpus"] - len(ids)
+        need = max(svc["gpus"] - len(ids), 0)
         out[name], free = ids + free[:need], free[need:]
     return out
 
 
-def _as_run(experience: dict) -> str:
-    """The compose file as run (interpolated, experience environment applied), as YAML (JSON is YAML)."""
+def as_compose(experience: dict, secret_keys=()) -> str:
+    """The compose file as it was run: interpolated, the experience's environment applied (its
+    values shown as such, never written out), as YAML (JSON is YAML)."""
     services = {}
     for name, svc in experience["services"].items():
-        services[name] = {k: v for k, v in svc.items() if v not in (None, [], {}, False) and k not in ("name",)}
-    return json.dumps({"name": experience["name"], "services": services, "volumes": experience["volumes"]}, indent=2)
+        out = {"image": svc["image"]}
+        if svc["orchestrator"]:
+            out["labels"] = {"isaacsim.fleet/test-orchestrator": "true"}
+        for key in ("command", "entrypoint", "working_dir", "user", "shm_size", "stop_signal"):
+            if svc.get(key) is not None:
+                out[key] = svc[key]
+        if svc["environment"]:
+            out["environment"] = {
+                k: "(the experience's environment)" if k in secret_keys else v for k, v in svc["environment"].items()
+            }
+        if svc["depends_on"]:
+            out["depends_on"] = {d: {"condition": c} for d, c in svc["depends_on"].items()}
+        if svc["restart"] != "no":
+            retries = svc.get("restart_retries") or 0
+            out["restart"] = svc["restart"] + (f":{retries}" if retries else "")
+        if svc["volumes"]:
+            out["volumes"] = [f"{v}:{t}" + (":ro" if ro else "") for v, t, ro in svc["volumes"]]
+        if svc["tmpfs"]:
+            out["tmpfs"] = svc["tmpfs"]
+        if svc.get("init"):
+            out["init"] = True
+        h = svc.get("healthcheck")
+        if h:
+            out["healthcheck"] = {
+                "test": ["CMD-SHELL", h["test"]],
+                "interval": _ms(h["interval"]),
+                "timeout": _ms(h["timeout"]),
+                "retries": h["retries"],
+                "start_period": _ms(h["start_period"]),
+            }
+        resources = {}
+        if svc.get("memory") or svc.get("cpus"):
+            resources["limits"] = {k: svc[k] for k in ("memory", "cpus") if svc.get(k)}
+        if svc["gpus"]:
+            resources["reservations"] = {"devices": [{"capabilities": ["gpu"], "count": svc["gpus"]}]}
+        if resources:
+            out["deploy"] = {"resources": resources}
+        services[name] = out
+    doc = {"name": experience["name"], "services": services}
+    if experience["volumes"]:
+        doc["volumes"] = {v: {} for v in experience["volumes"]}
+    return json.dumps(doc, indent=2)
+
+
+def cli(host):
+    """docker(*args, check=True) -> stdout, through the host's run."""
+
+    def docker(*args, check=True):
+        rc, out, err = host.run([DOCKER, *args])
+        if rc != 0 and check:
+            raise RuntimeError(f"docker {' '.join(args)} failed ({rc}): {(err or out).strip()}")
+        return out
+
+    return docker
+
+
+def owner_file(run: str) -> str:
+    """Who runs a run: the runner's pid, its services and lent instance, so a run whose runner
+    was killed (an async limit, a reboot of the controller's connection) is swept later."""
+    return f"{layout.RUN_DIR}/runs/{run}.json"
 
 
 def execute(
@@ -311,32 +407,35 @@ def execute(
     gpus_free=(),
     poll: float = 0.5,
     metrics_every: float = 2.0,
+    pid: int = 0,
+    secret_keys=(),
 ) -> dict:
     """Run one experience to its verdict and leave the host as it was, but for the run's directory
-    (logs, exit codes, metrics, the compose file as run, junit.xml). Returns the run's result."""
+    (logs, exit codes, metrics, the compose file as run, junit.xml, the services' outputs).
+    Returns the run's result."""
     services = [s for s in experience["order"] if s != experience.get("simulator")]
     units = [layout.run_unit(run, s) for s in services]
     directory = layout.run_dir(run, data_root)
     outputs = f"{directory}/outputs"
     share = _gpu_share(experience, gpus_free)
-    created = {"network": False, "volumes": [], "units": []}
+    created = {"network": False, "volumes": [], "units": [], "directory": directory}
 
-    def docker(*args, check=True):
-        rc, out, err = host.run([DOCKER, *args])
-        if rc != 0 and check:
-            raise RuntimeError(f"docker {' '.join(args)} failed ({rc}): {(err or out).strip()}")
-        return out
-
+    docker = cli(host)
     began = host.now()
     result = {"run": run, "host": hostname, "experience": experience["name"], "directory": directory}
     metrics = Metrics()
     judgement = None
+    observations = {}
+    owner = {"pid": pid, "services": services, "volumes": experience["volumes"], "directory": directory}
+    if simulator:
+        owner["instance"] = simulator["instance"]
+    host.write(owner_file(run), json.dumps(owner) + "\n", 0o600)
     try:
         host.run(["mkdir", "-p", "-m", "0755", directory])
         # any uid a service runs as writes its outputs here
         host.run(["mkdir", "-p", "-m", "1777", outputs])
         host.run(["chmod", "1777", outputs])
-        host.write(f"{directory}/compose.yml", _as_run(experience) + "\n", 0o644)
+        host.write(f"{directory}/compose.yml", as_compose(experience, secret_keys) + "\n", 0o644)
         labels = [f"--label={layout.LABEL_RUN}={run}"]
         docker("network", "create", "--driver=bridge", *labels, layout.run_name(run))
         created["network"] = True
@@ -345,29 +444,48 @@ def execute(
             created["volumes"].append(volume)
         for name in services:
             svc = experience["services"][name]
-            argv = docker_argv(run, name, svc, outputs=outputs, simulator=simulator, gpus=share.get(name, ()))
+            env_file = f"{layout.RUN_DIR}/runs/{run}/{name}.env"
+            host.write(env_file, env_file_text(service_env(run, svc, simulator, share.get(name, ()))), 0o600)
+            argv = docker_argv(
+                run, name, svc, outputs=outputs, env_file=env_file, simulator=simulator, gpus=share.get(name, ())
+            )
             host.write(f"{layout.RUN_UNIT_DIR}/{layout.run_unit(run, name)}", unit_text(run, name, svc, argv), 0o644)
             created["units"].append(name)
-        host.run(["systemctl", "daemon-reload"])
+        rc, _out, err = host.run(["systemctl", "daemon-reload"])
+        if rc != 0:
+            raise RuntimeError(f"systemctl daemon-reload failed: {err.strip()}")
 
         start = host.now()
         judgement = judge.Judge(experience, timeout, start)
         started, ran = set(), set()
         last_metrics = -metrics_every
-        observations = {}
+        quiet = 0  # looks in a row that Docker did not answer
         while True:
             now = host.now()
             _rc, out, _err = host.run(["systemctl", "show", "-p", PROPS] + units)
-            shown = _shown(out)
-            found = api.labelled(f"{layout.LABEL_RUN}={run}")
-            observations = observe(shown, found, run, services, started, ran)
+            try:
+                found = api.labelled(f"{layout.LABEL_RUN}={run}")
+                quiet = 0
+            except Exception as exc:  # noqa: BLE001 - a busy daemon may miss one look
+                quiet += 1
+                if quiet >= 20:
+                    judgement.fail(now, None, f"the Docker daemon did not answer for {quiet} looks: {exc}")
+                    break
+                host.sleep(poll)
+                continue
+            observations = observe(_shown(out), found, run, services, started, ran)
             if experience.get("simulator"):
                 observations[experience["simulator"]] = simulator_state(host, simulator)
             to_start = judgement.step(now, observations)
             if judgement.verdict:
                 break
             if to_start:
-                host.run(["systemctl", "start", "--no-block"] + [layout.run_unit(run, s) for s in to_start])
+                rc, _out, err = host.run(
+                    ["systemctl", "start", "--no-block"] + [layout.run_unit(run, s) for s in to_start]
+                )
+                if rc != 0:
+                    judgement.fail(now, to_start[0], f"systemd would not start {', '.join(to_start)}: {err.strip()}")
+                    break
                 started.update(to_start)
             if now - last_metrics >= metrics_every:
                 last_metrics = now
@@ -383,11 +501,14 @@ def execute(
             host.sleep(poll)
         result["verdict"] = judgement.verdict
     finally:
-        teardown(host, run, services, created, docker)
+        teardown(host, run, created, docker, keep_directory=judgement is not None)
     result["services"] = {}
     logs = {}
     for name in services:
-        _rc, log, _err = host.run(["journalctl", "--no-pager", "-o", "short-iso", "-u", layout.run_unit(run, name)])
+        # -a: a log with colours or progress bars is text, not "[blob data]"
+        _rc, log, _err = host.run(
+            ["journalctl", "--no-pager", "-a", "-o", "short-iso", "-u", layout.run_unit(run, name)]
+        )
         logs[name] = log
         host.write(f"{directory}/{run}-{name}.log", log, 0o644)
         obs = observations.get(name) or judge.observation()
@@ -406,13 +527,16 @@ def execute(
         for name in experience["orchestrators"]
     )
     host.write(f"{directory}/metrics.csv", metrics.csv(), 0o644)
-    host.write(f"{directory}/result.json", json.dumps(result, indent=2) + "\n", 0o644)
-    host.write(f"{directory}/junit.xml", junit(result), 0o644)
     # the run's whole cost on the host: setting up, the run, tearing down, writing artefacts
     result["elapsed"] = round(host.now() - began, 3)
+    host.write(f"{directory}/result.json", json.dumps(result, indent=2) + "\n", 0o644)
+    host.write(f"{directory}/junit.xml", junit(result), 0o644)
+    _rc, out, _err = host.run(["find", outputs, "-type", "f", "-printf", "%P\\n"])
+    produced = [f"outputs/{p}" for p in out.splitlines() if p.strip()]
     result["artefacts"] = sorted(
         [f"{run}-{name}.log" for name in services] + ["compose.yml", "metrics.csv", "result.json", "junit.xml"]
-    )
+    ) + sorted(produced)
+    host.remove(owner_file(run))
     return result
 
 
@@ -432,17 +556,19 @@ def _shown(out: str) -> dict:
     return found
 
 
-def teardown(host, run: str, services, created: dict, docker) -> None:
-    """Stop every container of the run and remove its units, network and volumes (logs stay in
-    the journal and the run's directory). Safe to call on a half-created run."""
+def teardown(host, run: str, created: dict, docker, keep_directory=True) -> None:
+    """Stop every container of the run and remove its units, network, volumes and env files
+    (logs stay in the journal and the run's directory; the directory goes too when the run
+    never started). Safe on a half-created run, and on one whose runner was killed."""
     units = [layout.run_unit(run, s) for s in created["units"]]
     if units:
         # one job for all: systemd stops them together, each with its grace period
         host.run(["systemctl", "stop"] + units)
     for c in docker("ps", "-aq", f"--filter=label={layout.LABEL_RUN}={run}", check=False).split():
-        docker("rm", "-f", c, check=False)
+        docker("rm", "-f", "-v", c, check=False)
     for name in created["units"]:
         host.remove(f"{layout.RUN_UNIT_DIR}/{layout.run_unit(run, name)}")
+    host.remove(f"{layout.RUN_DIR}/runs/{run}")
     if units:
         host.run(["systemctl", "daemon-reload"])
         host.run(["systemctl", "reset-failed"] + units)
@@ -450,6 +576,35 @@ def teardown(host, run: str, services, created: dict, docker) -> None:
         docker("volume", "rm", "-f", layout.run_volume(run, volume), check=False)
     if created["network"]:
         docker("network", "rm", layout.run_name(run), check=False)
+    if not keep_directory and created.get("directory"):
+        host.remove(created["directory"])
+
+
+def sweep(host, docker, alive) -> list:
+    """Tear down the runs whose runner is gone (alive(pid) is False); returns the instances they
+    had borrowed, which the caller restarts through the lifecycle."""
+    _rc, out, _err = host.run(["find", f"{layout.RUN_DIR}/runs", "-maxdepth", "1", "-name", "*.json"])
+    lent = []
+    for path in sorted(p for p in out.splitlines() if p.strip()):
+        try:
+            owner = json.loads(host.read(path) or "{}")
+        except ValueError:
+            owner = {}
+        if owner.get("pid") and alive(owner["pid"]):
+            continue
+        run = path.rsplit("/", 1)[1][: -len(".json")]
+        created = {
+            "network": True,
+            "volumes": owner.get("volumes", []),
+            "units": owner.get("services", []),
+            "directory": owner.get("directory"),
+        }
+        teardown(host, run, created, docker, keep_directory=True)
+        if owner.get("instance") is not None:
+            release(host, owner["instance"])
+            lent.append(owner["instance"])
+        host.remove(path)
+    return lent
 
 
 def _bytes(n) -> str:
@@ -478,6 +633,24 @@ def summary_lines(result: dict) -> list:
         role = "orchestrator" if svc.get("orchestrator") else "service"
         lines.append(f"{name:<20} {role:<12} {exit_text:>5} {svc.get('restarts', 0):>8} {cpu:>9} {mem:>12}")
     return lines
+
+
+def lent_marker(instance: int) -> str:
+    """A directory: mkdir is atomic, so two runners cannot both lend one instance."""
+    return f"{layout.RUN_DIR}/instance-{instance}.lent"
+
+
+def claim(host, instance: int, run: str) -> str | None:
+    """Lend an instance to a run; the run that has it when it cannot be lent."""
+    rc, _out, _err = host.run(["mkdir", lent_marker(instance)])
+    if rc != 0:
+        return (host.read(f"{lent_marker(instance)}/run") or "another run").strip()
+    host.write(f"{lent_marker(instance)}/run", run + "\n", 0o644)
+    return None
+
+
+def release(host, instance: int) -> None:
+    host.remove(lent_marker(instance))
 
 
 def lend(host, service: str, instance: int, marker_exists) -> tuple:
@@ -519,6 +692,7 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_i
             pending.append((index, run))
     free_instances = list(instances)
     free_gpus = list(gpus)
+    busy = [0]
 
     def take():
         """The next run that can start now, with what it takes; None when the queue is empty."""
@@ -532,15 +706,30 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_i
                     pending.pop(n)
                     instance = free_instances.pop(0) if run["simulator"] else None
                     ids = [free_gpus.pop(0) for _ in range(run["gpus"])]
+                    busy[0] += 1  # counted before the lock is let go: no other worker sees it idle
                     return index, run, instance, ids
-                if not free_instances and not any(not r["simulator"] for _i, r in pending) and not busy[0]:
-                    # every instance failed to come back: the rest cannot run
+                if not busy[0]:
+                    # nothing runs, so nothing will come back: every instance failed its restart
                     index, run = pending.pop(0)
                     return index, run, None, None
                 lock.wait()
             return None
 
-    busy = [0]
+    def one(index, run, instance, ids):
+        try:
+            results[index] = execute_one(run, instance, ids)
+        except BaseException as exc:  # noqa: BLE001 - one run's failure never stops the others
+            results[index] = dict(run, error=f"{type(exc).__name__}: {exc}")
+        if instance is None:
+            return True
+        try:
+            with restart_lock:
+                error = restart_instance(instance)
+        except BaseException as exc:  # noqa: BLE001 - nor does an instance that cannot be restarted
+            error = f"{type(exc).__name__}: {exc}"
+        if error:
+            results[index]["restart_error"] = f"isaac-sim@{instance} did not come back: {error}"
+        return not error
 
     def worker():
         while True:
@@ -551,25 +740,16 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_i
             if ids is None:
                 results[index] = dict(run, error="no instance of the host could be lent (their restarts failed)")
                 continue
-            with lock:
-                busy[0] += 1
+            back = False
             try:
-                results[index] = execute_one(run, instance, ids)
-            except Exception as exc:  # noqa: BLE001 - one run's failure never stops the others
-                results[index] = dict(run, error=f"{type(exc).__name__}: {exc}")
-            back = True
-            if instance is not None:
-                with restart_lock:
-                    error = restart_instance(instance)
-                if error:
-                    back = False
-                    results[index]["restart_error"] = f"isaac-sim@{instance} did not come back: {error}"
-            with lock:
-                busy[0] -= 1
-                if instance is not None and back:
-                    free_instances.append(instance)
-                free_gpus.extend(ids)
-                lock.notify_all()
+                back = one(index, run, instance, ids)
+            finally:
+                with lock:
+                    busy[0] -= 1
+                    if instance is not None and back:
+                        free_instances.append(instance)
+                    free_gpus.extend(ids)
+                    lock.notify_all()
 
     workers = [threading.Thread(target=worker, daemon=True) for _ in range(max(1, parallel))]
     for w in workers:

@@ -34,7 +34,15 @@ options:
     type: str
     required: true
   environment:
-    description: The experience's environment; overrides every service's and is given to each.
+    description:
+      - The experience's environment; overrides every service's and is given to each (through a file only root
+        reads, never on a command line).
+    type: dict
+    default: {}
+  secret_environment:
+    description:
+      - More of it, for tokens and passwords - over O(environment), kept out of the logs and out of the compose file
+        as run.
     type: dict
     default: {}
   profiles:
@@ -141,7 +149,7 @@ import secrets
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, layout, lifecycle, testrun
+from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, hostprobe, layout, lifecycle, testrun
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
 
@@ -166,6 +174,7 @@ def main():
             "compose": {"type": "dict", "required": True},
             "name": {"type": "str", "required": True},
             "environment": {"type": "dict", "default": {}},
+            "secret_environment": {"type": "dict", "default": {}, "no_log": True},
             "profiles": {"type": "list", "elements": "str", "default": []},
             "run": {"type": "str"},
             "timeout": {"type": "float", "default": 600},
@@ -179,7 +188,8 @@ def main():
         supports_check_mode=True,
     )
     p = module.params
-    exp, errors, warnings = experience.read(p["compose"], p["environment"], p["profiles"], p["name"])
+    env = dict(p["environment"], **p["secret_environment"])
+    exp, errors, warnings = experience.read(p["compose"], env, p["profiles"], p["name"])
     run = p["run"] or testrun.run_id(p["name"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
     if not layout.RUN_ID_RE.match(run):
         errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
@@ -211,17 +221,17 @@ def main():
     simulator = _simulator(module, host, exp, p["instance"])
     if module.check_mode:
         module.exit_json(changed=True, order=exp["order"], **base)
-    borrowed = None
+    swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
+    if swept:
+        # runs whose runner was killed had these instances: back clean, through the lifecycle
+        lifecycle.restart_each(host, swept, 0, companions=hostprobe.existing_companions(layout.CONFIG_DIR))
     if simulator:
-        borrowed = f"{layout.RUN_DIR}/instance-{simulator['instance']}.lent"
-        lender = host.read(borrowed)
-        if lender:
+        holder = testrun.claim(host, simulator["instance"], run)
+        if holder:
             module.fail_json(
-                msg=f"instance: isaac-sim@{simulator['instance']} is lent to run {lender.strip()}. "
-                "Fix: pick a free one.",
+                msg=f"instance: isaac-sim@{simulator['instance']} is lent to run {holder}. Fix: pick a free one.",
                 **base,
             )
-        host.write(borrowed, run + "\n", 0o644)
         base["restart_instance"] = simulator["instance"]
     try:
         result = testrun.execute(
@@ -236,12 +246,14 @@ def main():
             gpus_free=p["gpus"],
             poll=p["poll"],
             metrics_every=p["metrics_interval"],
+            pid=os.getpid(),
+            secret_keys=set(p["secret_environment"]),
         )
     except (RuntimeError, DockerError) as exc:
         module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)
     finally:
-        if borrowed:
-            host.remove(borrowed)
+        if simulator:
+            testrun.release(host, simulator["instance"])
     result.pop("orchestrator_output", None)
     base.update(result)
     module.exit_json(changed=True, **base)

@@ -108,45 +108,61 @@ def main():
         errors += exp_errors
         read.append(exp)
 
+    if errors:
+        module.fail_json(msg=" ".join(errors), errors=errors)
+
     def pull(image):
         if module.check_mode:
             return "it is not on this host"
         rc, out, err = host.run([testrun.DOCKER, "pull", "--quiet", image])
         return None if rc == 0 else ((err or out).strip().splitlines() or [f"exit {rc}"])[-1]
 
-    if not errors:
-        images = {}
-        for exp in read:
-            images.update({i: exp for i in exp["images"]})
-        try:
-            errors = testrun.preflight(api, {"name": "suite", "images": sorted(images), "gpus": 0}, p["gpus"], pull)
-        except DockerError as exc:
-            errors = [f"Docker cannot be asked about the images: {exc}"]
-    if errors:
-        module.fail_json(msg=" ".join(errors), errors=errors)
+    # an image that cannot be had fails the runs that need it, not the host's whole share
+    unusable = {}
+    try:
+        for image in sorted({i for exp in read for i in exp["images"]}):
+            found = testrun.preflight(api, {"name": image, "images": [image], "gpus": 0, "services": {}}, [], pull)
+            if found:
+                unusable[image] = found[0]
+    except DockerError as exc:
+        module.fail_json(msg=f"Docker cannot be asked about the images: {exc}")
     if module.check_mode:
-        module.exit_json(changed=bool(p["runs"]), results=[])
+        module.exit_json(changed=bool(p["runs"]), results=[], errors=list(unusable.values()))
     companions = hostprobe.existing_companions(layout.CONFIG_DIR)
+    swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
+    if swept:
+        lifecycle.restart_each(host, swept, 0, companions=companions)
 
     def execute_one(run, instance, gpu_ids):
         exp = read[run["_index"]]
+        missing = [unusable[i] for i in exp["images"] if i in unusable]
+        if missing:
+            return dict({k: run[k] for k in KEEP}, host=hostname, error=" ".join(missing))
+        run_id = testrun.run_id(run["key"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
         simulator = None
         if exp["simulator"]:
             simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
-            if error:
-                return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
-        run_id = testrun.run_id(run["key"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
-        result = testrun.execute(
-            host,
-            api,
-            exp,
-            run_id,
-            hostname=hostname,
-            timeout=float(run["timeout"]),
-            data_root=p["data_root"],
-            simulator=simulator,
-            gpus_free=gpu_ids,
-        )
+            holder = None if error else testrun.claim(host, instance, run_id)
+            if error or holder:
+                return dict(
+                    {k: run[k] for k in KEEP}, host=hostname, error=error or f"isaac-sim@{instance} is lent to {holder}"
+                )
+        try:
+            result = testrun.execute(
+                host,
+                api,
+                exp,
+                run_id,
+                hostname=hostname,
+                timeout=float(run["timeout"]),
+                data_root=p["data_root"],
+                simulator=simulator,
+                gpus_free=gpu_ids,
+                pid=os.getpid(),
+            )
+        finally:
+            if simulator:
+                testrun.release(host, instance)
         result.pop("orchestrator_output", None)
         result.update({k: run[k] for k in KEEP})
         if instance is not None:

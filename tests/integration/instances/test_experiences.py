@@ -52,6 +52,8 @@ def test_a_passing_run_stops_the_companion_still_running_and_brings_everything_b
     files = {p.name for p in directory.iterdir()}
     run_id = outcome["run"]
     assert {f"{run_id}-robot.log", f"{run_id}-check.log", "compose.yml", "metrics.csv", "junit.xml"} <= files
+    # what the orchestrator wrote to $ISAAC_SIM_RUN_OUTPUTS came back too
+    assert (directory / "outputs" / "report.txt").read_text() == f"judged by {run_id}\n"
     assert "check passed" in (directory / f"{run_id}-check.log").read_text()
     assert "robot up" in (directory / f"{run_id}-robot.log").read_text()
     junit = ET.parse(directory / "junit.xml").getroot()
@@ -111,6 +113,7 @@ def test_the_simulator_is_a_borrowed_instance_restarted_clean_after_the_run(host
     # the orchestrator reached instance 0 by the simulator's service name
     log = (directory / f"{outcome['run']}-check.log").read_text()
     assert "simulator says: isaac-sim-standin signal" in log
+    assert (directory / "outputs" / "banner.txt").read_text().startswith("isaac-sim-standin signal")
     all_ready(host, ids=[0])
     assert container_id(host, "isaac-sim-0") != before
     assert sh(host, "ls /run/isaac-sim").stdout.count(".lent") == 0

@@ -157,3 +157,25 @@ def test_durations():
     assert experience.duration("500ms", "w", errors) == 0.5
     assert experience.duration(12, "w", errors) == 12.0
     assert experience.duration("soon", "w", errors) is None and len(errors) == 1
+
+
+def test_the_simulator_s_gpu_is_its_instance_s_and_newlines_cannot_reach_a_container():
+    compose = {
+        "services": {
+            "isaac-sim": {
+                "image": "isaac-sim",
+                "deploy": {"resources": {"reservations": {"devices": [{"capabilities": ["gpu"], "count": 1}]}}},
+            },
+            "check": {
+                "image": "reg/check:1",
+                "labels": {"isaacsim.fleet/test-orchestrator": "true"},
+                "environment": {"NOTE": "two\nlines"},
+            },
+        }
+    }
+    exp, errors, _warnings = experience.read(compose, name="sim")
+    assert exp["gpus"] == 0
+    assert errors == [
+        "sim: services.check.environment: NOTE holds a newline, which a run cannot pass to the container. "
+        "Fix: give the value on one line (or put the text in the image or a volume)."
+    ]

@@ -195,3 +195,26 @@ def test_a_unit_whose_container_is_not_up_yet_is_not_started_for_its_dependents(
     # check depends on planner (service_started): planner's unit is starting, no container yet
     assert j.step(2.0, everything_running(planner=judge.observation(STARTING), check=judge.observation())) == []
     assert j.step(3.0, everything_running(check=judge.observation())) == ["check"]
+
+
+def test_a_dependency_that_finished_without_its_condition_fails_the_run_at_once():
+    j = judge.Judge(ROBOT, 60, 0.0)
+    j.step(0.0, {"sim": obs()})
+    # db exits 0 before it was ever healthy: planner would wait for ever, as compose refuses to
+    j.step(1.0, {"sim": obs(), "db": obs(EXITED, 0), "recorder": obs()})
+    assert j.verdict["result"] == judge.FAILED
+    assert j.verdict["reason"] == "planner cannot start: db exited with 0 and service_healthy will never hold"
+
+
+def test_a_timeout_names_who_still_ran_and_who_never_started():
+    j = judge.Judge(ROBOT, 5, 0.0)
+    j.step(0.0, {"sim": obs()})
+    j.step(5.0, {"sim": obs(), "db": obs(health="starting"), "recorder": obs()})
+    assert j.verdict["reason"] == ("timed out after 5 s, never started (their depends_on did not hold): check, planner")
+
+
+def test_the_runner_s_own_trouble_is_an_error_decided_once():
+    j = started_all()
+    j.fail(4.0, "planner", "systemd would not start planner")
+    j.fail(5.0, None, "later")
+    assert j.verdict["result"] == judge.ERROR and j.verdict["reason"] == "systemd would not start planner"

@@ -162,3 +162,33 @@ def test_an_instance_that_does_not_come_back_is_not_lent_again():
     results = testrun.run_queue(runs, 2, [0], [], execute_one, lambda i: "not ready within 180 s", threading)
     assert results[0]["restart_error"] == "isaac-sim@0 did not come back: not ready within 180 s"
     assert "their restarts failed" in results[1]["error"] and "their restarts failed" in results[2]["error"]
+
+
+def test_an_instance_restart_that_raises_neither_hangs_the_queue_nor_lends_it_again():
+    runs = [{"title": f"r{n}", "gpus": 0, "simulator": n < 2} for n in range(4)]
+
+    def execute_one(run, instance, gpus):
+        return {"title": run["title"], "verdict": {"result": "passed"}}
+
+    def restart(i):
+        raise OSError("systemctl went away")
+
+    done = []
+    worker = threading.Thread(
+        target=lambda: done.append(testrun.run_queue(runs, 2, [0], [], execute_one, restart, threading))
+    )
+    worker.start()
+    worker.join(10)
+    assert done, "run_queue hung"
+    results = done[0]
+    assert results[0]["restart_error"] == "isaac-sim@0 did not come back: OSError: systemctl went away"
+    assert "their restarts failed" in results[1]["error"]
+    assert [r["verdict"]["result"] for r in results[2:]] == ["passed", "passed"]
+
+
+def test_a_host_whose_share_never_ran_is_reported_run_by_run():
+    plan = {"h1": [{"title": "a#1"}], "h2": [{"title": "a#2"}, {"title": "b"}]}
+    results = [{"title": "a#1", "host": "h1", "verdict": {"result": "passed", "reason": "", "seconds": 1}}]
+    out = suite.with_missing(results, plan, {"h2": "the host did not answer"})
+    assert [(r["title"], suite.outcome(r)) for r in out] == [("a#1", "passed"), ("a#2", "error"), ("b", "error")]
+    assert out[1]["error"] == "h2: the host did not answer"

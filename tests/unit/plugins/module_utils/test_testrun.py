@@ -1,8 +1,10 @@
 """A test run's pieces (docker run, unit, observations, metrics, JUnit) and the whole run
 against a scripted host. The real thing runs in the molecule scenarios."""
 
+import json
 import xml.etree.ElementTree as ET
 
+import pytest
 import yaml
 from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, judge, layout, testrun
 
@@ -50,7 +52,8 @@ def test_a_word_reaches_docker_as_it_is_written():
 def test_docker_run_of_a_service_carries_what_compose_says_and_what_the_run_adds():
     exp = read(env={"SEED": "7"})
     sim = {"service": "isaac-sim", "address": "host-gateway", "env": {"ISAAC_SIM_HOST": "isaac-sim"}}
-    argv = testrun.docker_argv("r1", "robot", exp["services"]["robot"], outputs="/o", simulator=sim, gpus=["0"])
+    robot = exp["services"]["robot"]
+    argv = testrun.docker_argv("r1", "robot", robot, outputs="/o", env_file="/e", simulator=sim, gpus=["0"])
     assert argv[:3] == ["/usr/bin/docker", "run", "--name=isaac-sim-run-r1-robot"]
     for word in (
         "--network=isaac-sim-run-r1",
@@ -58,21 +61,26 @@ def test_docker_run_of_a_service_carries_what_compose_says_and_what_the_run_adds
         "--label=org.isaacsim.fleet.run=r1",
         "--mount=type=bind,source=/o,target=/isaacsim-fleet/outputs",
         "--add-host=isaac-sim:host-gateway",
-        '--env=MODE=a $HOME "q" 50% back\\slash',
-        "--env=SEED=7",
-        "--env=ISAAC_SIM_HOST=isaac-sim",
-        "--env=ISAAC_SIM_RUN=r1",
+        "--env-file=/e",
         "--memory=1g",
         '--gpus="device=0"',
         "--mount=type=volume,source=isaac-sim-run-r1-maps,target=/maps,readonly",
         "--health-cmd=test -e /tmp/up",
-        "--health-interval=1s",
+        "--health-interval=1000ms",
         "--health-retries=5",
         "--security-opt=no-new-privileges",
     ):
         assert word in argv, word
     assert argv[-1] == "reg/robot:1"
-    check = testrun.docker_argv("r1", "check", exp["services"]["check"], outputs="/o")
+    # values never reach a command line: they go in the env file
+    assert not any(w.startswith(("--env=", "-e")) for w in argv)
+    env = testrun.service_env("r1", robot, sim, gpus=["0"])
+    assert env["MODE"] == 'a $HOME "q" 50% back\\slash' and env["SEED"] == "7"
+    assert env["ISAAC_SIM_HOST"] == "isaac-sim" and env["ISAAC_SIM_RUN"] == "r1" and "NVIDIA_VISIBLE_DEVICES" not in env
+    assert testrun.env_file_text({"A": 'x "y" $z'}) == 'A=x "y" $z\n'
+    # a service without GPUs sees none, whatever Docker's default runtime
+    assert testrun.service_env("r1", exp["services"]["check"])["NVIDIA_VISIBLE_DEVICES"] == "void"
+    check = testrun.docker_argv("r1", "check", exp["services"]["check"], outputs="/o", env_file="/e")
     # compose's entrypoint list: the first word is docker's --entrypoint, the rest lead the command
     assert check[-4:] == ["--entrypoint=sh", "reg/check:1", "-c", "exit 0"]
 
@@ -82,7 +90,8 @@ def test_the_unit_restarts_by_the_compose_policy_and_never_after_a_zero_exit():
     robot = testrun.unit_text("r1", "robot", exp["services"]["robot"], ["/usr/bin/docker", "run", "x"])
     assert "Restart=on-failure\n" in robot and "StartLimitBurst=3\n" in robot  # on-failure:2 = 3 starts
     assert 'ExecStart="/usr/bin/docker" "run" "x"\n' in robot
-    assert "ExecStopPost=-/usr/bin/docker rm -f isaac-sim-run-r1-robot\n" in robot
+    # -v: an image's own VOLUMEs go with each container
+    assert "ExecStopPost=-/usr/bin/docker rm -f -v isaac-sim-run-r1-robot\n" in robot
     check = testrun.unit_text("r1", "check", exp["services"]["check"], ["x"])
     assert "Restart=no\n" in check and "StartLimit" not in check
 
@@ -180,6 +189,8 @@ class ScriptedHost:
         self.fail_on = fail_on
         self.containers = set()
         self.objects = set()
+        self.modes, self.written, self.dirs = {}, {}, set()
+        self.outputs, self.find = [], []
 
     # lifecycle.Host's interface
     def run(self, argv):
@@ -201,6 +212,14 @@ class ScriptedHost:
             self.objects.discard(argv[-1])
         if argv[0] == "journalctl":
             return 0, f"log of {argv[-1]}\n", ""
+        if argv[0] == "find" and argv[1].endswith("/outputs"):
+            return 0, "".join(f"{o}\n" for o in self.outputs), ""
+        if argv[0] == "find":
+            return 0, "".join(f"{f}\n" for f in self.find), ""
+        if argv == ["mkdir", argv[-1]] and argv[-1].endswith(".lent"):
+            if argv[-1] in self.dirs:
+                return 1, "", "File exists"
+            self.dirs.add(argv[-1])
         return 0, "", ""
 
     def _show(self, unit):
@@ -213,10 +232,13 @@ class ScriptedHost:
 
     def write(self, path, text, mode):
         self.files[path] = text
+        self.written[path] = text
+        self.modes[path] = mode
 
     def remove(self, path):
         self.removed.append(path)
         self.files.pop(path, None)
+        self.dirs.discard(path)
 
     def read(self, path):
         return self.files.get(path)
@@ -294,3 +316,68 @@ def test_preflight_names_missing_images_and_gpus_the_host_cannot_give():
     assert pulled == ["reg/check:1"]  # the image already there is not pulled again
     assert any("image reg/check:1 cannot be had (manifest unknown)" in e for e in errors)
     assert any("ask for 1 dedicated GPU(s); this host has 0 free" in e for e in errors)
+
+
+def test_a_run_s_values_stay_off_command_lines_and_its_outputs_come_back():
+    host = ScriptedHost()
+    host.outputs = ["report.txt", "plots/a.png"]
+    result = testrun.execute(
+        host, host, read(), "r4", hostname="h1", timeout=60, data_root="/d", gpus_free=["0"], pid=42
+    )
+    env_file = "/run/isaac-sim/runs/r4/robot.env"
+    assert any(c[:2] == ["systemctl", "start"] for c in host.calls)
+    assert host.modes[env_file] == 0o600 and "MODE=a $HOME" in host.written[env_file]
+    unit = host.written["/run/systemd/system/isaac-sim-run-r4-robot.service"]
+    assert "MODE" not in unit and '"--env-file=/run/isaac-sim/runs/r4/robot.env"' in unit
+    assert "outputs/plots/a.png" in result["artefacts"] and "outputs/report.txt" in result["artefacts"]
+    # the owner file said who ran it while it ran, and is gone; so are the env files
+    assert '"pid": 42' in host.written["/run/isaac-sim/runs/r4.json"]
+    assert "/run/isaac-sim/runs/r4.json" in host.removed and "/run/isaac-sim/runs/r4" in host.removed
+    compose = host.files["/d/runs/r4/compose.yml"]
+    assert '"restart": "on-failure:2"' in compose and '"maps:/maps:ro"' in compose
+
+
+def test_experience_level_secrets_are_not_written_into_the_compose_file_as_run():
+    exp = read(env={"TOKEN": "s3cr3t"})
+    text = testrun.as_compose(exp, secret_keys={"TOKEN"})
+    assert "s3cr3t" not in text and "(the experience's environment)" in text
+
+
+def test_a_run_that_cannot_be_set_up_leaves_not_even_its_directory():
+    host = ScriptedHost(fail_on="network create")
+    with pytest.raises(RuntimeError, match="docker network create"):
+        testrun.execute(host, host, read(), "r5", hostname="h1", timeout=60, data_root="/d", gpus_free=["0"])
+    assert "/d/runs/r5" in host.removed
+
+
+def test_runs_whose_runner_was_killed_are_swept_and_their_instance_comes_back():
+    host = ScriptedHost()
+    owner = {"pid": 7, "services": ["robot", "check"], "volumes": ["maps"], "directory": "/d/runs/r6", "instance": 2}
+    host.files["/run/isaac-sim/runs/r6.json"] = json.dumps(owner)
+    host.files["/run/isaac-sim/runs/r7.json"] = json.dumps(dict(owner, pid=8))
+    host.find = ["/run/isaac-sim/runs/r6.json", "/run/isaac-sim/runs/r7.json"]
+    lent = testrun.sweep(host, testrun.cli(host), alive=lambda pid: pid == 8)
+    assert lent == [2]
+    assert ["systemctl", "stop", "isaac-sim-run-r6-robot.service", "isaac-sim-run-r6-check.service"] in host.calls
+    assert ["/usr/bin/docker", "volume", "rm", "-f", "isaac-sim-run-r6-maps"] in host.calls
+    assert "/run/isaac-sim/instance-2.lent" in host.removed and "/run/isaac-sim/runs/r6.json" in host.removed
+    assert not any("r7" in " ".join(c) for c in host.calls)  # its runner lives: untouched
+
+
+def test_an_instance_is_lent_to_one_run_at_a_time():
+    host = ScriptedHost()
+    assert testrun.claim(host, 1, "run-a") is None
+    assert testrun.claim(host, 1, "run-b") == "run-a"
+    testrun.release(host, 1)
+    assert testrun.claim(host, 1, "run-b") is None
+
+
+def test_junit_leaves_out_what_xml_cannot_hold():
+    result = {
+        "run": "r1",
+        "host": "h1",
+        "experience": "pair",
+        "verdict": {"result": "passed", "service": None, "reason": "ok", "seconds": 1.0},
+        "orchestrator_output": "\x1b[31mred\x1b[0m done\r\n",
+    }
+    assert "red" in ET.fromstring(testrun.junit(result)).find("testcase/system-out").text
