@@ -705,7 +705,7 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_i
                         continue
                     pending.pop(n)
                     instance = free_instances.pop(0) if run["simulator"] else None
-                    ids = [free_gpus.pop(0) for _ in range(run["gpus"])]
+                    ids, free_gpus[:] = free_gpus[: run["gpus"]], free_gpus[run["gpus"] :]
                     busy[0] += 1  # counted before the lock is let go: no other worker sees it idle
                     return index, run, instance, ids
                 if not busy[0]:
@@ -751,7 +751,7 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_i
                     free_gpus.extend(ids)
                     lock.notify_all()
 
-    workers = [threading.Thread(target=worker, daemon=True) for _ in range(max(1, parallel))]
+    workers = [threading.Thread(target=worker, daemon=True) for _n in range(max(1, parallel))]
     for w in workers:
         w.start()
     for w in workers:
