@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import signal
 from xml.sax.saxutils import escape, quoteattr
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import judge, layout
@@ -156,18 +157,43 @@ def unit_text(run: str, name: str, svc: dict, argv: list) -> str:
         "Type=exec\n"
         # -v: an image's own VOLUMEs (a database's data) go with their container
         f"ExecStartPre=-{DOCKER} rm -f -v {container}\n"
+        f"ExecStartPre=-/bin/rm -f {exit_file(run, name)}\n"
         f"ExecStart={' '.join(systemd_quote(w) for w in argv)}\n"
         f"ExecStop=-{DOCKER} stop --time={grace} {container}\n"
         f"ExecStopPost=-{DOCKER} rm -f -v {container}\n"
+        # systemd gives ExecStopPost how the main process ended; kept past the unit's unloading
+        f"ExecStopPost=-/bin/sh -c 'echo \"$$EXIT_CODE $$EXIT_STATUS\" > {exit_file(run, name)}'\n"
         f"Restart={restart}\n"
         "RestartSec=1\n"
         f"TimeoutStopSec={grace + 30}\n"
     )
 
 
-def observe(shown: dict, containers: list, run: str, services, started, ran) -> dict:
-    """{service: judge.observation} from `systemctl show` of the run's units and Docker's list
-    of the run's containers. started: services the runner started; ran: those seen running."""
+def exit_file(run: str, service: str) -> str:
+    """Where a service's unit writes how its last container ended: systemd forgets the exit
+    status of a unit that ended well as soon as it unloads it (garbage collection)."""
+    return f"{layout.RUN_DIR}/runs/{run}/{service}.exit"
+
+
+def parse_exit(text):
+    """The exit code in an exit file ("exited 3", "killed TERM"), or None."""
+    words = (text or "").split()
+    if len(words) != 2:
+        return None
+    how, status = words
+    if how == "exited" and status.isdigit():
+        return int(status)
+    if status.isdigit():
+        return 128 + int(status)
+    signum = getattr(signal, "SIG" + status, None)
+    return 128 + int(signum) if signum is not None else None
+
+
+def observe(shown: dict, containers: list, run: str, services, started, ran, exits=None) -> dict:
+    """{service: judge.observation} from `systemctl show` of the run's units, Docker's list of
+    the run's containers and the units' exit files ({service: text}). started: services the
+    runner started; ran: those seen running."""
+    exits = exits or {}
     by_service = {}
     for c in containers:
         svc = (c.get("Labels") or {}).get(layout.LABEL_RUN_SERVICE)
@@ -181,8 +207,8 @@ def observe(shown: dict, containers: list, run: str, services, started, ran) -> 
             out[name] = judge.observation()
             continue
         state, sub = props.get("ActiveState", ""), props.get("SubState", "")
-        code = None
-        if props.get("ExecMainCode") not in (None, "", "0"):
+        code = parse_exit(exits.get(name))
+        if code is None and props.get("ExecMainCode") not in (None, "", "0"):
             status = int(props.get("ExecMainStatus") or 0)
             code = status if props["ExecMainCode"] == CLD_EXITED else 128 + status
         container = by_service.get(name) or {}
@@ -192,7 +218,7 @@ def observe(shown: dict, containers: list, run: str, services, started, ran) -> 
             health = "starting" if match.group(1) == "health: starting" else match.group(1)
         if state == "activating" and sub.startswith("auto-restart"):
             obs = judge.observation(judge.RESTARTING, code, restarts, None, True)
-        elif state in ("inactive", "failed") and code is not None:
+        elif state in ("inactive", "failed", "") and code is not None:
             obs = judge.observation(judge.EXITED, code, restarts, None, True)
         elif state == "active" and container.get("State") == "running":
             ran.add(name)
@@ -473,7 +499,8 @@ def execute(
                     break
                 host.sleep(poll)
                 continue
-            observations = observe(_shown(out), found, run, services, started, ran)
+            exits = {s: host.read(exit_file(run, s)) for s in started}
+            observations = observe(_shown(out), found, run, services, started, ran, exits)
             if experience.get("simulator"):
                 observations[experience["simulator"]] = simulator_state(host, simulator)
             to_start = judgement.step(now, observations)
@@ -517,7 +544,8 @@ def execute(
             "started": name in judgement.started,
             "exit_code": obs["exit_code"] if obs["state"] == judge.EXITED else None,
             "last_exit_code": obs["exit_code"],
-            "restarts": obs["restarts"],
+            # an unloaded unit forgets its count: the most the judge saw
+            "restarts": max(obs["restarts"], judgement.seen_restarts.get(name, 0)),
             "state_at_verdict": obs["state"],
         }
     result["events"] = judgement.events

@@ -11,7 +11,7 @@ short_description: Run one experience (a compose file judged by its test orchest
 version_added: "0.3.0"
 description:
   - Reads the team's compose file as the fleet runs it; what cannot be honoured is an error and nothing starts,
-    what is ignored comes back in RV(warnings).
+    what is ignored comes back in RV(ignored).
   - Each service becomes a systemd unit in C(/run/systemd/system) running its container in the foreground, on a
     network and named volumes of the run's own; systemd restarts services by their compose restart policy and
     the journal keeps their logs.
@@ -133,8 +133,8 @@ artefacts:
   returned: when the run started
   type: list
   elements: str
-warnings:
-  description: What the fleet ignores in the file, and why.
+ignored:
+  description: What the fleet ignores in the file, and why (also given as warnings).
   returned: always
   type: list
   elements: str
@@ -195,10 +195,12 @@ def main():
         errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
     if p["timeout"] <= 0:
         errors.append(f"timeout: {p['timeout']:g}. Fix: a number of seconds above 0.")
+    for warning in warnings:
+        module.warn(warning)
     base = {
         "run": run,
         "directory": layout.run_dir(run, p["data_root"]),
-        "warnings": warnings,
+        "ignored": warnings,
         "restart_instance": None,
     }
     if errors:

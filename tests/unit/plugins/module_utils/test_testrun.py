@@ -381,3 +381,17 @@ def test_junit_leaves_out_what_xml_cannot_hold():
         "orchestrator_output": "\x1b[31mred\x1b[0m done\r\n",
     }
     assert "red" in ET.fromstring(testrun.junit(result)).find("testcase/system-out").text
+
+
+def test_how_a_container_ended_survives_systemd_forgetting_the_unit():
+    assert testrun.parse_exit("exited 3\n") == 3 and testrun.parse_exit("exited 0") == 0
+    assert testrun.parse_exit("killed KILL") == 137 and testrun.parse_exit("dumped SEGV") == 139
+    assert testrun.parse_exit("") is None and testrun.parse_exit("exited x") is None
+    # a unit that ended well is unloaded: systemctl show then says nothing of its exit
+    unit = layout.run_unit("r1", "check")
+    shown = {unit: show(unit, "inactive", "dead")}
+    seen = testrun.observe(shown, [], "r1", ["check"], {"check"}, set(), {"check": "exited 0\n"})
+    assert seen["check"]["state"] == judge.EXITED and seen["check"]["exit_code"] == 0
+    text = testrun.unit_text("r1", "check", read()["services"]["check"], ["x"])
+    assert "ExecStopPost=-/bin/sh -c 'echo \"$$EXIT_CODE $$EXIT_STATUS\" > /run/isaac-sim/runs/r1/check.exit'\n" in text
+    assert "ExecStartPre=-/bin/rm -f /run/isaac-sim/runs/r1/check.exit\n" in text
