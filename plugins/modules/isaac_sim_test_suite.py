@@ -69,10 +69,17 @@ results:
   returned: always
   type: list
   elements: dict
+bundle:
+  description:
+    - Every run's directory in one gzipped tar file on the host (a directory per run), to fetch at once; the
+      directories themselves are removed once in it.
+  returned: when the runs ran
+  type: str
 """
 
 import os
 import secrets
+import tarfile
 import threading
 import time
 
@@ -183,7 +190,17 @@ def main():
     for n, result in enumerate(results):
         if "error" in result and "run" not in result:
             results[n] = dict({k: runs[n][k] for k in KEEP}, host=hostname, error=result["error"])
-    module.exit_json(changed=True, results=results)
+    # every run's directory in one file: one fetch per host, not one per artefact
+    bundle = os.path.join(p["data_root"], "runs", f"suite-{secrets.token_hex(4)}.tar.gz")
+    with tarfile.open(bundle, "w:gz") as tar:
+        for result in results:
+            if result.get("directory") and os.path.isdir(result["directory"]):
+                tar.add(result["directory"], arcname=result["run"])
+    # the bundle holds them now
+    for result in results:
+        if result.get("directory") and os.path.isdir(result["directory"]):
+            host.remove(result["directory"])
+    module.exit_json(changed=True, results=results, bundle=bundle)
 
 
 if __name__ == "__main__":
