@@ -74,14 +74,18 @@ class DockerSocket:
         """One sample of a container's CPU and memory use (one-shot: no wait for a second sample)."""
         return self.get(f"/containers/{quote(container)}/stats?stream=false&one-shot=true")
 
-    def image(self, name: str):
-        """The image `name` as docker image inspect describes it, or None: one call."""
+    def found(self, endpoint: str):
+        """The answer of GET endpoint, or None when Docker has no such object (404)."""
         try:
-            return self.get(f"/images/{quote(name)}/json")
+            return self.get(endpoint)
         except DockerError as exc:
             if exc.status == 404:
                 return None
             raise
+
+    def image(self, name: str):
+        """The image `name` as docker image inspect describes it, or None: one call."""
+        return self.found(f"/images/{quote(name)}/json")
 
     def images(self):
         """Every image with its repo digests: one call."""
@@ -89,9 +93,4 @@ class DockerSocket:
 
     def network(self, name: str):
         """The network `name` as Docker describes it (docker network inspect's object), or None: one call."""
-        try:
-            return self.get(f"/networks/{quote(name)}")
-        except DockerError as exc:
-            if exc.status == 404:
-                return None
-            raise
+        return self.found(f"/networks/{quote(name)}")

@@ -88,12 +88,12 @@ def bind(module) -> Host:
 PROPS = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"
 
 
-def show(host: Host, units) -> dict:
+def show(host: Host, units, props: str = PROPS) -> dict:
     """{unit: {property: value}} for the given units in one systemctl call ({} for a unit not shown)."""
     units = list(units)
     if not units:
         return {}
-    _rc, out, _err = host.run(["systemctl", "show", "-p", PROPS] + units)
+    _rc, out, _err = host.run(["systemctl", "show", "-p", props] + units)
     found = {}
     for block in re.split(r"\n\s*\n", out.strip()):
         fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)

@@ -23,13 +23,12 @@ import re
 import signal
 from xml.sax.saxutils import escape, quoteattr
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import judge, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, judge, layout, lifecycle, plan
 
 DOCKER = "/usr/bin/docker"
 PROPS = "Id,LoadState,ActiveState,SubState,NRestarts,Result,ExecMainCode,ExecMainStatus"
 CLD_EXITED = "1"  # ExecMainCode: the main process exited (else it was killed: status is the signal)
 _NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff]")
-_HEALTH = re.compile(r"\((healthy|unhealthy|health: starting)\)")
 _SLUG = re.compile(r"[^a-z0-9]+")
 
 
@@ -44,10 +43,6 @@ def systemd_quote(word: str) -> str:
     variables escaped, C escapes inside double quotes)."""
     text = str(word).replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
     return '"' + text.replace("%", "%%").replace("$", "$$") + '"'
-
-
-def _size(value) -> str:
-    return str(value).replace(" ", "")
 
 
 def service_env(run: str, svc: dict, simulator=None, gpus=()) -> dict:
@@ -105,9 +100,9 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
     if svc.get("user"):
         argv.append(f"--user={svc['user']}")
     if svc.get("shm_size"):
-        argv.append(f"--shm-size={_size(svc['shm_size'])}")
+        argv.append(f"--shm-size={plan.docker_size(svc['shm_size'])}")
     if svc.get("memory"):
-        argv.append(f"--memory={_size(svc['memory'])}")
+        argv.append(f"--memory={plan.docker_size(svc['memory'])}")
     if svc.get("cpus"):
         argv.append(f"--cpus={svc['cpus']}")
     if svc.get("init"):
@@ -169,10 +164,15 @@ def unit_text(run: str, name: str, svc: dict, argv: list) -> str:
     )
 
 
+def runtime_file(run: str, service: str, kind: str) -> str:
+    """A service's file in the run's runtime directory (/run: gone at reboot, as the run is)."""
+    return f"{layout.RUN_DIR}/runs/{run}/{service}.{kind}"
+
+
 def exit_file(run: str, service: str) -> str:
     """Where a service's unit writes how its last container ended: systemd forgets the exit
     status of a unit that ended well as soon as it unloads it (garbage collection)."""
-    return f"{layout.RUN_DIR}/runs/{run}/{service}.exit"
+    return runtime_file(run, service, "exit")
 
 
 def parse_exit(text):
@@ -212,10 +212,8 @@ def observe(shown: dict, containers: list, run: str, services, started, ran, exi
             status = int(props.get("ExecMainStatus") or 0)
             code = status if props["ExecMainCode"] == CLD_EXITED else 128 + status
         container = by_service.get(name) or {}
-        health = None
-        match = _HEALTH.search(container.get("Status") or "")
-        if match:
-            health = "starting" if match.group(1) == "health: starting" else match.group(1)
+        health = fleet_status.health_of(container.get("Status"))
+        health = None if health == "none" else health
         if state == "activating" and sub.startswith("auto-restart"):
             obs = judge.observation(judge.RESTARTING, code, restarts, None, True)
         elif state in ("inactive", "failed", "") and code is not None:
@@ -307,6 +305,18 @@ def junit(result: dict) -> str:
         f'skipped="0" time="{verdict["seconds"]:.3f}">\n'
         f"  <properties>\n{props}  </properties>\n{case}</testsuite>\n"
     )
+
+
+def puller(host, enabled=True):
+    """pull(image) -> None once pulled, else why not (the last line Docker said)."""
+
+    def pull(image):
+        if not enabled:
+            return "it is not on this host"
+        rc, out, err = host.run([DOCKER, "pull", "--quiet", image])
+        return None if rc == 0 else ((err or out).strip().splitlines() or [f"exit {rc}"])[-1]
+
+    return pull
 
 
 def preflight(api, experience: dict, gpus_free, pull=None) -> list:
@@ -470,7 +480,7 @@ def execute(
             created["volumes"].append(volume)
         for name in services:
             svc = experience["services"][name]
-            env_file = f"{layout.RUN_DIR}/runs/{run}/{name}.env"
+            env_file = runtime_file(run, name, "env")
             host.write(env_file, env_file_text(service_env(run, svc, simulator, share.get(name, ()))), 0o600)
             argv = docker_argv(
                 run, name, svc, outputs=outputs, env_file=env_file, simulator=simulator, gpus=share.get(name, ())
@@ -488,7 +498,7 @@ def execute(
         quiet = 0  # looks in a row that Docker did not answer
         while True:
             now = host.now()
-            _rc, out, _err = host.run(["systemctl", "show", "-p", PROPS] + units)
+            shown = lifecycle.show(host, units, PROPS)
             try:
                 found = api.labelled(f"{layout.LABEL_RUN}={run}")
                 quiet = 0
@@ -500,7 +510,7 @@ def execute(
                 host.sleep(poll)
                 continue
             exits = {s: host.read(exit_file(run, s)) for s in started}
-            observations = observe(_shown(out), found, run, services, started, ran, exits)
+            observations = observe(shown, found, run, services, started, ran, exits)
             if experience.get("simulator"):
                 observations[experience["simulator"]] = simulator_state(host, simulator)
             to_start = judgement.step(now, observations)
@@ -573,15 +583,6 @@ def simulator_state(host, simulator) -> dict:
     _rc, out, _err = host.run(["systemctl", "is-active", layout.unit(simulator["instance"])])
     state = judge.RUNNING if out.strip() == "active" else judge.EXITED
     return judge.observation(state, None, 0, "healthy" if state == judge.RUNNING else None, True)
-
-
-def _shown(out: str) -> dict:
-    found = {}
-    for block in re.split(r"\n\s*\n", (out or "").strip()):
-        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-        if fields.get("Id"):
-            found[fields["Id"]] = fields
-    return found
 
 
 def teardown(host, run: str, created: dict, docker, keep_directory=True) -> None:

@@ -208,11 +208,7 @@ def main():
     host = lifecycle.bind(module)
     api = DockerSocket()
 
-    def pull(image):
-        if module.check_mode or not p["pull"]:
-            return "it is not on this host"
-        rc, out, err = host.run([testrun.DOCKER, "pull", "--quiet", image])
-        return None if rc == 0 else (err or out).strip().splitlines()[-1] if (err or out).strip() else f"exit {rc}"
+    pull = testrun.puller(host, enabled=p["pull"] and not module.check_mode)
 
     try:
         errors = testrun.preflight(api, exp, p["gpus"], pull)

@@ -118,11 +118,7 @@ def main():
     if errors:
         module.fail_json(msg=" ".join(errors), errors=errors)
 
-    def pull(image):
-        if module.check_mode:
-            return "it is not on this host"
-        rc, out, err = host.run([testrun.DOCKER, "pull", "--quiet", image])
-        return None if rc == 0 else ((err or out).strip().splitlines() or [f"exit {rc}"])[-1]
+    pull = testrun.puller(host, enabled=not module.check_mode)
 
     # an image that cannot be had fails the runs that need it, not the host's whole share
     unusable = {}

@@ -41,6 +41,17 @@ def host_ip(host) -> str:
     return client().containers.get(name(host)).attrs["NetworkSettings"]["IPAddress"]
 
 
+# what a test run leaves on a host if it leaves anything: containers, networks, volumes, units, directories
+RUN_LEFTOVERS = (
+    "docker ps -aq --filter label=org.isaacsim.fleet.run; "
+    "docker network ls -q --filter label=org.isaacsim.fleet.run; "
+    "docker volume ls -q --filter label=org.isaacsim.fleet.run; "
+    "ls /run/systemd/system | grep isaac-sim-run- || true; "
+    "systemctl list-units --all --no-legend 'isaac-sim-run-*' | grep . || true; "
+    "ls /var/lib/isaac-sim/runs 2>/dev/null || true"
+)
+
+
 def inventory() -> str:
     """Molecule's inventory directory: the scenario's hosts and group_vars, linked."""
     inv = os.environ.get("MOLECULE_INVENTORY_FILE")

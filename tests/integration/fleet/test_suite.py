@@ -8,7 +8,7 @@ import xml.etree.ElementTree as ET
 import pytest
 import yaml
 from fleethosts import hosts, playbook, sh, squash
-from testbed import ROOT
+from testbed import ROOT, RUN_LEFTOVERS
 
 FIXTURES = ROOT / "tests" / "fixtures" / "experiences"
 PARALLEL = 2
@@ -112,12 +112,7 @@ def test_no_host_ran_more_than_its_parallel_and_every_host_took_a_share(suite):
 
 def test_nothing_of_any_run_is_left_on_the_hosts_and_lent_instances_serve_again(suite):
     for host in hosts():
-        left = sh(
-            host,
-            "docker ps -aq --filter label=org.isaacsim.fleet.run; docker network ls -q --filter "
-            "label=org.isaacsim.fleet.run; docker volume ls -q --filter label=org.isaacsim.fleet.run; "
-            "ls /run/systemd/system | grep isaac-sim-run- || true; ls /var/lib/isaac-sim/runs 2>/dev/null || true",
-        )
+        left = sh(host, RUN_LEFTOVERS)
         assert left.strip() == "", f"{host}: {left}"
         assert sh(host, "ls /run/isaac-sim").count(".ready") >= 4
 

@@ -8,7 +8,7 @@ runs them all in one playbook."""
 import json
 import xml.etree.ElementTree as ET
 
-from testbed import ROOT, all_ready, container_id, registry_image, run_playbook, sh
+from testbed import ROOT, RUN_LEFTOVERS, all_ready, container_id, registry_image, run_playbook, sh
 
 FIXTURES = ROOT / "tests" / "fixtures" / "experiences"
 
@@ -30,14 +30,7 @@ def run(host, tmp_path, name, timeout=60, **extra):
 
 def left_behind(host) -> str:
     """Anything of any run still on the host: containers, networks, volumes, units."""
-    return sh(
-        host,
-        "docker ps -aq --filter label=org.isaacsim.fleet.run; "
-        "docker network ls -q --filter label=org.isaacsim.fleet.run; "
-        "docker volume ls -q --filter label=org.isaacsim.fleet.run; "
-        "ls /run/systemd/system | grep isaac-sim-run- || true; "
-        "systemctl list-units --all --no-legend 'isaac-sim-run-*' | grep . || true",
-    ).stdout.strip()
+    return sh(host, RUN_LEFTOVERS).stdout.strip()
 
 
 def test_a_passing_run_stops_the_companion_still_running_and_brings_everything_back(host, tmp_path):

@@ -179,3 +179,18 @@ def test_the_simulator_s_gpu_is_its_instance_s_and_newlines_cannot_reach_a_conta
         "sim: services.check.environment: NOTE holds a newline, which a run cannot pass to the container. "
         "Fix: give the value on one line (or put the text in the image or a volume)."
     ]
+
+
+def test_a_size_docker_cannot_read_is_refused_before_the_run():
+    compose = {
+        "services": {
+            "check": {
+                "image": "reg/check:1",
+                "labels": {"isaacsim.fleet/test-orchestrator": "true"},
+                "shm_size": "lots",
+                "deploy": {"resources": {"limits": {"memory": "1 GB"}}},
+            }
+        }
+    }
+    _exp, errors, _warnings = experience.read(compose, name="size")
+    assert errors == ["size: services.check.shm_size: 'lots' is not a size. Fix: e.g. 2g or 512m."]
