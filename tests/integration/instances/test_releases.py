@@ -15,8 +15,9 @@ from dashboard import OUTPUT, check_dashboard, dashboard
 from testbed import INSTANCES, registry_image, sh
 
 
-@pytest.fixture()
+@pytest.fixture(scope="module", autouse=True)
 def restore_default(host):
+    # once, after both tests: the release switch starts from the 2023.1 deployment (root, as 4.x)
     yield
     result = testbed.run_playbook(host)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr
@@ -31,7 +32,7 @@ def refused(ip, port) -> bool:
     return False
 
 
-def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, restore_default, tmp_path):
+def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, tmp_path):
     # instances 0-2 the WebRTC browser client (the default profile), instance 3 the native livestream
     result = testbed.run_playbook(
         host,
@@ -72,7 +73,7 @@ def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, 
     assert ("3", "native", f"{ip}:48013") in found["addresses"]
 
 
-def test_a_release_switch_goes_through_the_lifecycle_and_a_failed_one_goes_back(host, restore_default):
+def test_a_release_switch_goes_through_the_lifecycle_and_a_failed_one_goes_back(host):
     four = testbed.run_playbook(host, {"isaac_sim_release": "4.x", "isaac_sim_image": registry_image(host, "4.5.0")})
     assert four.returncode == 0, four.stdout[-3000:] + four.stderr
     testbed.all_ready(host)
