@@ -1,11 +1,14 @@
-"""A watcher that checks every instance's port on every host four times a second, from outside the hosts.
+"""What clients see of the hosts' ports, from outside the hosts: a watcher and a port scan.
 
-Used by the fleet tests and the rollout benchmark to see what clients see
-during a rollout: how many instances of each host answer at each moment.
+The watcher: the fleet tests and the rollout benchmark see how many instances
+of each host answer at each moment of a rollout. The scan: every TCP port of a
+host that accepts a connection.
 """
 
 from __future__ import annotations
 
+import errno
+import select
 import socket
 import threading
 import time
@@ -21,6 +24,36 @@ def answers(address: str, port: int) -> bool:
             return conn.recv(64).startswith(b"isaac-sim-standin")
     except OSError:
         return False
+
+
+def listening(address: str, ports, batch: int = 2000, timeout: float = 2.0) -> set:
+    """The TCP ports that accept a connection, tried from here: every port of a host in seconds.
+
+    Non-blocking connects, a batch at a time (asyncio took eight times as long on two cores).
+    """
+    found, ports = set(), list(ports)
+    for start in range(0, len(ports), batch):
+        poller, pending = select.epoll(), {}
+        for port in ports[start : start + batch]:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            sock.setblocking(False)
+            if sock.connect_ex((address, port)) in (0, errno.EINPROGRESS):
+                pending[sock.fileno()] = (sock, port)
+                poller.register(sock.fileno(), select.EPOLLOUT | select.EPOLLERR | select.EPOLLHUP)
+            else:
+                sock.close()
+        deadline = time.monotonic() + timeout
+        while pending and time.monotonic() < deadline:
+            for fd, _event in poller.poll(max(0.0, deadline - time.monotonic())):
+                sock, port = pending.pop(fd)
+                poller.unregister(fd)
+                if sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) == 0:
+                    found.add(port)
+                sock.close()
+        for sock, _port in pending.values():  # no answer in time: filtered, not listening
+            sock.close()
+        poller.close()
+    return found
 
 
 class Watcher(threading.Thread):

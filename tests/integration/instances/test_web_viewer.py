@@ -7,10 +7,13 @@ one for every instance: each viewer is told its instance's address and ports whe
 The last test builds the image through the web_viewer_image role on the test host.
 """
 
+import ipaddress
 import json
+import re
 import subprocess
 import urllib.request
 
+import portwatch
 import pytest
 import testbed
 from browser import chromium, console_errors
@@ -125,6 +128,45 @@ def test_status_lists_each_viewer_under_its_instance_and_the_dashboard_links_it(
         assert "Isaac Sim web viewer" in fetch(href)
 
 
+def reported_ports(status: dict, ip: str) -> set:
+    """(protocol, port) of every address isaac_sim_info reports for the host: URLs, companions, status."""
+    found = set()
+    urls = [status["status_url"]]
+    for inst in status["instances"]:
+        urls += list(inst["urls"].values())
+        found |= {(p["proto"], p["port"]) for companion in inst["companions"] for p in companion["ports"]}
+    for url in urls:
+        match = re.fullmatch(r"(?:\w+://)?([\d.]+):(\d+)(/udp)?(?:[/?].*)?", url)
+        assert match and match.group(1) == ip, url
+        found.add(("udp" if match.group(3) else "tcp", int(match.group(2))))
+    return found
+
+
+def reachable_listeners(host, proto: str) -> set:
+    """(proto, port) of the host's sockets listening on an address other hosts can reach (not loopback)."""
+    found = set()
+    for line in sh(host, f"ss -Hln{proto[0]}").stdout.splitlines():
+        address, port = line.split()[3].rsplit(":", 1)
+        address = address.strip("[]").split("%")[0]
+        if address == "*" or not ipaddress.ip_address(address).is_loopback:
+            found.add((proto, int(port)))
+    return found
+
+
+def check_every_answering_port_is_reported(host, ip):
+    reported = reported_ports(testbed.info(host), ip)
+    # TCP: every port of the host, tried from outside it, as a client would
+    answering = {("tcp", port) for port in portwatch.listening(ip, range(1, 65536))}
+    # the scan sees what listens (containerd's gRPC port on 127.0.0.1 is not reachable, nor reported)
+    assert reachable_listeners(host, "tcp") == answering
+    # UDP answers nothing to a probe: what listens on an address other hosts can reach
+    assert answering | reachable_listeners(host, "udp") == reported
+
+
+def test_every_port_that_answers_from_outside_the_host_is_reported(host, ip):
+    check_every_answering_port_is_reported(host, ip)
+
+
 def test_a_headless_instance_has_no_stream_no_viewer_and_no_link(host, viewers, tmp_path):
     before = {i: container_id(host, f"isaac-sim-{i}") for i in range(3)}
     result = testbed.run_playbook(
@@ -141,6 +183,7 @@ def test_a_headless_instance_has_no_stream_no_viewer_and_no_link(host, viewers, 
     assert inst["urls"] == {} and inst["companions"] == []
     # nothing listens on its block, and its viewer is gone
     assert sh(host, "ss -Hltnu | grep -E ':(49103|48001|8213) ' | wc -l").stdout.strip() == "0"
+    check_every_answering_port_is_reported(host, testbed.host_ip(host))
     assert container_id(host, "isaac-sim-3-viewer") == ""
     assert unit_show(host, "isaac-sim-viewer@3.service")["UnitFileState"] != "enabled"
     # the streaming instances and their viewers were not touched
