@@ -65,6 +65,7 @@ class Judge:
         self.completed = set()  # non-orchestrators that exited 0
         self.seen_restarts = {}
         self.events = []  # [(seconds since start, service, what)]
+        self.healthy = set()  # services seen healthy (an event the first time)
         self.verdict = None
 
     def _event(self, now, service, text):
@@ -115,6 +116,9 @@ class Judge:
                 continue
             if name not in self.started:
                 continue
+            if obs["health"] == "healthy" and name not in self.healthy:
+                self.healthy.add(name)
+                self._event(now, name, "healthy")
             restarts = obs["restarts"]
             if restarts > self.seen_restarts.get(name, 0):
                 self._event(now, name, f"restarted by its restart policy ({restarts} so far)")

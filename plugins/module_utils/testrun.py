@@ -23,7 +23,14 @@ import re
 import signal
 from xml.sax.saxutils import escape, quoteattr
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, judge, layout, lifecycle, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils import (
+    fleet_status,
+    judge,
+    layout,
+    lifecycle,
+    plan,
+    releases,
+)
 
 DOCKER = "/usr/bin/docker"
 PROPS = "Id,LoadState,ActiveState,SubState,NRestarts,Result,ExecMainCode,ExecMainStatus"
@@ -49,7 +56,7 @@ def service_env(run: str, svc: dict, simulator=None, gpus=()) -> dict:
     """The environment a service's container gets: the file's (with the experience's over it),
     the borrowed instance's address and ports, the run's name and outputs directory."""
     env = dict(svc["environment"])
-    if simulator:
+    if simulator and svc.get("name") != simulator["service"]:
         env.update(simulator["env"])
     if not gpus:
         # a default nvidia runtime would otherwise show every GPU (the instances' too) to a CUDA image
@@ -74,7 +81,8 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
 
     env_file: the service's environment, in a file only root reads (values stay off command
     lines and unit files); simulator: {"service": name, "address": ..., "env": {...}} when the
-    run borrows an instance; gpus: the host's GPU ids given to this service (dedicated).
+    run borrows an instance (address None: a dedicated one, on the run's network); gpus: the
+    host's GPU ids given to this service (dedicated).
     """
     container = layout.run_name(run, name)
     argv = [
@@ -92,7 +100,7 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
     ]
     for key, value in sorted((svc.get("labels") or {}).items()):
         argv.append(f"--label={key}={value}")
-    if simulator:
+    if simulator and simulator.get("address") and name != simulator["service"]:
         argv.append(f"--add-host={simulator['service']}:{simulator['address']}")
     argv.append(f"--env-file={env_file}")
     if svc.get("working_dir"):
@@ -113,6 +121,8 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
     if gpus:
         # the quotes keep the comma inside one --gpus value (Docker reads it as CSV)
         argv.append(f'--gpus="device={",".join(str(g) for g in gpus)}"')
+    # a dedicated simulator's caches (never from the file: experience.read refuses host paths)
+    argv += [f"--mount=type=bind,source={source},target={target}" for source, target in svc.get("binds", ())]
     for volume, target, read_only in svc["volumes"]:
         ro = ",readonly" if read_only else ""
         argv.append(f"--mount=type=volume,source={layout.run_volume(run, volume)},target={target}{ro}")
@@ -463,8 +473,10 @@ def execute(
     judgement = None
     observations = {}
     owner = {"pid": pid, "services": services, "volumes": experience["volumes"], "directory": directory}
-    if simulator:
+    if simulator and simulator.get("instance") is not None:
         owner["instance"] = simulator["instance"]
+    if simulator and simulator.get("slot") is not None:
+        owner["slot"] = simulator["slot"]
     host.write(owner_file(run), json.dumps(owner) + "\n", 0o600)
     try:
         host.run(["mkdir", "-p", "-m", "0755", directory])
@@ -632,6 +644,8 @@ def sweep(host, docker, alive) -> list:
         if owner.get("instance") is not None:
             release(host, owner["instance"])
             lent.append(owner["instance"])
+        if owner.get("slot") is not None:
+            release_slot(host, owner["slot"])
         host.remove(path)
     return lent
 
@@ -698,6 +712,167 @@ def lend(host, service: str, instance: int, marker_exists) -> tuple:
     given = {layout.K_HOST: service, layout.K_INSTANCE: str(instance)}
     given.update({k: v for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX)})
     return {"service": service, "address": "host-gateway", "env": given, "instance": instance}, None
+
+
+# at most this many dedicated simulators at once on a host (each keeps a cache directory)
+SIMULATOR_SLOTS = 16
+
+
+def slot_marker(slot: int) -> str:
+    return f"{layout.RUN_DIR}/simulator-{slot}.lent"
+
+
+def slot_dir(slot: int, data_root: str = layout.DATA_ROOT) -> str:
+    """A dedicated simulator's caches, kept from run to run: the next run on the slot starts warm."""
+    return f"{data_root}/simulators/{slot}"
+
+
+def claim_slot(host, run: str, slots: int = SIMULATOR_SLOTS):
+    """The first free simulator slot, taken for the run (mkdir is atomic), or None when all are taken."""
+    for slot in range(slots):
+        rc, _out, _err = host.run(["mkdir", slot_marker(slot)])
+        if rc == 0:
+            host.write(f"{slot_marker(slot)}/run", run + "\n", 0o644)
+            return slot
+    return None
+
+
+def release_slot(host, slot: int) -> None:
+    host.remove(slot_marker(slot))
+
+
+def deployed_simulator(read, ids, config_dir: str = layout.CONFIG_DIR) -> dict:
+    """The image, release and memory and shm limits of the host's lowest configured instance of
+    ids ({} when none is)."""
+    for i in sorted(ids):
+        env = layout.parse(read(layout.env_file(i, config_dir)) or "")
+        if env.get(layout.K_IMAGE):
+            limits = fleet_status.parse_limits(env.get(layout.K_DOCKER_ARGS, ""))
+            return {
+                "image": env[layout.K_IMAGE],
+                "release": env.get(layout.K_RELEASE),
+                "memory": limits.get("memory"),
+                "shm_size": limits.get("shm_size"),
+            }
+    return {}
+
+
+def dedicated_settings(image, release, deployed: dict, instance, gpus_given, host_gpus: int) -> tuple:
+    """({image, release, gpu, limits}, errors) of a dedicated simulator: the image and release
+    given, else those of the host's instances (deployed_simulator), else the release the image's
+    tag names; one GPU when the host has any (then the run must be given one)."""
+    errors = []
+    if instance is not None:
+        errors.append(
+            f"instance: {instance} with simulator: dedicated; a run with its own simulator borrows no instance. "
+            "Fix: leave instance out, or use simulator: borrow."
+        )
+    if not image:
+        image, release = deployed.get("image"), release or deployed.get("release")
+    names = ", ".join(releases.RELEASES)
+    if not image:
+        errors.append(
+            "simulator_image: not given, and no Isaac Sim instance is deployed on this host to take it from. "
+            "Fix: set simulator_image (experience_simulator_image) to the Isaac Sim image to run."
+        )
+    elif plan.parse_image(image) is None:
+        errors.append(
+            f"simulator_image: {image!r} is not an image reference. Fix: e.g. {releases.default_image('6.x')}."
+        )
+    elif not release:
+        release = releases.release_of_tag(plan.parse_image(image)[1] or "")
+        if not release:
+            errors.append(
+                f"simulator_release: not given, and the tag of {image} names no release. Fix: set simulator_release "
+                f"(experience_simulator_release) to one of {names}."
+            )
+    if release and release not in releases.RELEASES:
+        errors.append(f"simulator_release: {release!r}. Fix: one of {names}.")
+    if host_gpus and not gpus_given:
+        errors.append(
+            f"gpus: none given, and this host has {host_gpus} GPU(s): the dedicated simulator needs one. Fix: give "
+            "the run a free GPU id (experience_gpus), or borrow an instance (simulator: borrow)."
+        )
+    if errors:
+        return None, errors
+    limits = {k: deployed.get(k) for k in ("memory", "shm_size")}
+    return {"image": image, "release": release, "gpu": bool(host_gpus), "limits": limits}, []
+
+
+def dedicate(experience: dict, *, release: str, image: str, cache: str, start_period: float, gpu: bool, limits=None):
+    """(experience, simulator): the experience with its simulator service as a headless Isaac Sim
+    of its own, run like every other service of the run, and what the other services are given.
+
+    The service keeps what it says: an entrypoint of its own (a standalone script, say) replaces
+    the release's headless launch, a command is added to it as the app's arguments; its user,
+    environment, healthcheck, limits and GPU request win over the release's. cache: the slot's
+    directory, mounted where the release keeps its caches, logs and data. gpu: reserve one GPU
+    when the service asks for none (False on a host without GPUs). limits: the memory and
+    shm_size the host's instances have (Docker's 64 MB of shm is too little for Isaac Sim).
+    """
+    name = experience["simulator"]
+    profile = releases.RELEASES[release]
+    launch = profile["profiles"][releases.HEADLESS]
+    svc = dict(experience["services"][name], image=image, simulator=False, dedicated=True)
+    if svc["entrypoint"] is None:
+        svc["entrypoint"] = [launch["entrypoint"]] + list(launch["args"])
+    svc["user"] = svc["user"] or f"{profile['uid']}:{profile['gid']}"
+    for key in ("memory", "shm_size"):
+        svc[key] = svc[key] or (limits or {}).get(key)
+    svc["environment"] = dict({"ACCEPT_EULA": "Y"}, **svc["environment"])
+    # NVIDIA's own check (AppReady in the newest kit log); no port: headless opens none
+    svc["healthcheck"] = svc["healthcheck"] or {
+        "test": releases.healthcheck(release, None),
+        "interval": 2.0,
+        "timeout": 10.0,
+        "retries": 3,
+        "start_period": float(start_period),
+    }
+    svc["binds"] = [(f"{cache}/{sub}", target) for sub, target in sorted(profile["mounts"].items())]
+    if not svc["gpus"] and not svc["gpu_device_ids"] and gpu:
+        svc["gpus"] = 1
+    services = dict(experience["services"], **{name: svc})
+    out = dict(
+        experience,
+        services=services,
+        simulator=None,
+        gpus=sum(s["gpus"] for s in services.values() if not s["simulator"]),
+        images=sorted(set(experience["images"]) | {image}),
+    )
+    given = {layout.K_HOST: name}
+    given.update({layout.K_PORT_PREFIX + kind.upper(): str(spec[1]) for kind, spec in profile["ports"].items()})
+    # no address: the run's network resolves the service's name
+    return out, {"service": name, "address": None, "env": given, "instance": None}
+
+
+def cache_argv(cache: str, release: str) -> list:
+    """The commands that make a slot's directories the release's user's (re-owned only when a
+    release of another user had them)."""
+    profile = releases.RELEASES[release]
+    owner = f"{profile['uid']}:{profile['gid']}"
+    dirs = [f"{cache}/{sub}" for sub in sorted(profile["mounts"])]
+    return [
+        ["mkdir", "-p", "-m", "0750"] + dirs,
+        [
+            "find",
+            cache,
+            "(",
+            "!",
+            "-uid",
+            str(profile["uid"]),
+            "-o",
+            "!",
+            "-gid",
+            str(profile["gid"]),
+            ")",
+            "-exec",
+            "chown",
+            "-h",
+            owner,
+            "{}",
+            "+",
+        ],
+    ]
 
 
 def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_instance, threading) -> list:

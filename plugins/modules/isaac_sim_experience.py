@@ -63,6 +63,25 @@ options:
         to another run. Its address and ports reach every service as C(ISAAC_SIM_HOST) and
         C(ISAAC_SIM_PORT_<NAME>), and the simulator's service name resolves to the host.
     type: int
+  simulator:
+    description:
+      - C(borrow) - the simulator service runs on the fleet instance O(instance).
+      - C(dedicated) - the run starts a headless Isaac Sim of its own as the simulator service (O(simulator_image),
+        the release's headless launch unless the service gives an entrypoint, NVIDIA's AppReady healthcheck unless
+        it gives one), on the run's network under the service's name, with one GPU of O(gpus) unless it asks for
+        its own. Its caches are kept per slot under C(DATA_ROOT/simulators/N), so the next run starts warm. No
+        instance of the fleet is touched.
+    type: str
+    choices: [borrow, dedicated]
+    default: borrow
+  simulator_image:
+    description: The dedicated simulator's image; by default the image of the host's deployed instances.
+    type: str
+  simulator_release:
+    description:
+      - The dedicated simulator's release (C(2023.1), C(4.x), C(5.x), C(6.x)); by default that of the host's deployed
+        instances, else the one the image's tag names.
+    type: str
   gpus:
     description: The host's GPU ids this run may give its services (each service that reserves GPUs gets its own).
     type: list
@@ -97,6 +116,15 @@ EXAMPLES = r"""
     environment: {SEED: "42"}
     instance: 0
     timeout: 900
+  async: 1200
+  poll: 5
+
+- name: Run it with a headless Isaac Sim of its own (the host's image and release), on GPU 1
+  isaacsim.fleet.isaac_sim_experience:
+    compose: "{{ lookup('ansible.builtin.file', 'experiences/pick.yml') | from_yaml }}"
+    name: pick
+    simulator: dedicated
+    gpus: ["1"]
   async: 1200
   poll: 5
   register: pick
@@ -142,6 +170,10 @@ restart_instance:
   description: The borrowed instance, to be restarted clean through the lifecycle; null when none was borrowed.
   returned: always
   type: int
+simulator_slot:
+  description: The slot of a dedicated simulator (its caches are in C(DATA_ROOT/simulators/SLOT)).
+  returned: when O(simulator=dedicated) and the run started
+  type: int
 """
 
 import os
@@ -149,13 +181,20 @@ import secrets
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, hostprobe, layout, lifecycle, testrun
+from ansible_collections.isaacsim.fleet.plugins.module_utils import (
+    experience,
+    gpu_usage,
+    hostprobe,
+    layout,
+    lifecycle,
+    testrun,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
 
 def _simulator(module, host, exp, instance):
     """What the services are given of the borrowed instance; fails the module when it cannot be lent."""
-    if exp["simulator"] is None:
+    if exp["simulator"] is None or module.params["simulator"] == "dedicated":
         return None
     if instance is None:
         module.fail_json(
@@ -166,6 +205,39 @@ def _simulator(module, host, exp, instance):
     if error:
         module.fail_json(msg=error)
     return simulator
+
+
+def _import_nvml():
+    import pynvml  # nvidia-ml-py, where the host has it
+
+    return pynvml
+
+
+def _dedicated(module, host, exp):
+    """({image, release, gpu, start_period, limits}, errors) for a run with a simulator of its own;
+    None when the run borrows (or has no simulator)."""
+    p = module.params
+    if exp["simulator"] is None or p["simulator"] != "dedicated":
+        return None, []
+    wants = f"{layout.UNIT_DIR}/{layout.TARGET}.wants"
+    deployed = testrun.deployed_simulator(host.read, hostprobe.existing_instances(layout.CONFIG_DIR, wants))
+    found, why = gpu_usage.read("auto", host.run, _import_nvml)
+    settings, errors = testrun.dedicated_settings(
+        p["simulator_image"],
+        p["simulator_release"],
+        deployed,
+        p["instance"],
+        p["gpus"],
+        len((found or {}).get("gpus") or []),
+    )
+    if settings and not settings["gpu"]:
+        module.warn(
+            f"{exp['name']}: this host has no GPU ({why}); the dedicated simulator runs without one, which only a "
+            "stand-in image can."
+        )
+    if settings:
+        settings["start_period"] = p["timeout"]
+    return settings, errors
 
 
 def main():
@@ -179,6 +251,9 @@ def main():
             "run": {"type": "str"},
             "timeout": {"type": "float", "default": 600},
             "instance": {"type": "int"},
+            "simulator": {"type": "str", "default": "borrow", "choices": ["borrow", "dedicated"]},
+            "simulator_image": {"type": "str"},
+            "simulator_release": {"type": "str"},
             "gpus": {"type": "list", "elements": "str", "default": []},
             "data_root": {"type": "path", "default": layout.DATA_ROOT},
             "pull": {"type": "bool", "default": True},
@@ -209,6 +284,13 @@ def main():
     api = DockerSocket()
 
     pull = testrun.puller(host, enabled=p["pull"] and not module.check_mode)
+    dedicated, errors = _dedicated(module, host, exp)
+    if errors:
+        module.fail_json(msg=" ".join(errors), errors=errors, **base)
+    read = exp
+    if dedicated:
+        # the slot is taken once nothing stops the run; its directory does not change what is checked
+        exp, simulator = testrun.dedicate(read, cache=testrun.slot_dir(0, p["data_root"]), **dedicated)
 
     try:
         errors = testrun.preflight(api, exp, p["gpus"], pull)
@@ -216,14 +298,15 @@ def main():
         module.fail_json(msg=f"Docker cannot be asked about the images: {exc}", **base)
     if errors:
         module.fail_json(msg=" ".join(errors), errors=errors, **base)
-    simulator = _simulator(module, host, exp, p["instance"])
+    if not dedicated:
+        simulator = _simulator(module, host, exp, p["instance"])
     if module.check_mode:
         module.exit_json(changed=True, order=exp["order"], **base)
     swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
     if swept:
         # runs whose runner was killed had these instances: back clean, through the lifecycle
         lifecycle.restart_each(host, swept, 0, companions=hostprobe.existing_companions(layout.CONFIG_DIR))
-    if simulator:
+    if simulator and simulator["instance"] is not None:
         holder = testrun.claim(host, simulator["instance"], run)
         if holder:
             module.fail_json(
@@ -231,6 +314,22 @@ def main():
                 **base,
             )
         base["restart_instance"] = simulator["instance"]
+    if dedicated:
+        slot = testrun.claim_slot(host, run)
+        if slot is None:
+            module.fail_json(
+                msg=f"{testrun.SIMULATOR_SLOTS} dedicated simulators already run on this host. Fix: run fewer at once.",
+                **base,
+            )
+        cache = testrun.slot_dir(slot, p["data_root"])
+        for argv in testrun.cache_argv(cache, dedicated["release"]):
+            rc, _out, err = host.run(argv)
+            if rc != 0:
+                testrun.release_slot(host, slot)
+                module.fail_json(msg=f"could not prepare {cache}: {err.strip()}; nothing of the run started", **base)
+        exp, simulator = testrun.dedicate(read, cache=cache, **dedicated)
+        simulator["slot"] = slot
+        base["simulator_slot"] = slot
     try:
         result = testrun.execute(
             host,
@@ -250,8 +349,10 @@ def main():
     except (RuntimeError, DockerError) as exc:
         module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)
     finally:
-        if simulator:
+        if simulator and simulator["instance"] is not None:
             testrun.release(host, simulator["instance"])
+        if simulator and simulator.get("slot") is not None:
+            testrun.release_slot(host, simulator["slot"])
     result.pop("orchestrator_output", None)
     base.update(result)
     module.exit_json(changed=True, **base)

@@ -1,6 +1,6 @@
 """Test runs (experiences) through playbooks/experience.yml on a real systemd host: a passing
-run with its artefacts, a run against a borrowed instance, and bad input refused before any
-container starts; every container, unit, network and volume of a run gone afterwards. The
+run with its artefacts, a run against a borrowed instance, one with a simulator of its own, and
+bad input refused before any container starts; every container, unit, network and volume of a run gone afterwards. The
 other verdicts (an orchestrator's exit 3, a crash with and without restart, a late dependency,
 a timeout) are the fleet scenario's suite test (tests/integration/fleet/test_suite.py), which
 runs them all in one playbook."""
@@ -75,6 +75,30 @@ def test_the_simulator_is_a_borrowed_instance_restarted_clean_after_the_run(host
     assert left_behind(host) == ""
 
 
+def test_a_dedicated_simulator_is_a_headless_isaac_sim_of_the_run_that_keeps_its_caches(host, tmp_path):
+    fleet = {i: container_id(host, f"isaac-sim-{i}") for i in range(4)}
+    result, outcome, directory = run(host, tmp_path, "dedicated", experience_simulator="dedicated")
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert outcome["verdict"]["result"] == "passed", outcome["events"]
+    # the fleet's image, run headless (the release's launch) as its user; the check started once it was healthy
+    log = (directory / f"{outcome['run']}-isaac-sim.log").read_text()
+    assert "Isaac Sim Full App starting as uid 1234 (script isaac-sim.sh, shader cache cold)" in log, log[-2000:]
+    starts = {svc: t for t, svc, what in outcome["events"] if what.startswith("started")}
+    healthy = min(t for t, svc, what in outcome["events"] if (svc, what) == ("isaac-sim", "healthy"))
+    assert starts["check"] >= healthy > starts["isaac-sim"], outcome["events"]
+    # found by its service name on the run's network, with the release's ports
+    name, address, port = (directory / "outputs" / "simulator.txt").read_text().split()
+    assert (name, port) == ("isaac-sim", "49100") and address.count(".") == 3
+    # stopped with the run; its caches stay for the next run on the slot, owned by its user
+    assert outcome["services"]["isaac-sim"]["state_at_verdict"] == "running"
+    cache = sh(host, "stat -c '%u %s' /var/lib/isaac-sim/simulators/0/cache/main/ov/standin-shader-cache")
+    assert cache.stdout.split()[0] == "1234"
+    assert sh(host, "ls /run/isaac-sim").stdout.count(".lent") == 0
+    # no instance of the fleet was lent or restarted
+    assert {i: container_id(host, f"isaac-sim-{i}") for i in range(4)} == fleet
+    assert left_behind(host) == ""
+
+
 def test_bad_experiences_are_refused_before_any_container_starts(host, tmp_path):
     registry = registry_image(host, "x").split("/", 1)[0]
     result, outcome, _directory = run(host, tmp_path, "bad")
@@ -90,4 +114,11 @@ def test_bad_experiences_are_refused_before_any_container_starts(host, tmp_path)
     result, outcome, _directory = run(host, tmp_path, "sim", experience_instance=7)
     text = " ".join((result.stdout + result.stderr).split())
     assert "instance: 7 is not configured on this host" in text
+    image = "registry.local/sim:v1"
+    result, outcome, _directory = run(
+        host, tmp_path, "dedicated", experience_simulator="dedicated", experience_simulator_image=image
+    )
+    text = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode != 0 and outcome is None
+    assert "simulator_release: not given, and the tag of registry.local/sim:v1 names no release" in text
     assert left_behind(host) == ""

@@ -61,6 +61,8 @@ def started_all(exp=ROBOT, timeout=60):
 def test_services_start_once_their_conditions_hold_in_compose_order():
     j = started_all()
     assert [e[1] for e in j.events if e[2].startswith("started")] == ["db", "recorder", "planner", "check"]
+    # a dependency getting healthy is an event of its own, once: what its dependents waited for
+    assert [e[:2] for e in j.events if e[2] == "healthy"] == [(2.0, "db")]
     assert j.verdict is None
 
 

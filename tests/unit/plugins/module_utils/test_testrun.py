@@ -395,3 +395,136 @@ def test_how_a_container_ended_survives_systemd_forgetting_the_unit():
     text = testrun.unit_text("r1", "check", read()["services"]["check"], ["x"])
     assert "ExecStopPost=-/bin/sh -c 'echo \"$$EXIT_CODE $$EXIT_STATUS\" > /run/isaac-sim/runs/r1/check.exit'\n" in text
     assert "ExecStartPre=-/bin/rm -f /run/isaac-sim/runs/r1/check.exit\n" in text
+
+
+SIM = yaml.safe_load(
+    """
+services:
+  isaac-sim:
+    image: isaac-sim
+  check:
+    image: reg/check:1
+    labels: {isaacsim.fleet/test-orchestrator: "true"}
+    depends_on: {isaac-sim: {condition: service_healthy}}
+"""
+)
+
+
+def dedicated(compose=SIM, **kw):
+    args = dict(release="6.x", image="reg/isaac-sim:6.0.1", cache="/d/simulators/3", start_period=600, gpu=True)
+    return testrun.dedicate(read(compose), **dict(args, **kw))
+
+
+def test_a_dedicated_simulator_is_the_release_s_headless_isaac_sim_with_its_caches_and_a_gpu():
+    exp, given = dedicated(limits={"memory": "32g", "shm_size": "2g"})
+    sim = exp["services"]["isaac-sim"]
+    # an ordinary service of the run now: started, judged and stopped like the others
+    assert exp["simulator"] is None and "isaac-sim" in exp["order"]
+    assert exp["images"] == ["reg/check:1", "reg/isaac-sim:6.0.1"] and exp["gpus"] == 1
+    assert sim["entrypoint"] == ["/isaac-sim/isaac-sim.sh", "--no-window"] and sim["user"] == "1234:1234"
+    assert sim["environment"] == {"ACCEPT_EULA": "Y"} and (sim["memory"], sim["shm_size"]) == ("32g", "2g")
+    assert "grep -q AppReady" in sim["healthcheck"]["test"] and sim["healthcheck"]["start_period"] == 600
+    assert ("/d/simulators/3/cache/main", "/isaac-sim/.cache") in sim["binds"]
+    assert ("/d/simulators/3/cache/computecache", "/isaac-sim/.nv/ComputeCache") in sim["binds"]
+    # the others find it by its service name on the run's network, with the release's ports
+    assert given["address"] is None and given["instance"] is None
+    assert given["env"] == {
+        "ISAAC_SIM_HOST": "isaac-sim",
+        "ISAAC_SIM_PORT_SIGNAL": "49100",
+        "ISAAC_SIM_PORT_STREAM": "47998",
+        "ISAAC_SIM_PORT_WEB_VIEWER": "8210",
+    }
+    argv = testrun.docker_argv("r1", "isaac-sim", sim, outputs="/o", env_file="/e", simulator=given, gpus=["1"])
+    assert "--mount=type=bind,source=/d/simulators/3/cache/main,target=/isaac-sim/.cache" in argv
+    assert not any(a.startswith("--add-host") for a in argv)
+    assert argv[-2:] == ["reg/isaac-sim:6.0.1", "--no-window"] and "--entrypoint=/isaac-sim/isaac-sim.sh" in argv
+    assert '--gpus="device=1"' in argv and "--shm-size=2g" in argv
+    # its own environment has no ISAAC_SIM_HOST pointing at itself; the orchestrator's has
+    assert "ISAAC_SIM_HOST" not in testrun.service_env("r1", sim, given)
+    assert testrun.service_env("r1", exp["services"]["check"], given)["ISAAC_SIM_HOST"] == "isaac-sim"
+    # the GPU comes from the run's free ones
+    assert testrun._gpu_share(exp, ["1", "2"]) == {"isaac-sim": ["1"], "check": []}
+
+
+def test_a_dedicated_simulator_keeps_what_its_service_says():
+    compose = yaml.safe_load(yaml.safe_dump(SIM))
+    compose["services"]["isaac-sim"].update(
+        entrypoint=["/isaac-sim/python.sh", "/scenarios/pick.py"],
+        command=["--seed", "7"],
+        user="0:0",
+        environment={"ACCEPT_EULA": "N", "ROS_DOMAIN_ID": "3"},
+        healthcheck={"test": "test -e /tmp/scene-loaded", "interval": "1s"},
+        deploy={"resources": {"reservations": {"devices": [{"capabilities": ["gpu"], "count": 2}]}}},
+    )
+    exp, _given = dedicated(compose, release="4.x", gpu=True)
+    sim = exp["services"]["isaac-sim"]
+    assert sim["entrypoint"] == ["/isaac-sim/python.sh", "/scenarios/pick.py"] and sim["command"] == ["--seed", "7"]
+    assert sim["user"] == "0:0" and sim["environment"] == {"ACCEPT_EULA": "N", "ROS_DOMAIN_ID": "3"}
+    assert sim["healthcheck"]["test"] == "test -e /tmp/scene-loaded" and exp["gpus"] == 2
+    # the 4.x image keeps its caches under /root
+    assert ("/d/simulators/3/cache/ov", "/root/.cache/ov") in sim["binds"]
+    # on a host without GPUs none is reserved (only a stand-in runs so)
+    exp, _given = dedicated(gpu=False)
+    assert exp["gpus"] == 0 and exp["services"]["isaac-sim"]["gpus"] == 0
+
+
+def test_dedicated_simulators_take_a_slot_each_and_a_swept_run_gives_its_slot_back():
+    host = ScriptedHost()
+    assert [testrun.claim_slot(host, run, slots=2) for run in ("a", "b", "c")] == [0, 1, None]
+    assert host.files["/run/isaac-sim/simulator-1.lent/run"] == "b\n"
+    testrun.release_slot(host, 0)
+    assert testrun.claim_slot(host, "c", slots=2) == 0
+    owner = {"pid": 7, "services": ["isaac-sim", "check"], "volumes": [], "directory": "/d/runs/r8", "slot": 1}
+    host.files["/run/isaac-sim/runs/r8.json"] = json.dumps(owner)
+    host.find = ["/run/isaac-sim/runs/r8.json"]
+    assert testrun.sweep(host, testrun.cli(host), alive=lambda pid: False) == []
+    assert "/run/isaac-sim/simulator-1.lent" in host.removed
+    # the slot's directories belong to the release's user; only what another user left is re-owned
+    mkdir, chown = testrun.cache_argv("/d/simulators/1", "5.x")
+    assert mkdir[:4] == ["mkdir", "-p", "-m", "0750"] and "/d/simulators/1/cache/main" in mkdir
+    assert chown == [
+        "find", "/d/simulators/1", "(", "!", "-uid", "1234", "-o", "!", "-gid", "1234", ")",
+        "-exec", "chown", "-h", "1234:1234", "{}", "+",
+    ]  # fmt: skip
+
+
+def test_the_dedicated_simulator_takes_the_image_release_and_limits_of_the_host_s_instances():
+    env = (
+        'ISAAC_SIM_IMAGE="reg/isaac-sim:5.1.0"\nISAAC_SIM_RELEASE="5.x"\n'
+        'ISAAC_SIM_DOCKER_ARGS="--network=host --memory=48g --shm-size=4g"\n'
+    )
+    files = {"/etc/isaac-sim/instance-2.env": env}
+    assert testrun.deployed_simulator(files.get, [3, 2]) == {
+        "image": "reg/isaac-sim:5.1.0",
+        "release": "5.x",
+        "memory": "48g",
+        "shm_size": "4g",
+    }
+    assert testrun.deployed_simulator(files.get, []) == {}
+
+
+def test_a_dedicated_simulator_s_settings_are_checked_before_anything_runs():
+    deployed = {"image": "reg/isaac-sim:6.0.1", "release": "6.x", "memory": "32g", "shm_size": "2g"}
+    settings, errors = testrun.dedicated_settings(None, None, deployed, None, [], 0)
+    assert errors == [] and settings == {
+        "image": "reg/isaac-sim:6.0.1",
+        "release": "6.x",
+        "gpu": False,
+        "limits": {"memory": "32g", "shm_size": "2g"},
+    }
+    # an image given: its tag names the release, the host's limits still apply
+    settings, errors = testrun.dedicated_settings("reg/sim:4.5.0", None, deployed, None, ["1"], 2)
+    assert errors == [] and (settings["release"], settings["gpu"]) == ("4.x", True)
+
+    def refused(*args):
+        settings, errors = testrun.dedicated_settings(*args)
+        assert settings is None
+        return " ".join(errors)
+
+    assert "no Isaac Sim instance is deployed on this host" in refused(None, None, {}, None, [], 0)
+    assert "the tag of reg/sim:latest names no release" in refused("reg/sim:latest", None, deployed, None, [], 0)
+    assert "'Bad Image' is not an image reference" in refused("Bad Image", "6.x", {}, None, [], 0)
+    assert "simulator_release: '7.x'. Fix: one of 2023.1, 4.x, 5.x, 6.x." in refused("reg/s:1", "7.x", {}, None, [], 0)
+    assert "instance: 0 with simulator: dedicated" in refused(None, None, deployed, 0, [], 0)
+    # a GPU host: the run must be given a GPU for it
+    assert "this host has 2 GPU(s): the dedicated simulator needs one" in refused(None, None, deployed, None, [], 2)
