@@ -109,7 +109,25 @@ def parse_smi_xml(text: str) -> dict:
     return {"source": "nvidia-smi", "driver": root.findtext("driver_version", ""), "gpus": gpus, "processes": procs}
 
 
-def read(source, run, import_nvml):
+def count_on(module) -> tuple:
+    """(GPUs of the host a module runs on, why none when there are none): NVML, else nvidia-smi."""
+
+    def run(argv):
+        path = module.get_bin_path(argv[0])
+        return module.run_command([path] + argv[1:]) if path else (127, "", f"{argv[0]} is not installed")
+
+    found, why = read("auto", run)
+    return len((found or {}).get("gpus") or []), why
+
+
+def import_nvml():
+    """The NVML bindings (nvidia-ml-py), where the host has them; ImportError where not."""
+    import pynvml
+
+    return pynvml
+
+
+def read(source, run, import_nvml=import_nvml):
     """(usage or None, error or None), from the source asked for ("auto", "nvml", "nvidia-smi", "none").
 
     run(argv) -> (rc, out, err) spawns nvidia-smi; import_nvml() returns the

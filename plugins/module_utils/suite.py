@@ -18,7 +18,8 @@ from xml.sax.saxutils import escape, quoteattr
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, judge
 
-KEYS = {"file", "name", "repeat", "environment", "parameters", "profiles", "timeout"}
+KEYS = {"file", "name", "repeat", "environment", "parameters", "profiles", "timeout", "simulator"}
+SIMULATOR_MODES = ("borrow", "dedicated")
 _SLUG = re.compile(r"[^a-z0-9]+")
 
 
@@ -65,6 +66,10 @@ def expand(suite, base_dir: str, load, default_timeout: float = 600) -> tuple:
         if timeout <= 0:
             errors.append(f"{where}.timeout: {entry.get('timeout')!r}. Fix: a number of seconds above 0.")
             continue
+        mode = entry.get("simulator", "borrow")
+        if mode not in SIMULATOR_MODES:
+            errors.append(f"{where}.simulator: {mode!r}. Fix: borrow (an instance of the fleet) or dedicated.")
+            continue
         params = entry.get("parameters") or [{}]
         if not isinstance(params, list) or not all(isinstance(p, dict) for p in params):
             errors.append(f"{where}.parameters: must be a list of mappings (one run each). Fix: - {{SCENE: office}}")
@@ -92,7 +97,9 @@ def expand(suite, base_dir: str, load, default_timeout: float = 600) -> tuple:
                         "profiles": profiles,
                         "timeout": timeout,
                         "gpus": exp["gpus"],
-                        "simulator": exp["simulator"] is not None,
+                        # borrows an instance; a dedicated one runs as a service of its own
+                        "simulator": exp["simulator"] is not None and mode == "borrow",
+                        "dedicated": exp["simulator"] is not None and mode == "dedicated",
                     }
                 )
     return runs, errors

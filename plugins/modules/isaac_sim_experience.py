@@ -207,12 +207,6 @@ def _simulator(module, host, exp, instance):
     return simulator
 
 
-def _import_nvml():
-    import pynvml  # nvidia-ml-py, where the host has it
-
-    return pynvml
-
-
 def _dedicated(module, host, exp):
     """({image, release, gpu, start_period, limits}, errors) for a run with a simulator of its own;
     None when the run borrows (or has no simulator)."""
@@ -221,14 +215,9 @@ def _dedicated(module, host, exp):
         return None, []
     wants = f"{layout.UNIT_DIR}/{layout.TARGET}.wants"
     deployed = testrun.deployed_simulator(host.read, hostprobe.existing_instances(layout.CONFIG_DIR, wants))
-    found, why = gpu_usage.read("auto", host.run, _import_nvml)
+    host_gpus, why = gpu_usage.count_on(module)
     settings, errors = testrun.dedicated_settings(
-        p["simulator_image"],
-        p["simulator_release"],
-        deployed,
-        p["instance"],
-        p["gpus"],
-        len((found or {}).get("gpus") or []),
+        p["simulator_image"], p["simulator_release"], deployed, p["instance"], p["gpus"], host_gpus
     )
     if settings and not settings["gpu"]:
         module.warn(

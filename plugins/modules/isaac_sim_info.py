@@ -280,14 +280,8 @@ cost:
 """
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status
+from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, gpu_usage
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerSocket
-
-
-def _import_nvml():
-    import pynvml  # nvidia-ml-py
-
-    return pynvml
 
 
 def main():
@@ -320,7 +314,7 @@ def main():
         run,
         None,
         docker,
-        _import_nvml,
+        gpu_usage.import_nvml,
         config_dir=p["config_dir"],
         run_dir=p["run_dir"],
         public_address=p["public_address"],

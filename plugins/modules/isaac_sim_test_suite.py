@@ -23,8 +23,9 @@ options:
   runs:
     description:
       - The runs, each with C(key) (short, unique), C(title), C(experience) (name), C(compose) (parsed),
-        C(environment), C(profiles), C(timeout), C(gpus) (count) and C(simulator) (bool), as the suite filter makes
-        them.
+        C(environment), C(profiles), C(timeout), C(gpus) (count), C(simulator) (bool, borrows) and C(dedicated)
+        (bool, a simulator of its own, as M(isaacsim.fleet.isaac_sim_experience) starts one with
+        O(isaacsim.fleet.isaac_sim_experience#module:simulator=dedicated)), as the suite filter makes them.
     type: list
     elements: dict
     required: true
@@ -84,7 +85,14 @@ import threading
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, hostprobe, layout, lifecycle, testrun
+from ansible_collections.isaacsim.fleet.plugins.module_utils import (
+    experience,
+    gpu_usage,
+    hostprobe,
+    layout,
+    lifecycle,
+    testrun,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
 KEEP = ("title", "key", "experience", "timeout")
@@ -132,6 +140,13 @@ def main():
     if module.check_mode:
         module.exit_json(changed=bool(p["runs"]), results=[], errors=list(unusable.values()))
     companions = hostprobe.existing_companions(layout.CONFIG_DIR)
+    # runs with a simulator of their own: the host's image, release and limits, one GPU where it has any
+    own, own_errors = None, []
+    if any(run.get("dedicated") for run in p["runs"]):
+        wants = f"{layout.UNIT_DIR}/{layout.TARGET}.wants"
+        deployed = testrun.deployed_simulator(host.read, hostprobe.existing_instances(layout.CONFIG_DIR, wants))
+        host_gpus, _why = gpu_usage.count_on(module)
+        own, own_errors = testrun.dedicated_settings(None, None, deployed, None, p["gpus"], host_gpus)
     swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
     if swept:
         lifecycle.restart_each(host, swept, 0, companions=companions)
@@ -143,7 +158,21 @@ def main():
             return dict({k: run[k] for k in KEEP}, host=hostname, error=" ".join(missing))
         run_id = testrun.run_id(run["key"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
         simulator = None
-        if exp["simulator"]:
+        if run.get("dedicated"):
+            if own is None:
+                return dict({k: run[k] for k in KEEP}, host=hostname, error=" ".join(own_errors))
+            slot = testrun.claim_slot(host, run_id)
+            if slot is None:
+                return dict({k: run[k] for k in KEEP}, host=hostname, error="every simulator slot of the host is taken")
+            cache = testrun.slot_dir(slot, p["data_root"])
+            for argv in testrun.cache_argv(cache, own["release"]):
+                rc, _out, err = host.run(argv)
+                if rc != 0:
+                    testrun.release_slot(host, slot)
+                    return dict({k: run[k] for k in KEEP}, host=hostname, error=f"{cache}: {err.strip()}")
+            exp, simulator = testrun.dedicate(exp, cache=cache, start_period=float(run["timeout"]), **own)
+            simulator["slot"] = slot
+        elif exp["simulator"]:
             simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
             holder = None if error else testrun.claim(host, instance, run_id)
             if error or holder:
@@ -164,8 +193,10 @@ def main():
                 pid=os.getpid(),
             )
         finally:
-            if simulator:
+            if simulator and simulator["instance"] is not None:
                 testrun.release(host, instance)
+            if simulator and simulator.get("slot") is not None:
+                testrun.release_slot(host, simulator["slot"])
         result.pop("orchestrator_output", None)
         result.update({k: run[k] for k in KEEP})
         if instance is not None:
@@ -176,8 +207,14 @@ def main():
         outcome = lifecycle.restart_each(host, [i], 0, companions=companions)
         return outcome["failed"]["reason"] if outcome["failed"] else None
 
+    def gpus_of(n, run):
+        """GPUs a run reserves: its services', and its own simulator's."""
+        if run.get("dedicated") and own:
+            return testrun.dedicate(read[n], cache="", start_period=1, **own)[0]["gpus"]
+        return read[n]["gpus"]
+
     runs = [
-        dict(run, _index=n, gpus=read[n]["gpus"], simulator=read[n]["simulator"] is not None)
+        dict(run, _index=n, gpus=gpus_of(n, run), simulator=bool(read[n]["simulator"]) and not run.get("dedicated"))
         for n, run in enumerate(p["runs"])
     ]
     results = testrun.run_queue(

@@ -1,6 +1,7 @@
-"""A suite of 12 experiences over the three fleet hosts: each run's verdict, at most the
-configured number of runs at once per host (measured from the hosts' journals), every run's
-artefacts on the controller, nothing left on the hosts, and a re-run of only the failed ones."""
+"""A suite of 12 experiences over the three fleet hosts (one borrowing an instance, one with a
+simulator of its own): each run's verdict, at most the configured number of runs at once per
+host (measured from the hosts' journals), every run's artefacts on the controller, nothing left
+on the hosts, and a re-run of only the failed ones."""
 
 import json
 import xml.etree.ElementTree as ET
@@ -24,8 +25,8 @@ EXPECTED = {
     "late#1": "passed",
     "late#2": "passed",
     "hang": "timeout",
-    "sim#1": "passed",
-    "sim#2": "passed",
+    "sim": "passed",
+    "dedicated": "passed",
 }
 
 
@@ -50,7 +51,9 @@ def suite(tmp_path_factory):
             },
             {"file": str(FIXTURES / "late.yml"), "repeat": 2},
             {"file": str(FIXTURES / "hang.yml"), "timeout": 5},
-            {"file": str(FIXTURES / "sim.yml"), "repeat": 2},
+            {"file": str(FIXTURES / "sim.yml")},
+            # a headless Isaac Sim of the run's own: no instance lent
+            {"file": str(FIXTURES / "dedicated.yml"), "simulator": "dedicated"},
         ],
     }
     (out / "suite.yml").write_text(yaml.safe_dump(spec))
@@ -111,10 +114,17 @@ def test_no_host_ran_more_than_its_parallel_and_every_host_took_a_share(suite):
 
 
 def test_nothing_of_any_run_is_left_on_the_hosts_and_lent_instances_serve_again(suite):
+    out, _extra, _run, _since = suite
     for host in hosts():
         left = sh(host, RUN_LEFTOVERS)
         assert left.strip() == "", f"{host}: {left}"
         assert sh(host, "ls /run/isaac-sim").count(".ready") >= 4
+        assert ".lent" not in sh(host, "ls /run/isaac-sim")
+    # the run with a simulator of its own borrowed no instance; its simulator ran the host's image headless
+    own = results(out)["dedicated"]
+    assert "instance" not in own
+    log = (out / "runs" / own["run"] / f"{own['run']}-isaac-sim.log").read_text()
+    assert "(script isaac-sim.sh, shader cache" in log
 
 
 def test_re_running_the_failed_ones_runs_only_those(suite):

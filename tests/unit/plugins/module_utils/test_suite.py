@@ -54,6 +54,19 @@ def test_every_parameter_set_and_repeat_is_a_run():
     assert len({r["key"] for r in runs}) == 5
 
 
+def test_a_run_with_a_simulator_of_its_own_needs_no_instance_to_borrow():
+    entries = {"experiences": [{"file": "sim.yml", "simulator": "dedicated"}, {"file": "sim.yml", "name": "lent"}]}
+    runs, errors = suite.expand(entries, "/s", load)
+    assert errors == []
+    assert [(r["title"], r["simulator"], r["dedicated"]) for r in runs] == [("sim", False, True), ("lent", True, False)]
+    plan, errors = suite.assign(runs[:1], {"a": {"parallel": 1, "gpus": 0, "instances": 0}})
+    assert errors == [] and [r["title"] for r in plan["a"]] == ["sim"]
+    _runs, errors = suite.expand({"experiences": [{"file": "sim.yml", "simulator": "own"}]}, "/s", load)
+    assert errors == [
+        "test_suite.experiences[0].simulator: 'own'. Fix: borrow (an instance of the fleet) or dedicated."
+    ]
+
+
 def test_one_bad_file_stops_the_whole_suite_with_its_reasons():
     entries = {"experiences": [{"file": "plain.yml", "repeat": 0}, {"file": "bad.yml"}, {"file": "gone.yml"}, {"x": 1}]}
     _runs, errors = suite.expand(entries, "/s", load)
