@@ -1,0 +1,380 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Training jobs on a Slurm cluster, as text and argument lists: the batch script sbatch takes,
+the script each node runs, the container runtime's command, and what sinfo, squeue and sacct
+say. Pure: the module and the role run these; the unit tests read what they generate.
+
+A job is one batch script that starts one task per node (srun); each task copies the shared
+Isaac Sim caches to the node's local disk, runs the training in the job's container runtime
+(one process, or torchrun with one process per GPU), and the first node copies the caches back
+whatever the training's exit. The job's exit status is the training's.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+
+RUNTIMES = ("apptainer", "podman", "docker", "enroot")
+# where the image the jobs run lives on the cluster, per runtime
+IMAGE_SUFFIX = {"apptainer": ".sif", "podman": ".tar", "docker": ".tar", "enroot": ".sqsh"}
+WORKDIR = "/workspace/isaaclab"
+RENDEZVOUS_PORT = 29500
+# job states (squeue(1)) after which a job does not run again
+FINISHED = {
+    "BOOT_FAIL",
+    "CANCELLED",
+    "COMPLETED",
+    "DEADLINE",
+    "FAILED",
+    "NODE_FAIL",
+    "OUT_OF_MEMORY",
+    "PREEMPTED",
+    "REVOKED",
+    "SPECIAL_EXIT",
+    "TIMEOUT",
+}
+SQUEUE_FORMAT = "%i|%T|%M|%N|%r"
+SACCT_FIELDS = "JobID,State,ExitCode,Elapsed,NodeList"
+SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
+
+# a node's variable inside a generated word; every other character of a word is taken as written
+_VAR_OPEN, _VAR_CLOSE = "\ue000", "\ue001"
+_VAR = re.compile(f"{_VAR_OPEN}([A-Z_][A-Z0-9_]*){_VAR_CLOSE}")
+_TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?$")
+_GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
+_SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def node(name: str) -> str:
+    """A variable of the node ($SLURM_JOB_ID, ...) in a word of a generated script: it expands
+    there; the words a user gives (arguments, paths) never do."""
+    return f"{_VAR_OPEN}{name}{_VAR_CLOSE}"
+
+
+def shown(word: str) -> str:
+    """A generated word as a person reads it ($NAME for the node's variables)."""
+    return _VAR.sub(r"$\1", word)
+
+
+def parse_time(text):
+    """Seconds of a Slurm time limit (minutes, minutes:seconds, hours:minutes:seconds, days-hours,
+    days-hours:minutes, days-hours:minutes:seconds); 0 for infinite/unlimited; None when it does not parse."""
+    text = str(text).strip().lower()
+    if text in ("infinite", "unlimited"):
+        return 0
+    match = _TIME.match(text)
+    if not match:
+        return None
+    days, first, second, third = match.groups()
+    if days is not None:
+        # days-hours[:minutes[:seconds]]
+        hours, minutes, seconds = int(first), int(second or 0), int(third or 0)
+        total = int(days) * 86400 + hours * 3600 + minutes * 60 + seconds
+    elif third is not None:
+        total = int(first) * 3600 + int(second) * 60 + int(third)
+    elif second is not None:
+        total = int(first) * 60 + int(second)
+    else:
+        total = int(first) * 60
+    return total
+
+
+def memory_mib(text):
+    """MiB of a Slurm memory size (a number is MiB; K, M, G, T suffixes), or None."""
+    match = _SIZE.match(str(text).strip())
+    if not match:
+        return None
+    value, unit = int(match.group(1)), match.group(2).upper()
+    return {"K": value // 1024, "": value, "M": value, "G": value * 1024, "T": value * 1024 * 1024}[unit]
+
+
+def parse_sinfo(text: str) -> dict:
+    """{partition: {"default", "nodes", "cpus", "memory_mib", "gpus", "max_time"}} from
+    `sinfo -h -e -o SINFO_FORMAT` (one line per partition and node configuration); gpus and the
+    others are the most one node of the partition has, max_time in seconds (0: none)."""
+    out = {}
+    for line in text.splitlines():
+        fields = line.strip().split("|")
+        if len(fields) != 6:
+            continue
+        name, nodes, cpus, memory, gres, limit = fields
+        default = name.endswith("*")
+        name = name.rstrip("*")
+        gpus = max((int(n) for n in _GRES_GPU.findall(gres)), default=0)
+        part = out.setdefault(
+            name, {"default": default, "nodes": 0, "cpus": 0, "memory_mib": 0, "gpus": 0, "max_time": None}
+        )
+        part["nodes"] += int(nodes) if nodes.isdigit() else 0
+        part["cpus"] = max(part["cpus"], int(cpus.rstrip("+")) if cpus.rstrip("+").isdigit() else 0)
+        part["memory_mib"] = max(part["memory_mib"], int(memory.rstrip("+")) if memory.rstrip("+").isdigit() else 0)
+        part["gpus"] = max(part["gpus"], gpus)
+        part["max_time"] = parse_time(limit)
+    return out
+
+
+def check_request(job: dict, partitions: dict) -> list:
+    """Errors in a job's request against what the cluster's partitions have (parse_sinfo), each
+    naming the variable and the fix, before anything is submitted."""
+    errors = []
+    name = job.get("partition") or next((p for p, v in partitions.items() if v["default"]), None)
+    if not partitions:
+        return ["train_partition: the cluster reports no partition (sinfo). Fix: check that slurmctld answers."]
+    if name not in partitions:
+        errors.append(
+            f"train_partition: {job.get('partition')!r} is not a partition of the cluster. Fix: one of "
+            f"{', '.join(sorted(partitions))}."
+        )
+        return errors
+    part = partitions[name]
+    seconds = parse_time(job.get("time", ""))
+    if seconds is None:
+        errors.append(
+            f"train_time: {job.get('time')!r} does not parse as a Slurm time. Fix: minutes, HH:MM:SS or "
+            "D-HH:MM:SS (e.g. 23:00:00)."
+        )
+    elif part["max_time"] and (seconds == 0 or seconds > part["max_time"]):
+        errors.append(
+            f"train_time: {job.get('time')} is longer than partition {name} allows "
+            f"({_clock(part['max_time'])}). Fix: ask for less time."
+        )
+    gpus, nodes = int(job.get("gpus_per_node") or 0), int(job.get("nodes") or 1)
+    if gpus > part["gpus"]:
+        errors.append(
+            f"train_gpus_per_node: {gpus}, and no node of partition {name} has more than {part['gpus']}. "
+            "Fix: ask for fewer per node (and more nodes), or use a partition with bigger nodes."
+        )
+    if nodes > part["nodes"]:
+        errors.append(f"train_nodes: {nodes}, and partition {name} has {part['nodes']}. Fix: ask for fewer nodes.")
+    cpus = int(job.get("cpus_per_node") or 1)
+    if part["cpus"] and cpus > part["cpus"]:
+        errors.append(
+            f"train_cpus_per_node: {cpus}, and no node of partition {name} has more than {part['cpus']}. "
+            "Fix: ask for fewer."
+        )
+    memory = job.get("memory")
+    if memory:
+        mib = memory_mib(memory)
+        if mib is None:
+            errors.append(f"train_memory: {memory!r} is not a size. Fix: e.g. 64G or 32000 (MiB).")
+        elif part["memory_mib"] and mib > part["memory_mib"]:
+            errors.append(
+                f"train_memory: {memory}, and no node of partition {name} has more than {part['memory_mib']} MiB. "
+                "Fix: ask for less."
+            )
+    if not _NAME.match(str(job.get("name") or "")):
+        errors.append(
+            f"train_job_name: {job.get('name')!r}. Fix: letters, digits, dot, dash and underscore, 64 at most."
+        )
+    return errors
+
+
+def _clock(seconds: int) -> str:
+    days, rest = divmod(int(seconds), 86400)
+    text = f"{rest // 3600:02d}:{rest % 3600 // 60:02d}:{rest % 60:02d}"
+    return f"{days}-{text}" if days else text
+
+
+def parse_squeue(line: str):
+    """{"id", "state", "elapsed", "nodes", "reason"} from one `squeue -h -o SQUEUE_FORMAT` line, or None."""
+    fields = line.strip().split("|")
+    if len(fields) != 5:
+        return None
+    job_id, state, elapsed, nodes, reason = fields
+    return {"id": job_id, "state": state, "elapsed": elapsed, "nodes": nodes, "reason": reason}
+
+
+def exit_of(text: str):
+    """(exit code, signal) of Slurm's "code:signal" ExitCode, or None."""
+    match = re.match(r"^(\d+):(\d+)$", (text or "").strip())
+    return (int(match.group(1)), int(match.group(2))) if match else None
+
+
+def parse_sacct(text: str, job_id: str):
+    """The job's own line of `sacct -n -P -o SACCT_FIELDS -j ID` (or `sacct -c`, which reads the
+    job completion log): {"id", "state", "exit_code", "signal", "elapsed", "nodes"}, or None."""
+    for line in text.splitlines():
+        fields = line.strip().split("|")
+        if len(fields) != 5 or fields[0] != str(job_id):
+            continue
+        code = exit_of(fields[2]) or (None, None)
+        return {
+            # "CANCELLED by 0": the state's first word
+            "state": fields[1].split()[0] if fields[1] else "",
+            "id": fields[0],
+            "exit_code": code[0],
+            "signal": code[1],
+            "elapsed": fields[3],
+            "nodes": fields[4],
+        }
+    return None
+
+
+def cache_binds(cache: str, mounts: dict) -> list:
+    """(host path, container path) of each cache directory of the job's node-local copy."""
+    return [(f"{cache}/{sub}", target) for sub, target in sorted(mounts.items())]
+
+
+def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool) -> list:
+    """The command that runs `command` in the job's image on a node (words of the node script;
+    node() marks the node's variables in them). env_names: variables passed from the node's environment."""
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
+    if runtime == "apptainer":
+        # a clean environment and private /tmp and $HOME, a writable layer that goes with the job
+        argv = ["apptainer", "exec", "--containall", "--writable-tmpfs", f"--pwd={WORKDIR}"]
+        argv += ["--nv"] if gpus else []
+        argv += [f"--bind={src}:{dst}:rw" for src, dst in binds]
+        argv += [f"--env={name}={node(name)}" for name in env_names]
+        return argv + [image] + list(command)
+    if runtime == "enroot":
+        argv = ["enroot", "start", "--rw"]
+        argv += [f"--mount={src}:{dst}" for src, dst in binds]
+        argv += [f"--env={name}" for name in env_names]
+        return argv + [image] + list(command)
+    argv = [runtime, "run", "--rm", "--network=host", "--ipc=host", f"--workdir={WORKDIR}"]
+    argv += [f"--name=train-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}"]
+    if gpus:
+        # the GPUs Slurm gave the job, by the ids it sets (CDI for Podman, --gpus for Docker)
+        argv += (
+            ["--device=nvidia.com/gpu=all", f"--env=NVIDIA_VISIBLE_DEVICES={node('CUDA_VISIBLE_DEVICES')}"]
+            if runtime == "podman"
+            else [f'--gpus="device={node("CUDA_VISIBLE_DEVICES")}"']
+        )
+    argv += [f"--volume={src}:{dst}:rw" for src, dst in binds]
+    argv += [f"--env={name}" for name in env_names]
+    return argv + [image] + list(command)
+
+
+def training_command(job: dict) -> list:
+    """The training inside the container: python on the script with its arguments, or torchrun
+    with one process per GPU of each node when the job has more than one GPU in all."""
+    python = shlex.split(job.get("python") or "/isaac-sim/python.sh")
+    gpus, nodes = int(job.get("gpus_per_node") or 0), int(job.get("nodes") or 1)
+    args = [str(a) for a in job.get("args") or []]
+    if gpus * nodes <= 1:
+        return python + [job["script"]] + args
+    return (
+        python
+        + ["-m", "torch.distributed.run", f"--nnodes={node('SLURM_NNODES')}", f"--nproc_per_node={gpus}"]
+        + [f"--node_rank={node('SLURM_NODEID')}", f"--rdzv_id={node('SLURM_JOB_ID')}", "--rdzv_backend=c10d"]
+        + [f"--rdzv_endpoint={node('MASTER_ADDR')}:{RENDEZVOUS_PORT}", job["script"]]
+        + args
+    )
+
+
+def _word(word: str) -> str:
+    """A word of a generated shell script: the node's variables (node()) expand, nothing else does."""
+    out, at = [], 0
+    for match in _VAR.finditer(str(word)):
+        if match.start() > at:
+            out.append(shlex.quote(str(word)[at : match.start()]))
+        out.append(f'"${{{match.group(1)}}}"')
+        at = match.end()
+    if at < len(str(word)) or not out:
+        out.append(shlex.quote(str(word)[at:]))
+    return "".join(out)
+
+
+def line(argv) -> str:
+    return " ".join(_word(w) for w in argv)
+
+
+def batch_script(job: dict, node_script: str, managed: str = "Ansible managed (isaacsim.fleet)") -> str:
+    """What sbatch runs: the resources asked for, then one task per node running node_script."""
+    directives = [
+        f"--job-name={job['name']}",
+        f"--nodes={int(job.get('nodes') or 1)}",
+        "--ntasks-per-node=1",
+        f"--cpus-per-task={int(job.get('cpus_per_node') or 1)}",
+        f"--time={job['time']}",
+        f"--output={job['log_dir']}/slurm-%j.out",
+    ]
+    if job.get("partition"):
+        directives.append(f"--partition={job['partition']}")
+    if job.get("account"):
+        directives.append(f"--account={job['account']}")
+    if int(job.get("gpus_per_node") or 0):
+        directives.append(f"--gpus-per-node={int(job['gpus_per_node'])}")
+    if job.get("memory"):
+        directives.append(f"--mem={job['memory']}")
+    directives += [str(d) for d in job.get("sbatch_options") or []]
+    text = ["#!/bin/bash"] + [f"#SBATCH {d}" for d in directives]
+    text += [f"# {managed}", "set -eo pipefail"]
+    # site modules (a proxy, a newer Apptainer) before anything runs
+    text += [f"module load {shlex.quote(str(m))}" for m in job.get("modules") or []]
+    text += [
+        'MASTER_ADDR="$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)"',
+        "export MASTER_ADDR",
+        # one task per node; the job fails as soon as one node's training does
+        f"exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 bash {shlex.quote(node_script)}",
+    ]
+    return "\n".join(text) + "\n"
+
+
+def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") -> str:
+    """What each node runs: the caches in, the training, the caches back (first node), its exit.
+
+    job: name, runtime, image (the SIF or squashfs file, or the image's name for podman and
+    docker, with image_archive the file each node loads it from), code_dir (the job's code on
+    the shared file system), cache_dir (the shared caches), mounts ({cache subdirectory: path in
+    the container}), python, script, args, gpus_per_node, nodes, env_names."""
+    shared = job["cache_dir"]
+    # the node's own disk: Slurm's per-job $TMPDIR where the site sets one
+    local = _word(job["local_cache"]) if job.get("local_cache") else '"${TMPDIR:-/tmp}/isaac-sim-cache-$SLURM_JOB_ID"'
+    binds = cache_binds(node("LOCAL_CACHE"), job["mounts"]) + [(job["code_dir"], WORKDIR)]
+    env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR"})
+    env_names += ["SLURM_JOB_ID", "SLURM_NNODES", "SLURM_NODEID"]
+    # enroot runs a container made from the job's squashfs image on each node, then removes it
+    image = f"isaaclab-{node('SLURM_JOB_ID')}" if job["runtime"] == "enroot" else job["image"]
+    run = runtime_argv(
+        job["runtime"], image, binds, env_names, training_command(job), bool(int(job.get("gpus_per_node") or 0))
+    )
+    dirs = " ".join(_word(f"{node('LOCAL_CACHE')}/{sub}") for sub in sorted(job["mounts"]))
+    text = [
+        "#!/bin/bash",
+        f"# {managed}",
+        "set -o pipefail",
+        f"SHARED_CACHE={_word(shared)}",
+        f"LOCAL_CACHE={local}",
+        # Isaac Sim reads and writes its caches a lot: the node's disk, not the shared file system
+        f'mkdir -p {dirs} && cp -a "$SHARED_CACHE/." "$LOCAL_CACHE/" 2>/dev/null || true',
+        "copy_back() {",
+        '  if [ "$SLURM_NODEID" = 0 ]; then cp -a "$LOCAL_CACHE/." "$SHARED_CACHE/" || true; fi',
+        '  rm -rf "$LOCAL_CACHE"',
+        "}",
+        "trap copy_back EXIT",
+    ]
+    if job["runtime"] == "podman" or job["runtime"] == "docker":
+        # the image comes to each node once, from the archive on the shared path
+        archive = job.get("image_archive")
+        if archive:
+            text.append(
+                f"{job['runtime']} image inspect {_word(job['image'])} >/dev/null 2>&1 || "
+                f"{job['runtime']} load -q -i {_word(archive)} >/dev/null"
+            )
+    if job["runtime"] == "enroot":
+        text.append(f"enroot create --force --name {_word(image)} {_word(job['image'])} >/dev/null")
+    text += [line(run), "status=$?"]
+    if job["runtime"] == "enroot":
+        text.append(f"enroot remove --force {_word(image)} >/dev/null 2>&1 || true")
+    text += ['echo "isaacsim.fleet: training on node $SLURM_NODEID exited with $status"', "exit $status"]
+    return "\n".join(text) + "\n"
+
+
+def build_argv(runtime: str, source_image: str, out: str, archive=None, fakeroot=True) -> list:
+    """The command that turns the team's Docker image into what the runtime runs, on the build host.
+
+    apptainer: a SIF from the local Docker daemon's image (docker-daemon:, its tag required), or
+    from a `docker save` archive; --fakeroot lets a user without root build (user namespaces and
+    /etc/subuid). enroot: a squashfs image from the daemon. podman and docker: a `save` archive
+    that each node loads once."""
+    if runtime == "apptainer":
+        source = f"docker-archive:{archive}" if archive else f"docker-daemon:{source_image}"
+        return ["apptainer", "build", "--force"] + (["--fakeroot"] if fakeroot else []) + [out, source]
+    if runtime == "enroot":
+        return ["enroot", "import", "--output", out, f"dockerd://{source_image}"]
+    if runtime in ("podman", "docker"):
+        return [runtime, "save", "--output", out, source_image]
+    raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")

@@ -1,0 +1,300 @@
+"""Training jobs on Slurm: time limits, what the cluster says (sinfo, squeue, sacct lines as
+Slurm 22.05 prints them), request checks, and the scripts, run by a real bash against a
+recording stand-in for the container runtime."""
+
+import os
+import stat
+import subprocess
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils import releases, slurm
+
+
+@pytest.mark.parametrize(
+    "text, seconds",
+    [
+        ("30", 1800),
+        ("30:15", 1815),
+        ("23:00:00", 82800),
+        ("2-12", 2 * 86400 + 12 * 3600),
+        ("1-02:03", 86400 + 2 * 3600 + 3 * 60),
+        ("1-02:03:04", 86400 + 2 * 3600 + 3 * 60 + 4),
+        ("UNLIMITED", 0),
+        ("infinite", 0),
+        ("abc", None),
+        ("1:2:3:4", None),
+        ("-5", None),
+        ("", None),
+    ],
+)
+def test_slurm_time_limits(text, seconds):
+    assert slurm.parse_time(text) == seconds
+
+
+def test_memory_sizes_are_mib_as_slurm_counts_them():
+    assert [slurm.memory_mib(s) for s in ("32000", "64G", "512m", "1T", "2048K", "lots")] == [
+        32000,
+        65536,
+        512,
+        1048576,
+        2,
+        None,
+    ]
+
+
+SINFO = """gpu*|2|2|2000|gpu:2|infinite
+gpu*|1|2|2000|gpu:1|infinite
+big|1|64|512000|gpu:a100:4(S:0-1)|2-00:00:00
+cpu|3|16|64000|(null)|1:00:00
+"""
+
+
+def test_partitions_from_sinfo():
+    parts = slurm.parse_sinfo(SINFO)
+    assert parts["gpu"] == {"default": True, "nodes": 3, "cpus": 2, "memory_mib": 2000, "gpus": 2, "max_time": 0}
+    assert parts["big"]["gpus"] == 4 and parts["big"]["max_time"] == 2 * 86400 and not parts["big"]["default"]
+    assert parts["cpu"]["gpus"] == 0 and parts["cpu"]["nodes"] == 3
+
+
+JOB = {"name": "train-ant", "partition": "gpu", "time": "01:00:00", "gpus_per_node": 2, "nodes": 1}
+
+
+def test_a_request_the_cluster_can_run_passes_and_the_default_partition_is_taken_when_none_is_named():
+    parts = slurm.parse_sinfo(SINFO)
+    assert slurm.check_request(JOB, parts) == []
+    assert slurm.check_request(dict(JOB, partition=None), parts) == []
+
+
+def test_a_request_the_cluster_cannot_run_is_refused_naming_the_variable():
+    parts = slurm.parse_sinfo(SINFO)
+
+    def errors(**over):
+        return " ".join(slurm.check_request(dict(JOB, **over), parts))
+
+    assert "train_partition: 'nope' is not a partition of the cluster. Fix: one of big, cpu, gpu." in errors(
+        partition="nope"
+    )
+    assert "train_gpus_per_node: 3, and no node of partition gpu has more than 2" in errors(gpus_per_node=3)
+    assert "train_time: 'abc' does not parse as a Slurm time" in errors(time="abc")
+    assert "train_time: 3-00:00:00 is longer than partition big allows (2-00:00:00)" in errors(
+        partition="big", time="3-00:00:00", gpus_per_node=1
+    )
+    assert "train_nodes: 4, and partition gpu has 3" in errors(nodes=4)
+    assert "train_memory: '2 gigs' is not a size" in errors(memory="2 gigs")
+    assert "train_memory: 4G, and no node of partition gpu has more than 2000 MiB" in errors(memory="4G")
+    assert "train_cpus_per_node: 8" in errors(cpus_per_node=8)
+    assert "train_job_name: 'my job'" in errors(name="my job")
+    assert slurm.check_request(JOB, {}) == [
+        "train_partition: the cluster reports no partition (sinfo). Fix: check that slurmctld answers."
+    ]
+
+
+def test_what_squeue_and_sacct_say_of_a_job():
+    assert slurm.parse_squeue("17|RUNNING|0:01|node-1|None") == {
+        "id": "17",
+        "state": "RUNNING",
+        "elapsed": "0:01",
+        "nodes": "node-1",
+        "reason": "None",
+    }
+    assert slurm.parse_squeue("slurm_load_jobs error: Invalid job id specified") is None
+    sacct = "2|FAILED|3:0|00:00:12|node-1\n2.batch|FAILED|3:0|00:00:12|node-1\n3|CANCELLED by 0|0:15|00:01:00|node-2\n"
+    assert slurm.parse_sacct(sacct, "2") == {
+        "id": "2",
+        "state": "FAILED",
+        "exit_code": 3,
+        "signal": 0,
+        "elapsed": "00:00:12",
+        "nodes": "node-1",
+    }
+    cancelled = slurm.parse_sacct(sacct, "3")
+    assert (cancelled["state"], cancelled["exit_code"], cancelled["signal"]) == ("CANCELLED", 0, 15)
+    assert slurm.parse_sacct(sacct, "9") is None
+    assert "CANCELLED" in slurm.FINISHED and "RUNNING" not in slurm.FINISHED
+
+
+def test_one_gpu_runs_python_and_more_run_torchrun_with_one_process_per_gpu():
+    job = {"script": "scripts/train.py", "args": ["--task=Ant", "--headless"], "gpus_per_node": 1}
+    assert slurm.training_command(job) == ["/isaac-sim/python.sh", "scripts/train.py", "--task=Ant", "--headless"]
+    multi = slurm.training_command(dict(job, gpus_per_node=4, nodes=2, python="/workspace/isaaclab/isaaclab.sh -p"))
+    multi = [slurm.shown(w) for w in multi]
+    assert multi[:4] == ["/workspace/isaaclab/isaaclab.sh", "-p", "-m", "torch.distributed.run"]
+    assert "--nproc_per_node=4" in multi and "--nnodes=$SLURM_NNODES" in multi
+    assert "--rdzv_endpoint=$MASTER_ADDR:29500" in multi and multi[-3:] == [
+        "scripts/train.py",
+        "--task=Ant",
+        "--headless",
+    ]
+
+
+def test_the_batch_script_asks_for_the_resources_and_starts_one_task_per_node():
+    job = dict(
+        JOB,
+        nodes=2,
+        cpus_per_node=16,
+        memory="64G",
+        account="lab",
+        modules=["eth_proxy", "apptainer/1.3"],
+        log_dir="/shared/jobs/train-ant/logs",
+        sbatch_options=["--mail-type=END"],
+    )
+    text = slurm.batch_script(job, "/shared/jobs/train-ant/node.sh")
+    for directive in (
+        "#SBATCH --job-name=train-ant",
+        "#SBATCH --nodes=2",
+        "#SBATCH --cpus-per-task=16",
+        "#SBATCH --gpus-per-node=2",
+        "#SBATCH --mem=64G",
+        "#SBATCH --time=01:00:00",
+        "#SBATCH --partition=gpu",
+        "#SBATCH --account=lab",
+        "#SBATCH --output=/shared/jobs/train-ant/logs/slurm-%j.out",
+        "#SBATCH --mail-type=END",
+        "module load eth_proxy",
+        "module load apptainer/1.3",
+    ):
+        assert directive + "\n" in text, directive
+    assert text.rstrip().endswith(
+        "exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 bash /shared/jobs/train-ant/node.sh"
+    )
+    assert subprocess.run(["bash", "-n"], input=text, text=True, check=False).returncode == 0
+
+
+@pytest.fixture()
+def node(tmp_path):
+    """A node: a shared cache with something in it, $TMPDIR, and a recording `apptainer`."""
+    shared = tmp_path / "shared-cache"
+    (shared / "cache/ov").mkdir(parents=True)
+    (shared / "cache/ov/shaders").write_text("warm")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "apptainer"
+    fake.write_text(
+        "#!/bin/bash\n"
+        'printf "%s\\n" "$@" > "$RECORD"\n'
+        'cache=$(printf "%s\\n" "$@" | sed -n "s|^--bind=\\(.*\\)/cache/ov:/root/.cache/ov:rw$|\\1|p")\n'
+        'echo more >> "$cache/cache/ov/shaders"\n'
+        'exit "${FAKE_EXIT:-0}"\n'
+    )
+    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    (tmp_path / "tmp").mkdir()
+    env = dict(
+        os.environ,
+        PATH=f"{bin_dir}:{os.environ['PATH']}",
+        RECORD=str(tmp_path / "argv"),
+        TMPDIR=str(tmp_path / "tmp"),
+        SLURM_JOB_ID="41",
+        SLURM_NODEID="0",
+        SLURM_NNODES="1",
+        MASTER_ADDR="node-1",
+        CUDA_VISIBLE_DEVICES="0",
+    )
+    return tmp_path, env
+
+
+def job_on(tmp_path, **over):
+    job = dict(
+        name="train-ant",
+        runtime="apptainer",
+        image="/shared/images/isaac-lab.sif",
+        code_dir="/shared/jobs/train-ant/code",
+        cache_dir=f"{tmp_path}/shared-cache",
+        mounts=releases.RELEASES["4.x"]["mounts"],
+        script="scripts/train.py",
+        args=["--task=Isaac-Ant-v0", '--note=it\'s a "test" $HOME', "--headless"],
+        gpus_per_node=1,
+    )
+    return dict(job, **over)
+
+
+def test_a_node_runs_the_training_with_its_words_intact_and_brings_the_caches_back(node):
+    tmp_path, env = node
+    script = tmp_path / "node.sh"
+    script.write_text(slurm.node_script(job_on(tmp_path)))
+    done = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    argv = (tmp_path / "argv").read_text().splitlines()
+    # every word of the training reached the runtime as written: nothing expanded, nothing split
+    assert argv[-6:] == [
+        "/shared/images/isaac-lab.sif",
+        "/isaac-sim/python.sh",
+        "scripts/train.py",
+        "--task=Isaac-Ant-v0",
+        '--note=it\'s a "test" $HOME',
+        "--headless",
+    ]
+    assert argv[:5] == ["exec", "--containall", "--writable-tmpfs", "--pwd=/workspace/isaaclab", "--nv"]
+    local = f"{tmp_path}/tmp/isaac-sim-cache-41"
+    assert f"--bind={local}/cache/ov:/root/.cache/ov:rw" in argv
+    assert "--bind=/shared/jobs/train-ant/code:/workspace/isaaclab:rw" in argv
+    assert "--env=CUDA_VISIBLE_DEVICES=0" in argv and "--env=SLURM_JOB_ID=41" in argv
+    # the node-local copy started warm, came back to the shared cache, and is gone from the node
+    assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warmmore\n"
+    assert not os.path.exists(local)
+    assert "training on node 0 exited with 0" in done.stdout
+
+
+def test_a_failing_training_is_the_job_s_exit_and_only_the_first_node_writes_the_caches_back(node):
+    tmp_path, env = node
+    script = tmp_path / "node.sh"
+    script.write_text(slurm.node_script(job_on(tmp_path)))
+    done = subprocess.run(["bash", str(script)], env=dict(env, FAKE_EXIT="3"), capture_output=True, text=True)
+    assert done.returncode == 3
+    assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warmmore\n"
+    second = subprocess.run(["bash", str(script)], env=dict(env, SLURM_NODEID="1"), capture_output=True, text=True)
+    assert second.returncode == 0
+    assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warmmore\n"
+
+
+def test_each_runtime_gets_its_own_command():
+    binds, env = [("/l/cache/ov", "/root/.cache/ov")], ["CUDA_VISIBLE_DEVICES"]
+    podman = slurm.runtime_argv("podman", "isaac-lab:2.1", binds, env, ["python"], gpus=True)
+    assert podman[:3] == ["podman", "run", "--rm"] and "--device=nvidia.com/gpu=all" in podman
+    assert "--volume=/l/cache/ov:/root/.cache/ov:rw" in podman and podman[-2:] == ["isaac-lab:2.1", "python"]
+    docker = [slurm.shown(w) for w in slurm.runtime_argv("docker", "isaac-lab:2.1", binds, env, ["python"], gpus=True)]
+    assert '--gpus="device=$CUDA_VISIBLE_DEVICES"' in docker
+    assert "--nv" not in slurm.runtime_argv("apptainer", "x.sif", binds, env, ["python"], gpus=False)
+    enroot = slurm.runtime_argv("enroot", "isaaclab-x", binds, env, ["python"], gpus=True)
+    assert enroot[:3] == ["enroot", "start", "--rw"] and "--mount=/l/cache/ov:/root/.cache/ov" in enroot
+    with pytest.raises(ValueError):
+        slurm.runtime_argv("singularity-ce", "x", [], [], [], gpus=False)
+
+
+def test_the_image_becomes_what_the_runtime_runs():
+    assert slurm.build_argv("apptainer", "isaac-lab:2.1", "/s/isaac-lab.sif") == [
+        "apptainer",
+        "build",
+        "--force",
+        "--fakeroot",
+        "/s/isaac-lab.sif",
+        "docker-daemon:isaac-lab:2.1",
+    ]
+    assert slurm.build_argv("apptainer", "x", "/s/i.sif", archive="/tmp/i.tar", fakeroot=False)[-1] == (
+        "docker-archive:/tmp/i.tar"
+    )
+    assert slurm.build_argv("enroot", "isaac-lab:2.1", "/s/i.sqsh") == [
+        "enroot",
+        "import",
+        "--output",
+        "/s/i.sqsh",
+        "dockerd://isaac-lab:2.1",
+    ]
+    assert slurm.build_argv("podman", "isaac-lab:2.1", "/s/i.tar") == [
+        "podman",
+        "save",
+        "--output",
+        "/s/i.tar",
+        "isaac-lab:2.1",
+    ]
+
+
+def test_podman_and_enroot_nodes_take_the_image_from_the_shared_path():
+    job = job_on("/x", runtime="podman", image="isaac-lab:2.1", image_archive="/shared/images/isaac-lab.tar")
+    text = slurm.node_script(job)
+    assert (
+        "podman image inspect isaac-lab:2.1 >/dev/null 2>&1 || podman load -q -i /shared/images/isaac-lab.tar" in text
+    )
+    enroot = slurm.node_script(job_on("/x", runtime="enroot", image="/shared/images/isaac-lab.sqsh"))
+    assert 'enroot create --force --name isaaclab-"${SLURM_JOB_ID}" /shared/images/isaac-lab.sqsh' in enroot
+    for script in (text, enroot):
+        assert subprocess.run(["bash", "-n"], input=script, text=True, check=False).returncode == 0
