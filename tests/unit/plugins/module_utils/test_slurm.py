@@ -192,6 +192,10 @@ def node(tmp_path):
     return tmp_path, env
 
 
+def bash(script, env):
+    return subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, check=False)
+
+
 def job_on(tmp_path, **over):
     job = dict(
         name="train-ant",
@@ -211,7 +215,7 @@ def test_a_node_runs_the_training_with_its_words_intact_and_brings_the_caches_ba
     tmp_path, env = node
     script = tmp_path / "node.sh"
     script.write_text(slurm.node_script(job_on(tmp_path)))
-    done = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, check=False)
+    done = bash(script, env)
     assert done.returncode == 0, done.stderr
     argv = (tmp_path / "argv").read_text().splitlines()
     # every word of the training reached the runtime as written: nothing expanded, nothing split
@@ -238,10 +242,10 @@ def test_a_failing_training_is_the_job_s_exit_and_only_the_first_node_writes_the
     tmp_path, env = node
     script = tmp_path / "node.sh"
     script.write_text(slurm.node_script(job_on(tmp_path)))
-    done = subprocess.run(["bash", str(script)], env=dict(env, FAKE_EXIT="3"), capture_output=True, text=True)
+    done = bash(script, dict(env, FAKE_EXIT="3"))
     assert done.returncode == 3
     assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warmmore\n"
-    second = subprocess.run(["bash", str(script)], env=dict(env, SLURM_NODEID="1"), capture_output=True, text=True)
+    second = bash(script, dict(env, SLURM_NODEID="1"))
     assert second.returncode == 0
     assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warmmore\n"
 
