@@ -378,3 +378,53 @@ def build_argv(runtime: str, source_image: str, out: str, archive=None, fakeroot
     if runtime in ("podman", "docker"):
         return [runtime, "save", "--output", out, source_image]
     raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
+
+
+def sync_argv(source: str, destination: str, excludes=(), ssh=None) -> list:
+    """rsync of the team's code to the job's directory on the cluster, deletions applied (the
+    guide's rsync leaves deleted files behind). .git and the job's logs/ are never sent, and
+    logs/ on the cluster is never deleted: earlier runs' results stay."""
+    argv = ["rsync", "--recursive", "--links", "--times", "--delete", "--exclude=/.git/", "--exclude=/logs/"]
+    argv += [f"--exclude={e}" for e in excludes]
+    if ssh:
+        argv += ["-e", ssh]
+    return argv + [source.rstrip("/") + "/", destination.rstrip("/") + "/"]
+
+
+def submitted_id(text: str):
+    """The job id of `sbatch --parsable` ("123" or "123;cluster"), or None."""
+    first = (text or "").strip().splitlines()[:1]
+    job = first[0].split(";", 1)[0] if first else ""
+    return job if job.isdigit() else None
+
+
+def needs_build(source_id: str, recorded) -> bool:
+    """Whether the cluster's image must be built and copied again: the source image's id (its
+    digest) differs from the one recorded beside the image when it was last built."""
+    return not recorded or recorded.strip() != (source_id or "").strip()
+
+
+def progress_line(job: dict) -> str:
+    """One line of a job's progress for a person: state, elapsed, nodes (or why it waits)."""
+    where = job.get("nodes") or ""
+    if job.get("state") == "PENDING" and job.get("reason") not in (None, "", "None"):
+        where = f"waiting: {job['reason']}"
+    return f"job {job.get('id')} {job.get('state', '?')} {job.get('elapsed', '')} {where}".rstrip()
+
+
+def parse_slurmd_c(text: str) -> dict:
+    """What `slurmd -C` finds of a node ("NodeName=n1 CPUs=2 Boards=1 ... RealMemory=24105"), as
+    {key: value}; the first line only (the second is its uptime)."""
+    first = (text or "").strip().splitlines()[:1]
+    return dict(word.split("=", 1) for word in (first[0].split() if first else []) if "=" in word)
+
+
+def gres_conf(node: str, devices) -> str:
+    """The node's gres.conf lines: one GPU per device file found (/dev/nvidia0, ...), in order.
+    Slurm wants character devices here (a plain file makes the node INVAL)."""
+    return "".join(f"NodeName={node} Name=gpu File={dev}\n" for dev in sorted(devices, key=_device_order))
+
+
+def _device_order(path: str):
+    match = re.search(r"(\d+)$", path)
+    return (int(match.group(1)) if match else -1, path)

@@ -302,3 +302,55 @@ def test_podman_and_enroot_nodes_take_the_image_from_the_shared_path():
     assert 'enroot create --force --name isaaclab-"${SLURM_JOB_ID}" /shared/images/isaac-lab.sqsh' in enroot
     for script in (text, enroot):
         assert subprocess.run(["bash", "-n"], input=script, text=True, check=False).returncode == 0
+
+
+def test_code_goes_to_the_cluster_with_deletions_and_without_git_or_logs(tmp_path):
+    src, dst = tmp_path / "code", tmp_path / "cluster"
+    (src / "scripts").mkdir(parents=True)
+    (src / ".git").mkdir()
+    (src / "scripts/train.py").write_text("v2")
+    (src / ".git/HEAD").write_text("ref")
+    (dst / "scripts").mkdir(parents=True)
+    (dst / "logs").mkdir()
+    (dst / "scripts/old.py").write_text("deleted upstream")
+    (dst / "logs/run-1.txt").write_text("kept")
+    argv = slurm.sync_argv(str(src), str(dst))
+    assert argv[-2:] == [f"{src}/", f"{dst}/"] and "--delete" in argv
+    # rsync itself (tools/bootstrap installs it)
+    done = subprocess.run(argv, capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    assert (dst / "scripts/train.py").read_text() == "v2"
+    assert not (dst / "scripts/old.py").exists() and not (dst / ".git").exists()
+    assert (dst / "logs/run-1.txt").read_text() == "kept"
+
+
+def test_submission_ids_and_when_an_image_is_built_again():
+    assert [slurm.submitted_id(t) for t in ("123\n", "77;lab-cluster", "sbatch: error: x", "")] == [
+        "123",
+        "77",
+        None,
+        None,
+    ]
+    assert slurm.needs_build("sha256:a", None) and slurm.needs_build("sha256:a", "sha256:b\n")
+    assert not slurm.needs_build("sha256:a", "sha256:a\n")
+
+
+def test_progress_says_where_a_job_runs_or_why_it_waits():
+    running = slurm.parse_squeue("17|RUNNING|1:02|node-[1-2]|None")
+    assert slurm.progress_line(running) == "job 17 RUNNING 1:02 node-[1-2]"
+    pending = slurm.parse_squeue("18|PENDING|0:00||Resources")
+    assert slurm.progress_line(pending) == "job 18 PENDING 0:00 waiting: Resources"
+
+
+def test_a_node_as_slurmd_finds_it_and_its_gpus_as_gres():
+    found = slurm.parse_slurmd_c(
+        "NodeName=vm CPUs=2 Boards=1 SocketsPerBoard=1 CoresPerSocket=2 ThreadsPerCore=1 RealMemory=24105\n"
+        "UpTime=0-01:02:03\n"
+    )
+    assert found["NodeName"] == "vm" and found["CPUs"] == "2" and found["RealMemory"] == "24105"
+    assert slurm.parse_slurmd_c("") == {}
+    assert slurm.gres_conf("gpu-1", ["/dev/nvidia10", "/dev/nvidia2", "/dev/nvidia0"]) == (
+        "NodeName=gpu-1 Name=gpu File=/dev/nvidia0\n"
+        "NodeName=gpu-1 Name=gpu File=/dev/nvidia2\n"
+        "NodeName=gpu-1 Name=gpu File=/dev/nvidia10\n"
+    )
