@@ -25,6 +25,7 @@ from xml.sax.saxutils import escape, quoteattr
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import (
     fleet_status,
+    hostprobe,
     judge,
     layout,
     lifecycle,
@@ -741,9 +742,11 @@ def release_slot(host, slot: int) -> None:
     host.remove(slot_marker(slot))
 
 
-def deployed_simulator(read, ids, config_dir: str = layout.CONFIG_DIR) -> dict:
+def deployed_simulator(read, ids=None, config_dir: str = layout.CONFIG_DIR) -> dict:
     """The image, release and memory and shm limits of the host's lowest configured instance of
-    ids ({} when none is)."""
+    ids (by default the instances set up on this host; {} when none is)."""
+    if ids is None:
+        ids = hostprobe.existing_instances(config_dir, f"{layout.UNIT_DIR}/{layout.TARGET}.wants")
     for i in sorted(ids):
         env = layout.parse(read(layout.env_file(i, config_dir)) or "")
         if env.get(layout.K_IMAGE):
@@ -843,6 +846,32 @@ def dedicate(experience: dict, *, release: str, image: str, cache: str, start_pe
     given.update({layout.K_PORT_PREFIX + kind.upper(): str(spec[1]) for kind, spec in profile["ports"].items()})
     # no address: the run's network resolves the service's name
     return out, {"service": name, "address": None, "env": given, "instance": None}
+
+
+def own_simulator(host, run: str, experience: dict, settings: dict, data_root: str, start_period: float) -> tuple:
+    """(experience, simulator, error): a slot taken for the run's dedicated simulator, its
+    directories made the release's user's, and the experience with the simulator in it
+    (dedicate). On an error nothing is held."""
+    slot = claim_slot(host, run)
+    if slot is None:
+        return None, None, f"{SIMULATOR_SLOTS} dedicated simulators already run on this host. Fix: run fewer at once."
+    cache = slot_dir(slot, data_root)
+    for argv in cache_argv(cache, settings["release"]):
+        rc, _out, err = host.run(argv)
+        if rc != 0:
+            release_slot(host, slot)
+            return None, None, f"could not prepare {cache}: {err.strip()}; nothing of the run started"
+    experience, simulator = dedicate(experience, cache=cache, start_period=start_period, **settings)
+    simulator["slot"] = slot
+    return experience, simulator, None
+
+
+def give_back(host, simulator) -> None:
+    """Release what a run held for its simulator: the lent instance's marker, or the slot."""
+    if simulator and simulator.get("instance") is not None:
+        release(host, simulator["instance"])
+    if simulator and simulator.get("slot") is not None:
+        release_slot(host, simulator["slot"])
 
 
 def cache_argv(cache: str, release: str) -> list:

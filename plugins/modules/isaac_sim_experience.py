@@ -208,24 +208,25 @@ def _simulator(module, host, exp, instance):
 
 
 def _dedicated(module, host, exp):
-    """({image, release, gpu, start_period, limits}, errors) for a run with a simulator of its own;
-    None when the run borrows (or has no simulator)."""
+    """({image, release, gpu, limits}, errors) for a run with a simulator of its own; None when
+    the run borrows (or has no simulator)."""
     p = module.params
     if exp["simulator"] is None or p["simulator"] != "dedicated":
         return None, []
-    wants = f"{layout.UNIT_DIR}/{layout.TARGET}.wants"
-    deployed = testrun.deployed_simulator(host.read, hostprobe.existing_instances(layout.CONFIG_DIR, wants))
     host_gpus, why = gpu_usage.count_on(module)
     settings, errors = testrun.dedicated_settings(
-        p["simulator_image"], p["simulator_release"], deployed, p["instance"], p["gpus"], host_gpus
+        p["simulator_image"],
+        p["simulator_release"],
+        testrun.deployed_simulator(host.read),
+        p["instance"],
+        p["gpus"],
+        host_gpus,
     )
     if settings and not settings["gpu"]:
         module.warn(
             f"{exp['name']}: this host has no GPU ({why}); the dedicated simulator runs without one, which only a "
             "stand-in image can."
         )
-    if settings:
-        settings["start_period"] = p["timeout"]
     return settings, errors
 
 
@@ -279,7 +280,9 @@ def main():
     read = exp
     if dedicated:
         # the slot is taken once nothing stops the run; its directory does not change what is checked
-        exp, simulator = testrun.dedicate(read, cache=testrun.slot_dir(0, p["data_root"]), **dedicated)
+        exp, _given = testrun.dedicate(
+            read, cache=testrun.slot_dir(0, p["data_root"]), start_period=p["timeout"], **dedicated
+        )
 
     try:
         errors = testrun.preflight(api, exp, p["gpus"], pull)
@@ -287,8 +290,7 @@ def main():
         module.fail_json(msg=f"Docker cannot be asked about the images: {exc}", **base)
     if errors:
         module.fail_json(msg=" ".join(errors), errors=errors, **base)
-    if not dedicated:
-        simulator = _simulator(module, host, exp, p["instance"])
+    simulator = _simulator(module, host, exp, p["instance"])
     if module.check_mode:
         module.exit_json(changed=True, order=exp["order"], **base)
     swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
@@ -304,21 +306,10 @@ def main():
             )
         base["restart_instance"] = simulator["instance"]
     if dedicated:
-        slot = testrun.claim_slot(host, run)
-        if slot is None:
-            module.fail_json(
-                msg=f"{testrun.SIMULATOR_SLOTS} dedicated simulators already run on this host. Fix: run fewer at once.",
-                **base,
-            )
-        cache = testrun.slot_dir(slot, p["data_root"])
-        for argv in testrun.cache_argv(cache, dedicated["release"]):
-            rc, _out, err = host.run(argv)
-            if rc != 0:
-                testrun.release_slot(host, slot)
-                module.fail_json(msg=f"could not prepare {cache}: {err.strip()}; nothing of the run started", **base)
-        exp, simulator = testrun.dedicate(read, cache=cache, **dedicated)
-        simulator["slot"] = slot
-        base["simulator_slot"] = slot
+        exp, simulator, error = testrun.own_simulator(host, run, read, dedicated, p["data_root"], p["timeout"])
+        if error:
+            module.fail_json(msg=error, **base)
+        base["simulator_slot"] = simulator["slot"]
     try:
         result = testrun.execute(
             host,
@@ -338,10 +329,7 @@ def main():
     except (RuntimeError, DockerError) as exc:
         module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)
     finally:
-        if simulator and simulator["instance"] is not None:
-            testrun.release(host, simulator["instance"])
-        if simulator and simulator.get("slot") is not None:
-            testrun.release_slot(host, simulator["slot"])
+        testrun.give_back(host, simulator)
     result.pop("orchestrator_output", None)
     base.update(result)
     module.exit_json(changed=True, **base)

@@ -143,10 +143,10 @@ def main():
     # runs with a simulator of their own: the host's image, release and limits, one GPU where it has any
     own, own_errors = None, []
     if any(run.get("dedicated") for run in p["runs"]):
-        wants = f"{layout.UNIT_DIR}/{layout.TARGET}.wants"
-        deployed = testrun.deployed_simulator(host.read, hostprobe.existing_instances(layout.CONFIG_DIR, wants))
         host_gpus, _why = gpu_usage.count_on(module)
-        own, own_errors = testrun.dedicated_settings(None, None, deployed, None, p["gpus"], host_gpus)
+        own, own_errors = testrun.dedicated_settings(
+            None, None, testrun.deployed_simulator(host.read), None, p["gpus"], host_gpus
+        )
     swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
     if swept:
         lifecycle.restart_each(host, swept, 0, companions=companions)
@@ -161,17 +161,9 @@ def main():
         if run.get("dedicated"):
             if own is None:
                 return dict({k: run[k] for k in KEEP}, host=hostname, error=" ".join(own_errors))
-            slot = testrun.claim_slot(host, run_id)
-            if slot is None:
-                return dict({k: run[k] for k in KEEP}, host=hostname, error="every simulator slot of the host is taken")
-            cache = testrun.slot_dir(slot, p["data_root"])
-            for argv in testrun.cache_argv(cache, own["release"]):
-                rc, _out, err = host.run(argv)
-                if rc != 0:
-                    testrun.release_slot(host, slot)
-                    return dict({k: run[k] for k in KEEP}, host=hostname, error=f"{cache}: {err.strip()}")
-            exp, simulator = testrun.dedicate(exp, cache=cache, start_period=float(run["timeout"]), **own)
-            simulator["slot"] = slot
+            exp, simulator, error = testrun.own_simulator(host, run_id, exp, own, p["data_root"], float(run["timeout"]))
+            if error:
+                return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
         elif exp["simulator"]:
             simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
             holder = None if error else testrun.claim(host, instance, run_id)
@@ -193,10 +185,7 @@ def main():
                 pid=os.getpid(),
             )
         finally:
-            if simulator and simulator["instance"] is not None:
-                testrun.release(host, instance)
-            if simulator and simulator.get("slot") is not None:
-                testrun.release_slot(host, simulator["slot"])
+            testrun.give_back(host, simulator)
         result.pop("orchestrator_output", None)
         result.update({k: run[k] for k in KEEP})
         if instance is not None:

@@ -528,3 +528,22 @@ def test_a_dedicated_simulator_s_settings_are_checked_before_anything_runs():
     assert "instance: 0 with simulator: dedicated" in refused(None, None, deployed, 0, [], 0)
     # a GPU host: the run must be given a GPU for it
     assert "this host has 2 GPU(s): the dedicated simulator needs one" in refused(None, None, deployed, None, [], 2)
+
+
+def test_a_run_s_own_simulator_holds_a_slot_until_given_back_and_none_when_it_cannot_be_prepared():
+    host = ScriptedHost()
+    settings = {"image": "reg/isaac-sim:6.0.1", "release": "6.x", "gpu": False, "limits": {}}
+    exp, sim, error = testrun.own_simulator(host, "r9", read(SIM), settings, "/d", 60)
+    assert error is None and sim["slot"] == 0 and exp["simulator"] is None
+    assert ("/d/simulators/0/cache/main", "/isaac-sim/.cache") in exp["services"]["isaac-sim"]["binds"]
+    assert host.calls[-2][:4] == ["mkdir", "-p", "-m", "0750"] and host.calls[-1][0] == "find"
+    testrun.give_back(host, sim)
+    assert "/run/isaac-sim/simulator-0.lent" in host.removed
+    # the slot's directories cannot be made: the slot is given back at once
+    broken = ScriptedHost(fail_on="chown")
+    _exp, sim, error = testrun.own_simulator(broken, "r10", read(SIM), settings, "/d", 60)
+    assert sim is None and error.startswith("could not prepare /d/simulators/0: boom")
+    assert "/run/isaac-sim/simulator-0.lent" in broken.removed
+    # a lent instance is given back by its marker
+    testrun.give_back(host, {"instance": 2})
+    assert "/run/isaac-sim/instance-2.lent" in host.removed
