@@ -12,8 +12,12 @@ whatever the training's exit. The job's exit status is the training's.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 import shlex
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import releases
 
 RUNTIMES = ("apptainer", "podman", "docker", "enroot")
 # where the image the jobs run lives on the cluster, per runtime
@@ -40,7 +44,8 @@ SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
 
 # a node's variable inside a generated word; every other character of a word is taken as written
 _VAR_OPEN, _VAR_CLOSE = "\ue000", "\ue001"
-_VAR = re.compile(f"{_VAR_OPEN}([A-Z_][A-Z0-9_]*){_VAR_CLOSE}")
+# NAME, or NAME[@] for each element of an array as its own word
+_VAR = re.compile(f"{_VAR_OPEN}([A-Z_][A-Z0-9_]*(?:\\[@\\])?){_VAR_CLOSE}")
 _TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?$")
 _GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
 _SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
@@ -211,6 +216,48 @@ def parse_sacct(text: str, job_id: str):
     return None
 
 
+def status_of(job_id, squeue_text: str, sacct_text: str):
+    """A job's state from what squeue and sacct say of it: {"id", "state", "elapsed", "nodes",
+    "reason", "exit_code", "signal", "finished"}, or None when neither knows it. Finished only
+    once its completion record is there (the exit status comes with it)."""
+    done = parse_sacct(sacct_text or "", job_id)
+    if done and done["state"] in FINISHED:
+        return dict(done, reason="", finished=True)
+    queued = next(
+        (q for q in map(parse_squeue, (squeue_text or "").splitlines()) if q and q["id"] == str(job_id)), None
+    )
+    if queued:
+        return dict(queued, exit_code=None, signal=None, finished=False)
+    return None
+
+
+def script_dir(job: dict) -> str:
+    """The directory of a job's generated scripts, named by what the job is: a running job's
+    scripts are never rewritten by the next submission, an identical one reuses them."""
+    text = json.dumps(job, sort_keys=True, default=str)
+    return f"{job['name']}-{hashlib.sha256(text.encode()).hexdigest()[:12]}"
+
+
+def image_file(source: str, runtime: str) -> str:
+    """The file name of a job image on the cluster, from the team's image name."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + IMAGE_SUFFIX[runtime]
+
+
+def complete(job: dict) -> dict:
+    """The job as the scripts take it, from what the playbook gives: the image from image_file
+    (its path on the cluster) and image_id (podman and docker nodes run it by id, loaded from
+    the file), the cache mounts of the release when none are given."""
+    job = dict(job)
+    if job.get("runtime") in ("podman", "docker"):
+        job["image"] = str(job.get("image_id") or "").rsplit(":", maxsplit=1)[-1]
+        job["image_archive"] = job.get("image_file")
+    else:
+        job["image"] = job.get("image_file")
+    if not job.get("mounts"):
+        job["mounts"] = releases.RELEASES[job.get("release") or "6.x"]["mounts"]
+    return job
+
+
 def cache_binds(cache: str, mounts: dict) -> list:
     """(host path, container path) of each cache directory of the job's node-local copy."""
     return [(f"{cache}/{sub}", target) for sub, target in sorted(mounts.items())]
@@ -218,7 +265,12 @@ def cache_binds(cache: str, mounts: dict) -> list:
 
 def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool) -> list:
     """The command that runs `command` in the job's image on a node (words of the node script;
-    node() marks the node's variables in them). env_names: variables passed from the node's environment."""
+    node() marks the node's variables in them). env_names: variables passed from the node's
+    environment. The image's own entrypoint is not run, as `apptainer exec` does not run it.
+
+    GPUs: Apptainer's --nv and enroot's hook bring the node's GPUs, and the job's device cgroup
+    (Slurm's ConstrainDevices) lets only the job's open; Podman and Docker are given the job's
+    GPUs by their numbers on the node (JOB_GPUS, from Slurm's SLURM_STEP_GPUS)."""
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
     if runtime == "apptainer":
@@ -233,18 +285,23 @@ def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool
         argv += [f"--mount={src}:{dst}" for src, dst in binds]
         argv += [f"--env={name}" for name in env_names]
         return argv + [image] + list(command)
-    argv = [runtime, "run", "--rm", "--network=host", "--ipc=host", f"--workdir={WORKDIR}"]
-    argv += [f"--name=train-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}"]
+    argv = [runtime, "run", "--rm", "--network=host", "--ipc=host", "--entrypoint=", f"--workdir={WORKDIR}"]
+    argv += [f"--name={container_name()}"]
+    if runtime == "podman":
+        # the container stays in the job's cgroup, so Slurm's CPU, memory and device limits hold
+        # and a cancelled job's processes end with it (Docker's daemon starts containers outside it)
+        argv += ["--cgroups=disabled"]
     if gpus:
-        # the GPUs Slurm gave the job, by the ids it sets (CDI for Podman, --gpus for Docker)
-        argv += (
-            ["--device=nvidia.com/gpu=all", f"--env=NVIDIA_VISIBLE_DEVICES={node('CUDA_VISIBLE_DEVICES')}"]
-            if runtime == "podman"
-            else [f'--gpus="device={node("CUDA_VISIBLE_DEVICES")}"']
-        )
+        # CDI names for Podman (nvidia-ctk cdi generate), the toolkit's --gpus for Docker
+        argv += [node("GPU_DEVICES[@]")] if runtime == "podman" else [f'--gpus="device={node("JOB_GPUS")}"']
     argv += [f"--volume={src}:{dst}:rw" for src, dst in binds]
     argv += [f"--env={name}" for name in env_names]
     return argv + [image] + list(command)
+
+
+def container_name() -> str:
+    """The name of a job's container on a node (Podman and Docker), one per job and node."""
+    return f"train-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}"
 
 
 def training_command(job: dict) -> list:
@@ -305,7 +362,10 @@ def batch_script(job: dict, node_script: str, managed: str = "Ansible managed (i
     # site modules (a proxy, a newer Apptainer) before anything runs
     text += [f"module load {shlex.quote(str(m))}" for m in job.get("modules") or []]
     text += [
-        'MASTER_ADDR="$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)"',
+        # the first node's address as slurm.conf gives it (NodeAddr, its name where none is set)
+        'MASTER_NODE="$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)"',
+        'MASTER_ADDR="$(scontrol show node "$MASTER_NODE" | sed -n \'s/.*NodeAddr=\\([^ ]*\\).*/\\1/p\')"',
+        'MASTER_ADDR="${MASTER_ADDR:-$MASTER_NODE}"',
         "export MASTER_ADDR",
         # one task per node; the job fails as soon as one node's training does
         f"exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 bash {shlex.quote(node_script)}",
@@ -316,10 +376,11 @@ def batch_script(job: dict, node_script: str, managed: str = "Ansible managed (i
 def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") -> str:
     """What each node runs: the caches in, the training, the caches back (first node), its exit.
 
-    job: name, runtime, image (the SIF or squashfs file, or the image's name for podman and
-    docker, with image_archive the file each node loads it from), code_dir (the job's code on
-    the shared file system), cache_dir (the shared caches), mounts ({cache subdirectory: path in
-    the container}), python, script, args, gpus_per_node, nodes, env_names."""
+    job: name, runtime, image (the SIF or squashfs file, or for podman and docker the image's
+    id, with image_archive the file each node loads it from), code_dir (the job's code on the
+    shared file system), cache_dir (the shared caches), mounts ({cache subdirectory: path in the
+    container}), python, script, args, gpus_per_node, nodes, env_names."""
+    runtime = job["runtime"]
     shared = job["cache_dir"]
     # the node's own disk: Slurm's per-job $TMPDIR where the site sets one
     local = _word(job["local_cache"]) if job.get("local_cache") else '"${TMPDIR:-/tmp}/isaac-sim-cache-$SLURM_JOB_ID"'
@@ -327,10 +388,9 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
     env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR"})
     env_names += ["SLURM_JOB_ID", "SLURM_NNODES", "SLURM_NODEID"]
     # enroot runs a container made from the job's squashfs image on each node, then removes it
-    image = f"isaaclab-{node('SLURM_JOB_ID')}" if job["runtime"] == "enroot" else job["image"]
-    run = runtime_argv(
-        job["runtime"], image, binds, env_names, training_command(job), bool(int(job.get("gpus_per_node") or 0))
-    )
+    image = f"isaaclab-{node('SLURM_JOB_ID')}" if runtime == "enroot" else job["image"]
+    gpus = bool(int(job.get("gpus_per_node") or 0))
+    run = runtime_argv(runtime, image, binds, env_names, training_command(job), gpus)
     dirs = " ".join(_word(f"{node('LOCAL_CACHE')}/{sub}") for sub in sorted(job["mounts"]))
     text = [
         "#!/bin/bash",
@@ -341,23 +401,53 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
         # Isaac Sim reads and writes its caches a lot: the node's disk, not the shared file system
         f'mkdir -p {dirs} && cp -a "$SHARED_CACHE/." "$LOCAL_CACHE/" 2>/dev/null || true',
         "copy_back() {",
+    ]
+    if runtime in ("podman", "docker"):
+        # a cancelled job's container goes with it (Docker's would run on under its daemon)
+        text.append(f"  {runtime} rm -f {_word(container_name())} >/dev/null 2>&1 || true")
+    text += [
         '  if [ "$SLURM_NODEID" = 0 ]; then cp -a "$LOCAL_CACHE/." "$SHARED_CACHE/" || true; fi',
         '  rm -rf "$LOCAL_CACHE"',
         "}",
         "trap copy_back EXIT",
+        # the job's GPUs by their numbers on the node (CUDA_VISIBLE_DEVICES counts from 0 in
+        # the job's device cgroup)
+        'JOB_GPUS="${SLURM_STEP_GPUS:-${SLURM_JOB_GPUS:-}}"',
     ]
-    if job["runtime"] == "podman" or job["runtime"] == "docker":
-        # the image comes to each node once, from the archive on the shared path
-        archive = job.get("image_archive")
-        if archive:
-            text.append(
-                f"{job['runtime']} image inspect {_word(job['image'])} >/dev/null 2>&1 || "
-                f"{job['runtime']} load -q -i {_word(archive)} >/dev/null"
-            )
-    if job["runtime"] == "enroot":
+    if runtime == "podman" and gpus:
+        text += [
+            "GPU_DEVICES=()",
+            'for gpu in ${JOB_GPUS//,/ }; do GPU_DEVICES+=("--device=nvidia.com/gpu=$gpu"); done',
+        ]
+    if runtime in ("podman", "docker") and job.get("image_archive"):
+        # the image comes to each node once, from the archive on the shared path; by its id, so
+        # a rebuilt image under the same tag is loaded again
+        text.append(
+            f"{runtime} image inspect {_word(job['image'])} >/dev/null 2>&1 || "
+            f"{runtime} load -q -i {_word(job['image_archive'])} >/dev/null"
+        )
+    if runtime == "enroot":
         text.append(f"enroot create --force --name {_word(image)} {_word(job['image'])} >/dev/null")
-    text += [line(run), "status=$?"]
-    if job["runtime"] == "enroot":
+    # the training runs in the background so that a cancel (scancel's SIGTERM) is handled at
+    # once: the container is stopped (Podman's conmon would die with the step and leave it
+    # running), then the caches go back; bash defers a trap while a foreground command runs
+    if runtime in ("podman", "docker"):
+        stop = f"  {runtime} stop -t 20 {_word(container_name())} >/dev/null 2>&1 || true"
+    else:
+        stop = '  kill -TERM "$TRAINING" 2>/dev/null || true'
+    text += [
+        f"{line(run)} &",
+        "TRAINING=$!",
+        "on_signal() {",
+        stop,
+        '  wait "$TRAINING"',
+        "  exit 143",
+        "}",
+        "trap on_signal TERM INT",
+        'wait "$TRAINING"',
+        "status=$?",
+    ]
+    if runtime == "enroot":
         text.append(f"enroot remove --force {_word(image)} >/dev/null 2>&1 || true")
     text += ['echo "isaacsim.fleet: training on node $SLURM_NODEID exited with $status"', "exit $status"]
     return "\n".join(text) + "\n"
@@ -368,27 +458,16 @@ def build_argv(runtime: str, source_image: str, out: str, archive=None, fakeroot
 
     apptainer: a SIF from the local Docker daemon's image (docker-daemon:, its tag required), or
     from a `docker save` archive; --fakeroot lets a user without root build (user namespaces and
-    /etc/subuid). enroot: a squashfs image from the daemon. podman and docker: a `save` archive
-    that each node loads once."""
+    /etc/subuid). enroot: a squashfs image from the daemon. podman and docker: a `docker save`
+    archive of the team's image that each node loads once (Podman loads Docker's archives)."""
     if runtime == "apptainer":
         source = f"docker-archive:{archive}" if archive else f"docker-daemon:{source_image}"
         return ["apptainer", "build", "--force"] + (["--fakeroot"] if fakeroot else []) + [out, source]
     if runtime == "enroot":
         return ["enroot", "import", "--output", out, f"dockerd://{source_image}"]
     if runtime in ("podman", "docker"):
-        return [runtime, "save", "--output", out, source_image]
+        return ["docker", "save", "--output", out, source_image]
     raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
-
-
-def sync_argv(source: str, destination: str, excludes=(), ssh=None) -> list:
-    """rsync of the team's code to the job's directory on the cluster, deletions applied (the
-    guide's rsync leaves deleted files behind). .git and the job's logs/ are never sent, and
-    logs/ on the cluster is never deleted: earlier runs' results stay."""
-    argv = ["rsync", "--recursive", "--links", "--times", "--delete", "--exclude=/.git/", "--exclude=/logs/"]
-    argv += [f"--exclude={e}" for e in excludes]
-    if ssh:
-        argv += ["-e", ssh]
-    return argv + [source.rstrip("/") + "/", destination.rstrip("/") + "/"]
 
 
 def submitted_id(text: str):

@@ -3,8 +3,10 @@ Slurm 22.05 prints them), request checks, and the scripts, run by a real bash ag
 recording stand-in for the container runtime."""
 
 import os
+import signal
 import stat
 import subprocess
+import time
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils import releases, slurm
@@ -177,6 +179,19 @@ def node(tmp_path):
         'exit "${FAKE_EXIT:-0}"\n'
     )
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    # podman: each call's words on a line of their own file (run, image inspect, load, stop, rm)
+    podman = bin_dir / "podman"
+    podman.write_text(
+        "#!/bin/bash\n"
+        'printf "%s\\n" "$@" > "$RECORD.podman-$1-$2"\n'
+        '[ "$1 $2" = "image inspect" ] && exit "${FAKE_IMAGE_MISSING:-0}"\n'
+        # a long run ends when the container is stopped
+        '[ "$1" = run ] && [ -n "$FAKE_RUN_SECONDS" ] && echo $$ > "$RECORD.pid" && exec sleep "$FAKE_RUN_SECONDS"\n'
+        '[ "$1" = stop ] && kill "$(cat "$RECORD.pid")"\n'
+        '[ "$1" = run ] && exit "${FAKE_EXIT:-0}"\n'
+        "exit 0\n"
+    )
+    podman.chmod(podman.stat().st_mode | stat.S_IEXEC)
     (tmp_path / "tmp").mkdir()
     env = dict(
         os.environ,
@@ -252,16 +267,57 @@ def test_a_failing_training_is_the_job_s_exit_and_only_the_first_node_writes_the
 
 def test_each_runtime_gets_its_own_command():
     binds, env = [("/l/cache/ov", "/root/.cache/ov")], ["CUDA_VISIBLE_DEVICES"]
-    podman = slurm.runtime_argv("podman", "isaac-lab:2.1", binds, env, ["python"], gpus=True)
-    assert podman[:3] == ["podman", "run", "--rm"] and "--device=nvidia.com/gpu=all" in podman
-    assert "--volume=/l/cache/ov:/root/.cache/ov:rw" in podman and podman[-2:] == ["isaac-lab:2.1", "python"]
-    docker = [slurm.shown(w) for w in slurm.runtime_argv("docker", "isaac-lab:2.1", binds, env, ["python"], gpus=True)]
-    assert '--gpus="device=$CUDA_VISIBLE_DEVICES"' in docker
+    podman = [slurm.shown(w) for w in slurm.runtime_argv("podman", "0a45", binds, env, ["python"], gpus=True)]
+    assert podman[:3] == ["podman", "run", "--rm"] and "$GPU_DEVICES[@]" in podman
+    # the image's entrypoint does not run (apptainer exec runs none); the job's cgroup holds
+    assert "--entrypoint=" in podman and "--cgroups=disabled" in podman
+    assert "--volume=/l/cache/ov:/root/.cache/ov:rw" in podman and podman[-2:] == ["0a45", "python"]
+    docker = [slurm.shown(w) for w in slurm.runtime_argv("docker", "0a45", binds, env, ["python"], gpus=True)]
+    assert '--gpus="device=$JOB_GPUS"' in docker and "--cgroups=disabled" not in docker
     assert "--nv" not in slurm.runtime_argv("apptainer", "x.sif", binds, env, ["python"], gpus=False)
+    assert not any("GPU" in w for w in slurm.runtime_argv("podman", "0a45", binds, env, ["python"], gpus=False))
     enroot = slurm.runtime_argv("enroot", "isaaclab-x", binds, env, ["python"], gpus=True)
     assert enroot[:3] == ["enroot", "start", "--rw"] and "--mount=/l/cache/ov:/root/.cache/ov" in enroot
     with pytest.raises(ValueError):
         slurm.runtime_argv("singularity-ce", "x", [], [], [], gpus=False)
+
+
+def test_a_podman_node_loads_the_image_once_and_gets_the_job_s_gpus_by_their_cdi_names(node):
+    tmp_path, env = node
+    script = tmp_path / "node.sh"
+    job = job_on(tmp_path, runtime="podman", image="0a45aa", image_archive="/shared/images/lab.tar", gpus_per_node=2)
+    script.write_text(slurm.node_script(job))
+    # Slurm's numbers of the node's GPUs given to this step; CUDA counts from 0 inside the job
+    done = bash(script, dict(env, SLURM_STEP_GPUS="1,3", CUDA_VISIBLE_DEVICES="0,1", FAKE_IMAGE_MISSING="1"))
+    assert done.returncode == 0, done.stderr
+    run = (tmp_path / "argv.podman-run---rm").read_text().splitlines()
+    assert [w for w in run if w.startswith("--device=")] == ["--device=nvidia.com/gpu=1", "--device=nvidia.com/gpu=3"]
+    assert "--name=train-41-0" in run and "0a45aa" in run
+    assert (tmp_path / "argv.podman-load--q").read_text().split() == ["load", "-q", "-i", "/shared/images/lab.tar"]
+    # the container is removed whatever the training's end
+    assert (tmp_path / "argv.podman-rm--f").read_text().split() == ["rm", "-f", "train-41-0"]
+    for f in tmp_path.glob("argv.podman-*"):
+        f.unlink()
+    # loaded already: no second load
+    assert bash(script, dict(env, SLURM_STEP_GPUS="0")).returncode == 0
+    assert not (tmp_path / "argv.podman-load--q").exists()
+
+
+def test_a_cancelled_job_stops_its_container_and_still_brings_the_caches_back(node):
+    tmp_path, env = node
+    script = tmp_path / "node.sh"
+    script.write_text(slurm.node_script(job_on(tmp_path, runtime="podman", image="0a45aa")))
+    running = subprocess.Popen(["bash", str(script)], env=dict(env, FAKE_RUN_SECONDS="30"), text=True)
+    deadline = time.monotonic() + 10
+    while not (tmp_path / "argv.podman-run---rm").exists():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    # what scancel does first: SIGTERM to the step's processes
+    running.send_signal(signal.SIGTERM)
+    assert running.wait(timeout=10) == 143
+    assert (tmp_path / "argv.podman-stop--t").read_text().split() == ["stop", "-t", "20", "train-41-0"]
+    assert (tmp_path / "argv.podman-rm--f").exists()
+    assert not os.path.exists(f"{tmp_path}/tmp/isaac-sim-cache-41")
 
 
 def test_the_image_becomes_what_the_runtime_runs():
@@ -283,8 +339,9 @@ def test_the_image_becomes_what_the_runtime_runs():
         "/s/i.sqsh",
         "dockerd://isaac-lab:2.1",
     ]
+    # Podman loads Docker's archives; the team's image is in its Docker
     assert slurm.build_argv("podman", "isaac-lab:2.1", "/s/i.tar") == [
-        "podman",
+        "docker",
         "save",
         "--output",
         "/s/i.tar",
@@ -293,35 +350,13 @@ def test_the_image_becomes_what_the_runtime_runs():
 
 
 def test_podman_and_enroot_nodes_take_the_image_from_the_shared_path():
-    job = job_on("/x", runtime="podman", image="isaac-lab:2.1", image_archive="/shared/images/isaac-lab.tar")
+    job = job_on("/x", runtime="podman", image="0a45aa", image_archive="/shared/images/isaac-lab.tar")
     text = slurm.node_script(job)
-    assert (
-        "podman image inspect isaac-lab:2.1 >/dev/null 2>&1 || podman load -q -i /shared/images/isaac-lab.tar" in text
-    )
+    assert "podman image inspect 0a45aa >/dev/null 2>&1 || podman load -q -i /shared/images/isaac-lab.tar" in text
     enroot = slurm.node_script(job_on("/x", runtime="enroot", image="/shared/images/isaac-lab.sqsh"))
     assert 'enroot create --force --name isaaclab-"${SLURM_JOB_ID}" /shared/images/isaac-lab.sqsh' in enroot
     for script in (text, enroot):
         assert subprocess.run(["bash", "-n"], input=script, text=True, check=False).returncode == 0
-
-
-def test_code_goes_to_the_cluster_with_deletions_and_without_git_or_logs(tmp_path):
-    src, dst = tmp_path / "code", tmp_path / "cluster"
-    (src / "scripts").mkdir(parents=True)
-    (src / ".git").mkdir()
-    (src / "scripts/train.py").write_text("v2")
-    (src / ".git/HEAD").write_text("ref")
-    (dst / "scripts").mkdir(parents=True)
-    (dst / "logs").mkdir()
-    (dst / "scripts/old.py").write_text("deleted upstream")
-    (dst / "logs/run-1.txt").write_text("kept")
-    argv = slurm.sync_argv(str(src), str(dst))
-    assert argv[-2:] == [f"{src}/", f"{dst}/"] and "--delete" in argv
-    # rsync itself (tools/bootstrap installs it)
-    done = subprocess.run(argv, capture_output=True, text=True, check=False)
-    assert done.returncode == 0, done.stderr
-    assert (dst / "scripts/train.py").read_text() == "v2"
-    assert not (dst / "scripts/old.py").exists() and not (dst / ".git").exists()
-    assert (dst / "logs/run-1.txt").read_text() == "kept"
 
 
 def test_submission_ids_and_when_an_image_is_built_again():
@@ -354,3 +389,25 @@ def test_a_node_as_slurmd_finds_it_and_its_gpus_as_gres():
         "NodeName=gpu-1 Name=gpu File=/dev/nvidia2\n"
         "NodeName=gpu-1 Name=gpu File=/dev/nvidia10\n"
     )
+
+
+def test_a_job_is_finished_only_with_its_completion_record():
+    queued = "41|RUNNING|0:13|node-1|None\n42|PENDING|0:00||Resources\n"
+    assert slurm.status_of("42", queued, "")["state"] == "PENDING"
+    assert slurm.status_of("41", queued, "")["finished"] is False
+    done = slurm.status_of("41", "41|COMPLETING|0:14|node-1|None\n", "41|COMPLETED|0:0|00:00:14|node-1\n")
+    assert done["finished"] and done["exit_code"] == 0
+    assert slurm.status_of("43", queued, "") is None
+
+
+def test_each_job_keeps_its_own_scripts_and_the_image_and_caches_follow_the_runtime():
+    job = {"name": "train-ant", "script": "a.py", "args": ["--x"]}
+    assert slurm.script_dir(job) == slurm.script_dir(dict(job))
+    assert slurm.script_dir(job) != slurm.script_dir(dict(job, args=["--y"]))
+    assert slurm.script_dir(job).startswith("train-ant-")
+    podman = slurm.complete({"runtime": "podman", "image_file": "/s/i.tar", "image_id": "sha256:0a45"})
+    assert (podman["image"], podman["image_archive"]) == ("0a45", "/s/i.tar")
+    assert podman["mounts"] == releases.RELEASES["6.x"]["mounts"]
+    apptainer = slurm.complete({"runtime": "apptainer", "image_file": "/s/i.sif", "release": "4.x"})
+    assert apptainer["image"] == "/s/i.sif" and apptainer["mounts"]["cache/ov"] == "/root/.cache/ov"
+    assert slurm.image_file("nvcr.io/team/isaac-lab:2.1", "apptainer") == "nvcr.io_team_isaac-lab_2.1.sif"
