@@ -1,0 +1,59 @@
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+"""Follows a Slurm job from the controller: the module looks once (state=query), this plugin
+looks again every poll_interval and prints a line whenever the job's state, time or nodes change,
+so a person sees a long training move instead of one silent task."""
+
+import time
+
+from ansible.plugins.action import ActionBase
+from ansible.utils.display import Display
+from ansible_collections.isaacsim.fleet.plugins.module_utils import slurm
+
+display = Display()
+
+
+class ActionModule(ActionBase):
+    _supports_check_mode = True
+
+    def run(self, tmp=None, task_vars=None):
+        result = super().run(tmp, task_vars)
+        args = dict(self._task.args)
+        state = args.get("state", "submitted")
+        if state not in ("finished", "cancelled"):
+            result.update(self._execute_module(module_args=args, task_vars=task_vars))
+            return result
+        changed = False
+        if state == "cancelled":
+            first = self._execute_module(module_args=args, task_vars=task_vars)
+            if first.get("failed") or first.get("finished") or self._task.check_mode:
+                result.update(first)
+                return result
+            changed = True
+        timeout, poll = int(args.get("wait_timeout") or 0), max(1, int(args.get("poll_interval") or 10))
+        query = dict(args, state="query")
+        started, progress, last = time.monotonic(), [], None
+        while True:
+            looked = self._execute_module(module_args=query, task_vars=task_vars)
+            if looked.get("failed"):
+                result.update(looked)
+                return result
+            line = slurm.progress_line(looked)
+            if line != last:
+                display.display(f"{self._task.delegate_to or task_vars.get('inventory_hostname')}: {line}")
+                progress.append(line)
+                last = line
+            if looked.get("finished"):
+                break
+            if timeout and time.monotonic() - started >= timeout:
+                result.update(
+                    looked,
+                    failed=True,
+                    progress=progress,
+                    msg=f"job {args['job_id']} has not ended after {timeout} s ({line}); it goes on. Fix: follow "
+                    "it again with train_job_id, or raise train_wait_timeout.",
+                )
+                return result
+            time.sleep(poll)
+        result.update(looked, changed=changed, progress=progress)
+        return result

@@ -1,0 +1,254 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_train_job
+short_description: Submit, follow and cancel an Isaac Lab training job on a Slurm cluster
+version_added: "0.4.0"
+description:
+  - Runs on the cluster's login node, with Slurm's own commands (C(sinfo), C(sbatch), C(squeue), C(sacct),
+    C(scancel)).
+  - O(state=checked) checks the request against the cluster's partitions and fails with every error, each naming
+    the playbook variable and the fix; nothing changes.
+  - O(state=submitted) checks the same way, writes the batch script and the script each node runs (one task per
+    node; the node-local cache copied in and back; the training in the job's container runtime, with C(torchrun)
+    past one GPU) and submits it with C(sbatch). Check mode shows the scripts and submits nothing.
+  - O(state=finished) follows the job until it ends, printing a line (state, elapsed time, nodes) whenever it
+    changes, and returns its end (the action plugin polls this module with O(state=query)).
+  - O(state=cancelled) cancels it with C(scancel) and waits until Slurm has ended it.
+  - Finished jobs are read with C(sacct), from the accounting database, or with C(sacct -c) from the job
+    completion log where the cluster keeps no database.
+author: isaacsim.fleet contributors (@isaacsim-fleet)
+options:
+  state:
+    description: What to do.
+    type: str
+    default: submitted
+    choices: [checked, submitted, query, finished, cancelled]
+  job:
+    description:
+      - The job (O(state=checked) and O(state=submitted)).
+      - C(name), C(partition), C(account), C(nodes), C(gpus_per_node), C(cpus_per_node), C(memory), C(time),
+        C(modules) (site modules loaded first), C(sbatch_options) (more C(#SBATCH) lines).
+      - C(runtime) (apptainer, podman, docker or enroot), C(image_file) (the job image on the cluster, the SIF or
+        squashfs file, or the archive podman and docker nodes load), C(image_id) (the team's image id, by which
+        podman and docker nodes run it).
+      - C(code_dir) (the job's code on the shared file system, the container's C(/workspace/isaaclab)),
+        C(log_dir) (where Slurm writes the job's output), C(cache_dir) (the shared Isaac Sim caches),
+        C(local_cache) (the node-local copy), C(release) (the Isaac Sim release whose cache paths are mounted),
+        or C(mounts) (cache subdirectory to path in the container).
+      - C(python), C(script), C(args) (as the guide passes them to the Python executable), C(env_names)
+        (variables passed into the container).
+    type: dict
+  job_dir:
+    description: Where the generated scripts are kept, on the shared file system (every node reads them).
+    type: path
+  job_id:
+    description: The job (O(state=query), O(state=finished), O(state=cancelled)).
+    type: str
+  wait_timeout:
+    description: Seconds to follow a job before giving up (the job goes on); 0 follows it to its end.
+    type: int
+    default: 0
+  poll_interval:
+    description: Seconds between two looks at a job that is followed.
+    type: int
+    default: 10
+notes:
+  - The node script's container command is written for each runtime's documented command line; only the Podman
+    path runs in this collection's test cluster (Apptainer is not packaged for its Debian test hosts).
+"""
+
+EXAMPLES = r"""
+- name: Submit the training
+  isaacsim.fleet.isaac_sim_train_job:
+    job: "{{ train_job }}"
+    job_dir: /shared/isaaclab/jobs
+  register: submitted
+
+- name: Follow it to its end
+  isaacsim.fleet.isaac_sim_train_job:
+    state: finished
+    job_id: "{{ submitted.job_id }}"
+"""
+
+RETURN = r"""
+job_id:
+  description: The job's id.
+  returned: success, unless O(state=checked)
+  type: str
+  sample: "4711"
+state:
+  description: Slurm's state of the job.
+  returned: O(state=query), O(state=finished), O(state=cancelled)
+  type: str
+  sample: COMPLETED
+finished:
+  description: Whether the job has ended.
+  returned: O(state=query), O(state=finished), O(state=cancelled)
+  type: bool
+exit_code:
+  description: The job's exit status (the training's), once it has ended.
+  returned: O(state=query), O(state=finished), O(state=cancelled)
+  type: int
+  sample: 0
+signal:
+  description: The signal that ended it, 0 for none.
+  returned: O(state=query), O(state=finished), O(state=cancelled)
+  type: int
+elapsed:
+  description: Time it ran.
+  returned: O(state=query), O(state=finished), O(state=cancelled)
+  type: str
+  sample: "00:12:31"
+nodes:
+  description: The nodes it ran on.
+  returned: O(state=query), O(state=finished), O(state=cancelled)
+  type: str
+  sample: gpu-node-[1-2]
+progress:
+  description: The lines shown while it was followed.
+  returned: O(state=finished), O(state=cancelled)
+  type: list
+  elements: str
+scripts:
+  description: The batch script and the node script written for it.
+  returned: O(state=submitted)
+  type: dict
+  sample: {"batch": "/shared/lab/jobs/train-ant-5f0c/batch.sh", "node": "/shared/lab/jobs/train-ant-5f0c/node.sh"}
+errors:
+  description: What is wrong with the request, each naming the variable and the fix.
+  returned: failure of O(state=checked) or O(state=submitted)
+  type: list
+  elements: str
+"""
+
+import os
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils import slurm
+
+# what the request check names each job key after (playbooks/train.yml's variables)
+_IMAGE_VARIABLE = "train_image"
+
+
+def _run(module, argv, check_rc=True):
+    rc, out, err = module.run_command(argv)
+    if check_rc and rc != 0:
+        module.fail_json(msg=f"{' '.join(argv)} failed ({rc}): {(err or out).strip()}", rc=rc)
+    return rc, out, err
+
+
+def request_errors(module, job):
+    _rc, out, _err = _run(module, ["sinfo", "-h", "-e", "-o", slurm.SINFO_FORMAT])
+    errors = slurm.check_request(job, slurm.parse_sinfo(out))
+    if job.get("runtime") not in slurm.RUNTIMES:
+        errors.append(f"train_runtime: {job.get('runtime')!r}. Fix: one of {', '.join(slurm.RUNTIMES)}.")
+    return errors
+
+
+def image_errors(job):
+    """The image the nodes read must be on the shared path before anything is submitted."""
+    path = job.get("image_archive") if job.get("runtime") in ("podman", "docker") else job.get("image")
+    if not path or not os.path.isfile(path):
+        return [
+            f"{_IMAGE_VARIABLE}: the job's image is not on the cluster ({path or 'no path'}). "
+            "Fix: submit with playbooks/train.yml, which builds and copies it, or copy it there."
+        ]
+    return []
+
+
+def write(module, path, text, mode):
+    before = ""
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as handle:
+            before = handle.read()
+    if before != text and not module.check_mode:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path + ".tmp", "w", encoding="utf-8") as handle:
+            handle.write(text)
+        os.chmod(path + ".tmp", mode)
+        os.replace(path + ".tmp", path)
+    return {"before": before, "after": text, "before_header": path, "after_header": path}
+
+
+def submit(module, job, job_dir):
+    errors = request_errors(module, job) + image_errors(job)
+    if errors:
+        module.fail_json(msg=" ".join(errors), errors=errors)
+    where = os.path.join(job_dir, slurm.script_dir(job))
+    scripts = {"batch": os.path.join(where, "batch.sh"), "node": os.path.join(where, "node.sh")}
+    diff = [
+        write(module, scripts["node"], slurm.node_script(job), 0o755),
+        write(module, scripts["batch"], slurm.batch_script(job, scripts["node"]), 0o755),
+    ]
+    if module.check_mode:
+        module.exit_json(changed=True, job_id=None, scripts=scripts, diff=diff)
+    # Slurm does not make the output's directory
+    os.makedirs(job["log_dir"], exist_ok=True)
+    _rc, out, _err = _run(module, ["sbatch", "--parsable", f"--chdir={job['code_dir']}", scripts["batch"]])
+    job_id = slurm.submitted_id(out)
+    if not job_id:
+        module.fail_json(msg=f"sbatch printed no job id: {out.strip()}")
+    module.exit_json(changed=True, job_id=job_id, scripts=scripts, diff=diff)
+
+
+def query(module, job_id):
+    _rc, queued, _err = _run(module, ["squeue", "-h", "-t", "all", "-j", job_id, "-o", slurm.SQUEUE_FORMAT], False)
+    fields = ["-n", "-P", "-X", "-o", slurm.SACCT_FIELDS, "-j", job_id]
+    rc, done, _err = _run(module, ["sacct"] + fields, False)
+    if rc != 0 or not slurm.parse_sacct(done, job_id):
+        # no accounting database: the job completion log (JobCompType=jobcomp/filetxt)
+        _rc, done, _err = _run(module, ["sacct", "-c"] + fields[:2] + fields[3:], False)
+    status = slurm.status_of(job_id, queued, done)
+    if status is None:
+        module.fail_json(msg=f"train_job_id: Slurm knows no job {job_id}. Fix: the id sbatch printed.")
+    return status
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec={
+            "state": {
+                "type": "str",
+                "default": "submitted",
+                "choices": ["checked", "submitted", "query", "finished", "cancelled"],
+            },
+            "job": {"type": "dict"},
+            "job_dir": {"type": "path"},
+            "job_id": {"type": "str"},
+            "wait_timeout": {"type": "int", "default": 0},
+            "poll_interval": {"type": "int", "default": 10},
+        },
+        required_if=[
+            ("state", "checked", ["job"]),
+            ("state", "submitted", ["job", "job_dir"]),
+            ("state", "query", ["job_id"]),
+            ("state", "finished", ["job_id"]),
+            ("state", "cancelled", ["job_id"]),
+        ],
+        supports_check_mode=True,
+    )
+    p = module.params
+    if p["state"] == "checked":
+        errors = request_errors(module, p["job"])
+        if errors:
+            module.fail_json(msg=" ".join(errors), errors=errors)
+        module.exit_json(changed=False)
+    if p["state"] == "submitted":
+        submit(module, slurm.complete(p["job"]), p["job_dir"])
+    status = query(module, p["job_id"])
+    if p["state"] == "cancelled" and not status["finished"]:
+        if not module.check_mode:
+            _run(module, ["scancel", p["job_id"]])
+        module.exit_json(changed=True, job_id=p["job_id"], **status)
+    # query, and finished when the action plugin is not in front (it polls query)
+    module.exit_json(changed=False, job_id=p["job_id"], **status)
+
+
+if __name__ == "__main__":
+    main()
