@@ -1,0 +1,184 @@
+"""Isaac Lab training on the test cluster through playbooks/train.yml, as a team runs it from its
+controller: the team's image (a stand-in Isaac Lab image, built here in this machine's Docker) and
+its code (a stand-in checkout with a training script that writes logs and checkpoints) go to the
+cluster, Slurm runs the job in Podman on a compute node, and the playbook follows it, brings its
+logs back and ends with its exit status. In order: bad requests (nothing reaches the cluster), a
+first job, a second submit (nothing copied, deletions applied, 2 GPUs, a failing exit), a new image
+and a cancel."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import time
+
+import pytest
+from clusterhosts import CONTROLLER, playbook, sh, squash
+from testbed import ROOT, client
+
+FIXTURE = ROOT / "tests" / "fixtures" / "isaac-lab"
+IMAGE = "isaacsim-fleet/isaac-lab-standin:cluster-test"
+# molecule/cluster/inventory: slurm_login's train_cluster_dir
+LAB = "/shared/isaaclab/lab"
+IMAGE_FILE = f"{LAB}/images/isaacsim-fleet_isaac-lab-standin_cluster-test.tar"
+NOTE = '--note=it\'s a "test" $HOME'
+
+
+def build_image(variant: int) -> str:
+    """The stand-in image in this machine's Docker (the controller's); a new variant, a new id."""
+    subprocess.run(
+        ["docker", "build", "-q", "--build-arg", f"VARIANT={variant}", "-t", IMAGE, str(FIXTURE)],
+        check=True,
+        capture_output=True,
+    )
+    return client().images.get(IMAGE).id
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """The team's side: a copy of the stand-in checkout with a file that a later commit deletes."""
+    code = tmp_path_factory.mktemp("team") / "IsaacLab"
+    shutil.copytree(FIXTURE / "code", code)
+    (code / "scripts" / "old_helper.py").write_text("# deleted before the second submit\n")
+    (code / ".git").mkdir()
+    (code / ".git" / "HEAD").write_text("ref: refs/heads/main\n")
+    return {"code": code, "id": build_image(1)}
+
+
+def train(lab, extra=None, **over):
+    given = {"train_code_dir": str(lab["code"]), "train_image": IMAGE, "train_env": ["SLURMD_NODENAME"]}
+    given.update(extra or {})
+    given.update(over)
+    return playbook("train.yml", given)
+
+
+def jobs_known() -> str:
+    return sh(CONTROLLER, "squeue -h -t all -o %i; sacct -c -n -P -o JobID")
+
+
+def submitted_id(result) -> str:
+    text = squash(result.stdout)
+    return text.split(" submitted;", 1)[0].rsplit("job ", 1)[1]
+
+
+def outcome(result, task: str) -> str:
+    """What Ansible printed for a task of the train role: changed, ok, skipping or fatal."""
+    match = re.search(rf"{re.escape(task)}\] \*+\n(\w+)", result.stdout)
+    assert match, result.stdout[-3000:]
+    return match.group(1)
+
+
+def rank(job: str, task: str, n: int, code) -> dict:
+    return json.loads((code / "logs" / "rsl_rl" / task / f"job-{job}" / f"rank-{n}.json").read_text())
+
+
+def test_bad_requests_fail_with_every_error_before_anything_reaches_the_cluster(lab):
+    before = jobs_known()
+    wrong = train(
+        lab,
+        train_time="abc",
+        train_gpus_per_node=3,
+        train_image="isaacsim-fleet/no-such-image:1",
+        train_script="scripts/missing.py",
+    )
+    assert wrong.returncode != 0
+    text = squash(wrong.stdout + wrong.stderr)
+    for expected in (
+        "train_script: scripts/missing.py is not in",
+        "train_time: 'abc' does not parse as a Slurm time",
+        "train_gpus_per_node: 3, and no node of partition gpu has more than 2",
+        "train_image: 'isaacsim-fleet/no-such-image:1' is not an image of the build host's Docker",
+    ):
+        assert expected in text, text[-3000:]
+    partition = train(lab, train_partition="cpu")
+    assert partition.returncode != 0
+    assert "train_partition: 'cpu' is not a partition of the cluster. Fix: one of gpu." in squash(
+        partition.stdout + partition.stderr
+    )
+    # nothing submitted, nothing copied or synced, nothing built
+    assert jobs_known() == before
+    assert "absent" in sh(CONTROLLER, f"test -e {LAB} || echo absent")
+
+
+def test_a_training_job_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
+    done = train(lab, train_args=["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"])
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr
+    text = squash(done.stdout)
+    job = submitted_id(done)
+    # followed: a line per change of state, then the end
+    assert f"slurm-ctl: job {job} COMPLETED" in text and f"job {job} COMPLETED on slurm-node-" in text
+    run = lab["code"] / "logs" / "rsl_rl" / "Isaac-Ant-v0" / f"job-{job}"
+    assert (run / "train.log").read_text().count("iteration") == 3
+    assert (run / "model_2.pt").read_bytes() == b"stand-in checkpoint 2\n"
+    assert "training on node 0 exited with 0" in (lab["code"] / "logs" / "slurm" / f"slurm-{job}.out").read_text()
+    # the checkpoint stays on the cluster too
+    sh(CONTROLLER, f"test -s {LAB}/code/logs/rsl_rl/Isaac-Ant-v0/job-{job}/model_2.pt")
+    given = rank(job, "Isaac-Ant-v0", 0, lab["code"])
+    # every word as written (nothing expanded on the cluster), in Isaac Lab's directory, one GPU
+    assert given["argv"] == ["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"]
+    assert given["cwd"] == "/workspace/isaaclab" and len(given["gpus"]) == 1
+    assert given["env"]["SLURM_JOB_ID"] == job and "WORLD_SIZE" not in given["env"]
+    assert sh(CONTROLLER, f"sacct -c -n -P -o State,ExitCode -j {job}").strip() == "COMPLETED|0:0"
+    # the image was built and copied once, with the id it came from beside it
+    assert outcome(done, "Copy the job image to the cluster") == "changed"
+    assert sh(CONTROLLER, f"cat {IMAGE_FILE}.id") == lab["id"]
+    assert sh(CONTROLLER, f"stat -c %a {IMAGE_FILE}").strip() == "644"
+    # the node-local cache came back to the shared one
+    assert job in sh(CONTROLLER, f"cat {LAB}/cache/cache/main/standin-shaders").split()
+    # .git never goes to the cluster
+    assert "absent" in sh(CONTROLLER, f"test -e {LAB}/code/.git || echo absent")
+
+
+def test_a_second_submit_copies_nothing_applies_deletions_and_a_failing_2_gpu_job_ends_the_play_with_its_status(lab):
+    image_before = sh(CONTROLLER, f"stat -c '%i %Y' {IMAGE_FILE}")
+    first_logs = sh(CONTROLLER, f"ls {LAB}/code/logs/rsl_rl/Isaac-Ant-v0")
+    (lab["code"] / "scripts" / "old_helper.py").unlink()
+    done = train(lab, train_gpus_per_node=2, train_args=["--task=Isaac-Humanoid-v0", "--exit-code=3"])
+    assert done.returncode == 2, done.stdout[-3000:]
+    job = submitted_id(done)
+    text = squash(done.stdout + done.stderr)
+    assert f"job {job} FAILED on slurm-node-1 after" in text and "exit status 3" in text
+    # the image did not change: nothing built or copied
+    assert sh(CONTROLLER, f"stat -c '%i %Y' {IMAGE_FILE}") == image_before
+    assert outcome(done, "Copy the job image to the cluster") == "skipping"
+    # the deleted file is gone on the cluster; earlier jobs' logs stay there
+    assert "absent" in sh(CONTROLLER, f"test -e {LAB}/code/scripts/old_helper.py || echo absent")
+    assert sh(CONTROLLER, f"ls {LAB}/code/logs/rsl_rl/Isaac-Ant-v0") == first_logs
+    # 2 GPUs: only slurm-node-1 has them; torchrun started one process per GPU
+    ranks = [rank(job, "Isaac-Humanoid-v0", n, lab["code"]) for n in range(2)]
+    assert {r["env"]["SLURMD_NODENAME"] for r in ranks} == {"slurm-node-1"}
+    assert [r["env"]["LOCAL_RANK"] for r in ranks] == ["0", "1"] and ranks[0]["env"]["WORLD_SIZE"] == "2"
+    assert ranks[0]["gpus"] == ["/dev/nvidia0", "/dev/nvidia1"]
+    assert sh(CONTROLLER, f"sacct -c -n -P -o State,ExitCode -j {job}").strip() == "FAILED|3:0"
+
+
+def test_a_new_image_is_copied_once_and_cancel_ends_a_running_job(lab):
+    new_id = build_image(2)
+    assert new_id != lab["id"]
+    submitted = train(lab, train_wait=False, train_args=["--task=Isaac-Ant-v0", "--sleep=600"])
+    assert submitted.returncode == 0, submitted.stdout[-3000:] + submitted.stderr
+    job = submitted_id(submitted)
+    assert outcome(submitted, "Copy the job image to the cluster") == "changed"
+    assert sh(CONTROLLER, f"cat {IMAGE_FILE}.id") == new_id
+    deadline = time.monotonic() + 60
+    while "RUNNING" not in sh(CONTROLLER, f"squeue -h -j {job} -o %T", check=False):
+        assert time.monotonic() < deadline, sh(CONTROLLER, f"squeue -h -j {job}", check=False)
+        time.sleep(1)
+    node = sh(CONTROLLER, f"squeue -h -j {job} -o %N").strip()
+    deadline = time.monotonic() + 60
+    # the job's container runs the new image, loaded by its id
+    while f"train-{job}-0" not in sh(node, "podman ps --format '{{.Names}} {{.ImageID}}'"):
+        assert time.monotonic() < deadline
+        time.sleep(1)
+    assert new_id.split(":")[1][:12] in sh(node, "podman ps --format '{{.Names}} {{.ImageID}}'")
+    cancelled = train(lab, train_job_id=job, train_cancel=True)
+    assert cancelled.returncode == 0, cancelled.stdout[-3000:]
+    assert f"job {job} CANCELLED" in squash(cancelled.stdout)
+    assert sh(CONTROLLER, f"sacct -c -n -P -o State -j {job}").strip() == "CANCELLED"
+    # the training's container goes with the job
+    deadline = time.monotonic() + 60
+    while f"train-{job}-" in sh(node, "podman ps -a --format '{{.Names}}'"):
+        assert time.monotonic() < deadline, sh(node, "podman ps -a")
+        time.sleep(1)
