@@ -456,12 +456,15 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
 def build_argv(runtime: str, source_image: str, out: str, archive=None, fakeroot=True) -> list:
     """The command that turns the team's Docker image into what the runtime runs, on the build host.
 
-    apptainer: a SIF from the local Docker daemon's image (docker-daemon:, its tag required), or
-    from a `docker save` archive; --fakeroot lets a user without root build (user namespaces and
-    /etc/subuid). enroot: a squashfs image from the daemon. podman and docker: a `docker save`
-    archive of the team's image that each node loads once (Podman loads Docker's archives)."""
+    apptainer: a SIF from the local Docker daemon's image (docker-daemon://, as the guide builds
+    it, which needs a tag: :latest where none is given), or from a `docker save` archive;
+    --fakeroot lets a user without root build (user namespaces and /etc/subuid). enroot: a
+    squashfs image from the daemon. podman and docker: a `docker save` archive of the team's
+    image that each node loads once (Podman loads Docker's archives)."""
     if runtime == "apptainer":
-        source = f"docker-archive:{archive}" if archive else f"docker-daemon:{source_image}"
+        tagged = "@" in source_image or ":" in source_image.rsplit("/", 1)[-1]
+        daemon = f"docker-daemon://{source_image}" + ("" if tagged else ":latest")
+        source = f"docker-archive:{archive}" if archive else daemon
         return ["apptainer", "build", "--force"] + (["--fakeroot"] if fakeroot else []) + [out, source]
     if runtime == "enroot":
         return ["enroot", "import", "--output", out, f"dockerd://{source_image}"]

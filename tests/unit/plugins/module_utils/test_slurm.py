@@ -327,8 +327,13 @@ def test_the_image_becomes_what_the_runtime_runs():
         "--force",
         "--fakeroot",
         "/s/isaac-lab.sif",
-        "docker-daemon:isaac-lab:2.1",
+        "docker-daemon://isaac-lab:2.1",
     ]
+    # Apptainer's docker-daemon source needs a tag; a registry's port is not one
+    assert (
+        slurm.build_argv("apptainer", "reg:5000/isaac-lab", "/s/i.sif")[-1]
+        == "docker-daemon://reg:5000/isaac-lab:latest"
+    )
     assert slurm.build_argv("apptainer", "x", "/s/i.sif", archive="/tmp/i.tar", fakeroot=False)[-1] == (
         "docker-archive:/tmp/i.tar"
     )
