@@ -12,8 +12,6 @@ whatever the training's exit. The job's exit status is the training's.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import re
 import shlex
 
@@ -24,6 +22,8 @@ RUNTIMES = ("apptainer", "podman", "docker", "enroot")
 IMAGE_SUFFIX = {"apptainer": ".sif", "podman": ".tar", "docker": ".tar", "enroot": ".sqsh"}
 WORKDIR = "/workspace/isaaclab"
 RENDEZVOUS_PORT = 29500
+# enroot's command script for a job: the code directory, then the training (not the entrypoint)
+ENROOT_RC = f'cd {WORKDIR} && exec "$@"'
 # job states (squeue(1)) after which a job does not run again
 FINISHED = {
     "BOOT_FAIL",
@@ -38,14 +38,14 @@ FINISHED = {
     "SPECIAL_EXIT",
     "TIMEOUT",
 }
-SQUEUE_FORMAT = "%i|%T|%M|%N|%r"
 SACCT_FIELDS = "JobID,State,ExitCode,Elapsed,NodeList"
 SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
 
 # a node's variable inside a generated word; every other character of a word is taken as written
 _VAR_OPEN, _VAR_CLOSE = "\ue000", "\ue001"
 # NAME, or NAME[@] for each element of an array as its own word
-_VAR = re.compile(f"{_VAR_OPEN}([A-Z_][A-Z0-9_]*(?:\\[@\\])?){_VAR_CLOSE}")
+_VAR = re.compile(f"{_VAR_OPEN}([A-Za-z_][A-Za-z0-9_]*(?:\\[@\\])?){_VAR_CLOSE}")
+_ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?$")
 _GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
 _SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
@@ -168,6 +168,9 @@ def check_request(job: dict, partitions: dict) -> list:
                 f"train_memory: {memory}, and no node of partition {name} has more than {part['memory_mib']} MiB. "
                 "Fix: ask for less."
             )
+    bad = [n for n in job.get("env_names") or [] if not _ENV_NAME.match(str(n))]
+    if bad:
+        errors.append(f"train_env: {', '.join(map(repr, bad))}. Fix: names of variables (letters, digits, underscore).")
     if not _NAME.match(str(job.get("name") or "")):
         errors.append(
             f"train_job_name: {job.get('name')!r}. Fix: letters, digits, dot, dash and underscore, 64 at most."
@@ -181,13 +184,25 @@ def _clock(seconds: int) -> str:
     return f"{days}-{text}" if days else text
 
 
-def parse_squeue(line: str):
-    """{"id", "state", "elapsed", "nodes", "reason"} from one `squeue -h -o SQUEUE_FORMAT` line, or None."""
-    fields = line.strip().split("|")
-    if len(fields) != 5:
+def parse_scontrol_job(text: str):
+    """{"id", "state", "elapsed", "nodes", "reason", "exit_code", "signal"} from
+    `scontrol show job -o ID` (one line of key=value words), or None. slurmctld knows a job from
+    its submission until MinJobAge after its end, wherever scontrol runs."""
+    first = (text or "").strip().splitlines()[:1]
+    fields = dict(w.split("=", 1) for w in (first[0].split() if first else []) if "=" in w)
+    if "JobId" not in fields or "JobState" not in fields:
         return None
-    job_id, state, elapsed, nodes, reason = fields
-    return {"id": job_id, "state": state, "elapsed": elapsed, "nodes": nodes, "reason": reason}
+    code = exit_of(fields.get("ExitCode", "")) or (None, None)
+    nodes = fields.get("NodeList", "")
+    return {
+        "id": fields["JobId"],
+        "state": fields["JobState"],
+        "elapsed": fields.get("RunTime", ""),
+        "nodes": "" if nodes == "(null)" else nodes,
+        "reason": fields.get("Reason", ""),
+        "exit_code": code[0],
+        "signal": code[1],
+    }
 
 
 def exit_of(text: str):
@@ -216,31 +231,29 @@ def parse_sacct(text: str, job_id: str):
     return None
 
 
-def status_of(job_id, squeue_text: str, sacct_text: str):
-    """A job's state from what squeue and sacct say of it: {"id", "state", "elapsed", "nodes",
-    "reason", "exit_code", "signal", "finished"}, or None when neither knows it. Finished only
-    once its completion record is there (the exit status comes with it)."""
+def status_of(job_id, scontrol_text: str, sacct_text: str):
+    """A job's state: what slurmctld says of it (scontrol), or once it has forgotten the job
+    (MinJobAge after its end), what accounting says (sacct). {"id", "state", "elapsed", "nodes",
+    "reason", "exit_code", "signal", "finished"}, or None when neither knows it."""
+    live = parse_scontrol_job(scontrol_text)
+    if live and live["id"] == str(job_id):
+        return dict(live, finished=live["state"] in FINISHED)
     done = parse_sacct(sacct_text or "", job_id)
     if done and done["state"] in FINISHED:
         return dict(done, reason="", finished=True)
-    queued = next(
-        (q for q in map(parse_squeue, (squeue_text or "").splitlines()) if q and q["id"] == str(job_id)), None
-    )
-    if queued:
-        return dict(queued, exit_code=None, signal=None, finished=False)
     return None
 
 
-def script_dir(job: dict) -> str:
-    """The directory of a job's generated scripts, named by what the job is: a running job's
-    scripts are never rewritten by the next submission, an identical one reuses them."""
-    text = json.dumps(job, sort_keys=True, default=str)
-    return f"{job['name']}-{hashlib.sha256(text.encode()).hexdigest()[:12]}"
+def run_dir(name: str, stamp: str) -> str:
+    """The directory of one submission (its scripts and the snapshot of the code it runs)."""
+    return f"{name}-{stamp}"
 
 
-def image_file(source: str, runtime: str) -> str:
-    """The file name of a job image on the cluster, from the team's image name."""
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + IMAGE_SUFFIX[runtime]
+def image_file(source: str, runtime: str, image_id: str) -> str:
+    """The file name of a job image on the cluster: the team's image name and its id, so that a
+    new image never replaces the file a queued job is about to run."""
+    short = str(image_id).rsplit(":", maxsplit=1)[-1][:12]
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + f"-{short}" + IMAGE_SUFFIX[runtime]
 
 
 def complete(job: dict) -> dict:
@@ -263,14 +276,18 @@ def cache_binds(cache: str, mounts: dict) -> list:
     return [(f"{cache}/{sub}", target) for sub, target in sorted(mounts.items())]
 
 
-def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool) -> list:
+def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool, rc=None) -> list:
     """The command that runs `command` in the job's image on a node (words of the node script;
     node() marks the node's variables in them). env_names: variables passed from the node's
     environment. The image's own entrypoint is not run, as `apptainer exec` does not run it.
 
     GPUs: Apptainer's --nv and enroot's hook bring the node's GPUs, and the job's device cgroup
     (Slurm's ConstrainDevices) lets only the job's open; Podman and Docker are given the job's
-    GPUs by their numbers on the node (JOB_GPUS, from Slurm's SLURM_STEP_GPUS)."""
+    GPUs by their numbers on the node (JOB_GPUS, from Slurm's SLURM_STEP_GPUS).
+
+    Apptainer takes the environment's variables from APPTAINERENV_<NAME> (the node script
+    exports them; values never appear on a command line), enroot from --env NAME; rc: enroot's
+    command script, in place of the image's entrypoint."""
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
     if runtime == "apptainer":
@@ -278,10 +295,9 @@ def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool
         argv = ["apptainer", "exec", "--containall", "--writable-tmpfs", f"--pwd={WORKDIR}"]
         argv += ["--nv"] if gpus else []
         argv += [f"--bind={src}:{dst}:rw" for src, dst in binds]
-        argv += [f"--env={name}={node(name)}" for name in env_names]
         return argv + [image] + list(command)
     if runtime == "enroot":
-        argv = ["enroot", "start", "--rw"]
+        argv = ["enroot", "start", "--rw"] + ([f"--rc={rc}"] if rc else [])
         argv += [f"--mount={src}:{dst}" for src, dst in binds]
         argv += [f"--env={name}" for name in env_names]
         return argv + [image] + list(command)
@@ -316,7 +332,7 @@ def training_command(job: dict) -> list:
         python
         + ["-m", "torch.distributed.run", f"--nnodes={node('SLURM_NNODES')}", f"--nproc_per_node={gpus}"]
         + [f"--node_rank={node('SLURM_NODEID')}", f"--rdzv_id={node('SLURM_JOB_ID')}", "--rdzv_backend=c10d"]
-        + [f"--rdzv_endpoint={node('MASTER_ADDR')}:{RENDEZVOUS_PORT}", job["script"]]
+        + [f"--rdzv_endpoint={node('MASTER_ADDR')}:{node('MASTER_PORT')}", job["script"]]
         + args
     )
 
@@ -366,9 +382,13 @@ def batch_script(job: dict, node_script: str, managed: str = "Ansible managed (i
         'MASTER_NODE="$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)"',
         'MASTER_ADDR="$(scontrol show node "$MASTER_NODE" | sed -n \'s/.*NodeAddr=\\([^ ]*\\).*/\\1/p\')"',
         'MASTER_ADDR="${MASTER_ADDR:-$MASTER_NODE}"',
-        "export MASTER_ADDR",
+        # a port per job: two jobs whose first node is the same host do not meet
+        f"MASTER_PORT=$(({RENDEZVOUS_PORT} + SLURM_JOB_ID % 1000))",
+        "export MASTER_ADDR MASTER_PORT",
         # one task per node; the job fails as soon as one node's training does
-        f"exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 bash {shlex.quote(node_script)}",
+        # srun takes the job's CPUs per task only when told (Slurm 22.05 and later)
+        "exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 "
+        f'--cpus-per-task="$SLURM_CPUS_PER_TASK" bash {shlex.quote(node_script)}',
     ]
     return "\n".join(text) + "\n"
 
@@ -377,36 +397,43 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
     """What each node runs: the caches in, the training, the caches back (first node), its exit.
 
     job: name, runtime, image (the SIF or squashfs file, or for podman and docker the image's
-    id, with image_archive the file each node loads it from), code_dir (the job's code on the
-    shared file system), cache_dir (the shared caches), mounts ({cache subdirectory: path in the
-    container}), python, script, args, gpus_per_node, nodes, env_names."""
+    id, with image_archive the file each node loads it from), code_dir (the code this job runs,
+    on the shared file system), logs_dir (where its logs/ go, shared by the jobs), cache_dir (the
+    shared caches), local_cache (the node's directory for them; a directory per job is made in
+    it), mounts ({cache subdirectory: path in the container}), python, script, args,
+    gpus_per_node, nodes, env_names."""
     runtime = job["runtime"]
-    shared = job["cache_dir"]
-    # the node's own disk: Slurm's per-job $TMPDIR where the site sets one
-    local = _word(job["local_cache"]) if job.get("local_cache") else '"${TMPDIR:-/tmp}/isaac-sim-cache-$SLURM_JOB_ID"'
+    # the node's own disk (Slurm's per-job $TMPDIR by default); only this job's directory in it
+    base = _word(job["local_cache"]) if job.get("local_cache") else '"${TMPDIR:-/tmp}"'
     binds = cache_binds(node("LOCAL_CACHE"), job["mounts"]) + [(job["code_dir"], WORKDIR)]
-    env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR"})
+    if job.get("logs_dir"):
+        binds.append((job["logs_dir"], f"{WORKDIR}/logs"))
+    env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR", "MASTER_PORT"})
     env_names += ["SLURM_JOB_ID", "SLURM_NNODES", "SLURM_NODEID"]
-    # enroot runs a container made from the job's squashfs image on each node, then removes it
-    image = f"isaaclab-{node('SLURM_JOB_ID')}" if runtime == "enroot" else job["image"]
+    # enroot runs a container made from the job's squashfs image on each node (a name per node:
+    # its containers may live in a shared $HOME), with a command script in place of the entrypoint
+    image = f"isaaclab-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}" if runtime == "enroot" else job["image"]
+    rc = f"{node('LOCAL_CACHE')}/.enroot-rc" if runtime == "enroot" else None
     gpus = bool(int(job.get("gpus_per_node") or 0))
-    run = runtime_argv(runtime, image, binds, env_names, training_command(job), gpus)
+    run = runtime_argv(runtime, image, binds, env_names, training_command(job), gpus, rc=rc)
     dirs = " ".join(_word(f"{node('LOCAL_CACHE')}/{sub}") for sub in sorted(job["mounts"]))
     text = [
         "#!/bin/bash",
         f"# {managed}",
         "set -o pipefail",
-        f"SHARED_CACHE={_word(shared)}",
-        f"LOCAL_CACHE={local}",
+        f"SHARED_CACHE={_word(job['cache_dir'])}",
+        f'LOCAL_CACHE={base}/isaac-sim-cache-"$SLURM_JOB_ID"',
         # Isaac Sim reads and writes its caches a lot: the node's disk, not the shared file system
-        f'mkdir -p {dirs} && cp -a "$SHARED_CACHE/." "$LOCAL_CACHE/" 2>/dev/null || true',
+        f'mkdir -p {dirs} && rsync -a "$SHARED_CACHE/" "$LOCAL_CACHE/" 2>/dev/null || true',
         "copy_back() {",
     ]
     if runtime in ("podman", "docker"):
         # a cancelled job's container goes with it (Docker's would run on under its daemon)
         text.append(f"  {runtime} rm -f {_word(container_name())} >/dev/null 2>&1 || true")
     text += [
-        '  if [ "$SLURM_NODEID" = 0 ]; then cp -a "$LOCAL_CACHE/." "$SHARED_CACHE/" || true; fi',
+        # rsync writes each file beside its place and renames it: a copy cut short, or another
+        # job reading meanwhile, never meets a torn file
+        '  if [ "$SLURM_NODEID" = 0 ]; then rsync -a "$LOCAL_CACHE/" "$SHARED_CACHE/" || true; fi',
         '  rm -rf "$LOCAL_CACHE"',
         "}",
         "trap copy_back EXIT",
@@ -419,20 +446,26 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
             "GPU_DEVICES=()",
             'for gpu in ${JOB_GPUS//,/ }; do GPU_DEVICES+=("--device=nvidia.com/gpu=$gpu"); done',
         ]
+    if runtime == "apptainer":
+        # into the container by Apptainer's own prefix (--containall passes nothing else)
+        text += [f'export APPTAINERENV_{name}="${{{name}:-}}"' for name in env_names]
     if runtime in ("podman", "docker") and job.get("image_archive"):
-        # the image comes to each node once, from the archive on the shared path; by its id, so
-        # a rebuilt image under the same tag is loaded again
+        # the image comes to each node once, from the archive on the shared path; run by its id
         text.append(
             f"{runtime} image inspect {_word(job['image'])} >/dev/null 2>&1 || "
             f"{runtime} load -q -i {_word(job['image_archive'])} >/dev/null"
         )
     if runtime == "enroot":
-        text.append(f"enroot create --force --name {_word(image)} {_word(job['image'])} >/dev/null")
+        text += [
+            "printf '%s\\n' " + shlex.quote(ENROOT_RC) + ' > "$LOCAL_CACHE/.enroot-rc"',
+            f"enroot create --force --name {_word(image)} {_word(job['image'])} >/dev/null",
+        ]
     # the training runs in the background so that a cancel (scancel's SIGTERM) is handled at
     # once: the container is stopped (Podman's conmon would die with the step and leave it
-    # running), then the caches go back; bash defers a trap while a foreground command runs
+    # running), then the caches go back, within Slurm's KillWait (30 s by default); bash defers
+    # a trap while a foreground command runs
     if runtime in ("podman", "docker"):
-        stop = f"  {runtime} stop -t 20 {_word(container_name())} >/dev/null 2>&1 || true"
+        stop = f"  {runtime} stop -t 10 {_word(container_name())} >/dev/null 2>&1 || true"
     else:
         stop = '  kill -TERM "$TRAINING" 2>/dev/null || true'
     text += [
@@ -478,12 +511,6 @@ def submitted_id(text: str):
     first = (text or "").strip().splitlines()[:1]
     job = first[0].split(";", 1)[0] if first else ""
     return job if job.isdigit() else None
-
-
-def needs_build(source_id: str, recorded) -> bool:
-    """Whether the cluster's image must be built and copied again: the source image's id (its
-    digest) differs from the one recorded beside the image when it was last built."""
-    return not recorded or recorded.strip() != (source_id or "").strip()
 
 
 def progress_line(job: dict) -> str:

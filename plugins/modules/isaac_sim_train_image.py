@@ -11,12 +11,13 @@ short_description: Turn the team's Docker image into what a Slurm cluster's jobs
 version_added: "0.4.0"
 description:
   - Runs on the build host, where the team's image is in Docker. Reads the image's id (the digest of its
-    configuration, which changes with any change of the image) and compares it with O(recorded_id), the id recorded
-    beside the cluster's copy when it was last built.
-  - Only when they differ, builds the job image in O(build_dir) and returns C(built=true); the caller copies it
-    to the cluster and records the id. Apptainer - a SIF with C(apptainer build); C(--fakeroot) lets a user
-    without root build (user namespaces and C(/etc/subuid)), without it the build needs root. enroot - a squashfs
-    image with C(enroot import). Podman and Docker - a C(docker save) archive that each node loads once.
+    configuration, which changes with any change of the image); the job image's file name carries it
+    (C(NAME-ID12.sif)), so a new image never replaces the file a queued job is about to run.
+  - Only when the cluster has no file for this id (O(present=false)) builds the job image in O(build_dir) and
+    returns C(built=true); the caller copies it to the cluster.
+  - Apptainer - a SIF with C(apptainer build); C(--fakeroot) lets a user without root build (user namespaces and
+    C(/etc/subuid)), without it the build needs root. enroot - a squashfs image with C(enroot import). Podman and
+    Docker - a C(docker save) archive that each node loads once.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   source:
@@ -32,10 +33,10 @@ options:
     description: Where the job image is built, on the build host (one file per team image and runtime).
     type: path
     required: true
-  recorded_id:
-    description: The source image id recorded beside the cluster's copy; empty when there is none.
-    type: str
-    default: ""
+  present:
+    description: Whether the cluster has the job image of this id already (the caller looks for C(file) there).
+    type: bool
+    default: false
   fakeroot:
     description: Build the SIF as a user with C(apptainer build --fakeroot); false builds as root.
     type: bool
@@ -50,7 +51,7 @@ EXAMPLES = r"""
     source: isaac-lab-base:latest
     runtime: apptainer
     build_dir: ~/.cache/isaacsim-fleet/train
-    recorded_id: "{{ recorded.content | b64decode }}"
+    present: "{{ on_cluster.stat.exists }}"
 """
 
 RETURN = r"""
@@ -63,7 +64,7 @@ file:
   description: The job image's file name (the same on the cluster).
   returned: success
   type: str
-  sample: isaac-lab-base_latest.sif
+  sample: isaac-lab-base_latest-0a45aaed62e1.sif
 path:
   description: The job image on the build host.
   returned: success
@@ -94,7 +95,7 @@ def main():
             "source": {"type": "str", "required": True},
             "runtime": {"type": "str", "required": True, "choices": list(slurm.RUNTIMES)},
             "build_dir": {"type": "path", "required": True},
-            "recorded_id": {"type": "str", "default": ""},
+            "present": {"type": "bool", "default": False},
             "fakeroot": {"type": "bool", "default": True},
         },
         supports_check_mode=True,
@@ -110,9 +111,9 @@ def main():
             "Fix: build or pull it there, or name one that `docker images` lists."
         )
     image_id = out.strip()
-    name = slurm.image_file(p["source"], p["runtime"])
+    name = slurm.image_file(p["source"], p["runtime"], image_id)
     done = {"id": image_id, "file": name, "path": os.path.join(p["build_dir"], name)}
-    if not slurm.needs_build(image_id, p["recorded_id"]):
+    if p["present"]:
         module.exit_json(changed=False, built=False, **done)
     tool = module.get_bin_path(_TOOL[p["runtime"]])
     if not tool:

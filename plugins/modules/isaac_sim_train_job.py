@@ -14,14 +14,17 @@ description:
     C(scancel)).
   - O(state=checked) checks the request against the cluster's partitions and fails with every error, each naming
     the playbook variable and the fix; nothing changes.
-  - O(state=submitted) checks the same way, writes the batch script and the script each node runs (one task per
-    node; the node-local cache copied in and back; the training in the job's container runtime, with C(torchrun)
-    past one GPU) and submits it with C(sbatch). Check mode shows the scripts and submits nothing.
+  - O(state=submitted) checks the same way, takes a snapshot of the code for this job (hard links, so the next
+    sync never changes the code of a job that waits or runs), writes the batch script and the script each node
+    runs (one task per node; the node-local cache copied in and back; the training in the job's container
+    runtime, with C(torchrun) past one GPU) and submits it with C(sbatch). Check mode shows the scripts and
+    submits nothing.
   - O(state=finished) follows the job until it ends, printing a line (state, elapsed time, nodes) whenever it
     changes, and returns its end (the action plugin polls this module with O(state=query)).
   - O(state=cancelled) cancels it with C(scancel) and waits until Slurm has ended it.
-  - Finished jobs are read with C(sacct), from the accounting database, or with C(sacct -c) from the job
-    completion log where the cluster keeps no database.
+  - A job is read with C(scontrol show job) while slurmctld knows it (until C(MinJobAge) after its end), then with
+    C(sacct), from the accounting database, or with C(sacct -c) from the job completion log where the cluster keeps
+    no database (that log is on the controller).
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   state:
@@ -37,15 +40,17 @@ options:
       - C(runtime) (apptainer, podman, docker or enroot), C(image_file) (the job image on the cluster, the SIF or
         squashfs file, or the archive podman and docker nodes load), C(image_id) (the team's image id, by which
         podman and docker nodes run it).
-      - C(code_dir) (the job's code on the shared file system, the container's C(/workspace/isaaclab)),
-        C(log_dir) (where Slurm writes the job's output), C(cache_dir) (the shared Isaac Sim caches),
-        C(local_cache) (the node-local copy), C(release) (the Isaac Sim release whose cache paths are mounted),
-        or C(mounts) (cache subdirectory to path in the container).
+      - C(code_dir) (the synced code on the shared file system; each job runs a snapshot of it as the container's
+        C(/workspace/isaaclab), with its C(logs/) shared), C(log_dir) (where Slurm writes the job's output),
+        C(cache_dir) (the shared Isaac Sim caches), C(local_cache) (the node's directory for the job's copy),
+        C(release) (the Isaac Sim release whose cache paths are mounted), or C(mounts) (cache subdirectory to path
+        in the container).
       - C(python), C(script), C(args) (as the guide passes them to the Python executable), C(env_names)
         (variables passed into the container).
     type: dict
   job_dir:
-    description: Where the generated scripts are kept, on the shared file system (every node reads them).
+    description: Where each submission's scripts and code snapshot are kept, on the shared file system (every node
+      reads them).
     type: path
   job_id:
     description: The job (O(state=query), O(state=finished), O(state=cancelled)).
@@ -119,7 +124,8 @@ scripts:
   description: The batch script and the node script written for it.
   returned: O(state=submitted)
   type: dict
-  sample: {"batch": "/shared/lab/jobs/train-ant-5f0c/batch.sh", "node": "/shared/lab/jobs/train-ant-5f0c/node.sh"}
+  sample: {"batch": "/shared/lab/jobs/train-ant-20261124-101500-5f0c/batch.sh",
+           "node": "/shared/lab/jobs/train-ant-20261124-101500-5f0c/node.sh"}
 errors:
   description: What is wrong with the request, each naming the variable and the fix.
   returned: failure of O(state=checked) or O(state=submitted)
@@ -128,6 +134,8 @@ errors:
 """
 
 import os
+import secrets
+import time
 
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils import slurm
@@ -151,10 +159,11 @@ def request_errors(module, job):
     return errors
 
 
-def image_errors(job):
-    """The image the nodes read must be on the shared path before anything is submitted."""
+def image_errors(module, job):
+    """The image the nodes read must be on the shared path before anything is submitted (in check
+    mode it is not copied, so only named)."""
     path = job.get("image_archive") if job.get("runtime") in ("podman", "docker") else job.get("image")
-    if not path or not os.path.isfile(path):
+    if not path or not (module.check_mode or os.path.isfile(path)):
         return [
             f"{_IMAGE_VARIABLE}: the job's image is not on the cluster ({path or 'no path'}). "
             "Fix: submit with playbooks/train.yml, which builds and copies it, or copy it there."
@@ -162,35 +171,29 @@ def image_errors(job):
     return []
 
 
-def write(module, path, text, mode):
-    before = ""
-    if os.path.exists(path):
-        with open(path, encoding="utf-8") as handle:
-            before = handle.read()
-    if before != text and not module.check_mode:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        with open(path + ".tmp", "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.chmod(path + ".tmp", mode)
-        os.replace(path + ".tmp", path)
-    return {"before": before, "after": text, "before_header": path, "after_header": path}
-
-
 def submit(module, job, job_dir):
-    errors = request_errors(module, job) + image_errors(job)
+    errors = request_errors(module, job) + image_errors(module, job)
     if errors:
         module.fail_json(msg=" ".join(errors), errors=errors)
-    where = os.path.join(job_dir, slurm.script_dir(job))
+    where = os.path.join(job_dir, slurm.run_dir(job["name"], time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)))
+    synced = job["code_dir"].rstrip("/")
+    # the job runs a snapshot of the code; its logs/ is the shared one, which comes back
+    run = dict(job, code_dir=os.path.join(where, "code"), logs_dir=os.path.join(synced, "logs"))
     scripts = {"batch": os.path.join(where, "batch.sh"), "node": os.path.join(where, "node.sh")}
-    diff = [
-        write(module, scripts["node"], slurm.node_script(job), 0o755),
-        write(module, scripts["batch"], slurm.batch_script(job, scripts["node"]), 0o755),
-    ]
+    texts = {"node": slurm.node_script(run), "batch": slurm.batch_script(run, scripts["node"])}
+    diff = [{"before": "", "after": texts[k], "before_header": scripts[k], "after_header": scripts[k]} for k in texts]
     if module.check_mode:
         module.exit_json(changed=True, job_id=None, scripts=scripts, diff=diff)
     # Slurm does not make the output's directory
-    os.makedirs(job["log_dir"], exist_ok=True)
-    _rc, out, _err = _run(module, ["sbatch", "--parsable", f"--chdir={job['code_dir']}", scripts["batch"]])
+    for path in (run["logs_dir"], job["log_dir"], os.path.join(run["code_dir"], "logs")):
+        os.makedirs(path, exist_ok=True)
+    # hard links to the synced files: a later sync writes new files and never changes these
+    _run(module, ["rsync", "-a", "--exclude=/logs/", f"--link-dest={synced}", f"{synced}/", f"{run['code_dir']}/"])
+    for key, path in scripts.items():
+        with open(path, "w", encoding="utf-8") as handle:
+            handle.write(texts[key])
+        os.chmod(path, 0o755)
+    _rc, out, _err = _run(module, ["sbatch", "--parsable", f"--chdir={run['code_dir']}", scripts["batch"]])
     job_id = slurm.submitted_id(out)
     if not job_id:
         module.fail_json(msg=f"sbatch printed no job id: {out.strip()}")
@@ -198,13 +201,15 @@ def submit(module, job, job_dir):
 
 
 def query(module, job_id):
-    _rc, queued, _err = _run(module, ["squeue", "-h", "-t", "all", "-j", job_id, "-o", slurm.SQUEUE_FORMAT], False)
-    fields = ["-n", "-P", "-X", "-o", slurm.SACCT_FIELDS, "-j", job_id]
-    rc, done, _err = _run(module, ["sacct"] + fields, False)
-    if rc != 0 or not slurm.parse_sacct(done, job_id):
-        # no accounting database: the job completion log (JobCompType=jobcomp/filetxt)
-        _rc, done, _err = _run(module, ["sacct", "-c"] + fields[:2] + fields[3:], False)
-    status = slurm.status_of(job_id, queued, done)
+    _rc, live, _err = _run(module, ["scontrol", "show", "job", "-o", job_id], False)
+    done = ""
+    if not slurm.parse_scontrol_job(live):
+        # slurmctld has forgotten it (MinJobAge): accounting, or the job completion log
+        fields = ["-n", "-P", "-o", slurm.SACCT_FIELDS, "-j", job_id]
+        rc, done, _err = _run(module, ["sacct", "-X"] + fields, False)
+        if rc != 0 or not slurm.parse_sacct(done, job_id):
+            _rc, done, _err = _run(module, ["sacct", "-c"] + fields, False)
+    status = slurm.status_of(job_id, live, done)
     if status is None:
         module.fail_json(msg=f"train_job_id: Slurm knows no job {job_id}. Fix: the id sbatch printed.")
     return status

@@ -22,7 +22,14 @@ FIXTURE = ROOT / "tests" / "fixtures" / "isaac-lab"
 IMAGE = "isaacsim-fleet/isaac-lab-standin:cluster-test"
 # molecule/cluster/inventory: slurm_login's train_cluster_dir
 LAB = "/shared/isaaclab/lab"
-IMAGE_FILE = f"{LAB}/images/isaacsim-fleet_isaac-lab-standin_cluster-test.tar"
+IMAGES = f"{LAB}/images"
+
+
+def image_file(image_id: str) -> str:
+    """The job image on the cluster: the team's image name and its id."""
+    return f"{IMAGES}/isaacsim-fleet_isaac-lab-standin_cluster-test-{image_id.split(':')[1][:12]}.tar"
+
+
 NOTE = '--note=it\'s a "test" $HOME'
 
 
@@ -103,7 +110,9 @@ def test_bad_requests_fail_with_every_error_before_anything_reaches_the_cluster(
 
 
 def test_a_training_job_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
-    done = train(lab, train_args=["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"])
+    done = train(
+        lab, train_cpus_per_node=2, train_args=["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"]
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr
     text = squash(done.stdout)
     job = submitted_id(done)
@@ -119,12 +128,14 @@ def test_a_training_job_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
     # every word as written (nothing expanded on the cluster), in Isaac Lab's directory, one GPU
     assert given["argv"] == ["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"]
     assert given["cwd"] == "/workspace/isaaclab" and len(given["gpus"]) == 1
+    # the CPUs asked for reach the training (srun is told them; Slurm pins the task to them)
+    assert given["cpus"] == 2
     assert given["env"]["SLURM_JOB_ID"] == job and "WORLD_SIZE" not in given["env"]
     assert sh(CONTROLLER, f"sacct -c -n -P -o State,ExitCode -j {job}").strip() == "COMPLETED|0:0"
     # the image was built and copied once, with the id it came from beside it
     assert outcome(done, "Copy the job image to the cluster") == "changed"
-    assert sh(CONTROLLER, f"cat {IMAGE_FILE}.id") == lab["id"]
-    assert sh(CONTROLLER, f"stat -c %a {IMAGE_FILE}").strip() == "644"
+    assert sh(CONTROLLER, f"ls {IMAGES}").split() == [image_file(lab["id"]).rsplit("/", 1)[1]]
+    assert sh(CONTROLLER, f"stat -c %a {image_file(lab['id'])}").strip() == "644"
     # the node-local cache came back to the shared one
     assert job in sh(CONTROLLER, f"cat {LAB}/cache/cache/main/standin-shaders").split()
     # .git never goes to the cluster
@@ -132,7 +143,7 @@ def test_a_training_job_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
 
 
 def test_a_second_submit_copies_nothing_applies_deletions_and_a_failing_2_gpu_job_ends_the_play_with_its_status(lab):
-    image_before = sh(CONTROLLER, f"stat -c '%i %Y' {IMAGE_FILE}")
+    image_before = sh(CONTROLLER, f"stat -c '%i %Y' {image_file(lab['id'])}")
     first_logs = sh(CONTROLLER, f"ls {LAB}/code/logs/rsl_rl/Isaac-Ant-v0")
     (lab["code"] / "scripts" / "old_helper.py").unlink()
     done = train(lab, train_gpus_per_node=2, train_args=["--task=Isaac-Humanoid-v0", "--exit-code=3"])
@@ -141,7 +152,7 @@ def test_a_second_submit_copies_nothing_applies_deletions_and_a_failing_2_gpu_jo
     text = squash(done.stdout + done.stderr)
     assert f"job {job} FAILED on slurm-node-1 after" in text and "exit status 3" in text
     # the image did not change: nothing built or copied
-    assert sh(CONTROLLER, f"stat -c '%i %Y' {IMAGE_FILE}") == image_before
+    assert sh(CONTROLLER, f"stat -c '%i %Y' {image_file(lab['id'])}") == image_before
     assert outcome(done, "Copy the job image to the cluster") == "skipping"
     # the deleted file is gone on the cluster; earlier jobs' logs stay there
     assert "absent" in sh(CONTROLLER, f"test -e {LAB}/code/scripts/old_helper.py || echo absent")
@@ -161,7 +172,10 @@ def test_a_new_image_is_copied_once_and_cancel_ends_a_running_job(lab):
     assert submitted.returncode == 0, submitted.stdout[-3000:] + submitted.stderr
     job = submitted_id(submitted)
     assert outcome(submitted, "Copy the job image to the cluster") == "changed"
-    assert sh(CONTROLLER, f"cat {IMAGE_FILE}.id") == new_id
+    # a file of its own: the one a queued job may still need is kept beside it
+    assert sorted(sh(CONTROLLER, f"ls {IMAGES}").split()) == sorted(
+        image_file(i).rsplit("/", 1)[1] for i in (lab["id"], new_id)
+    )
     deadline = time.monotonic() + 60
     while "RUNNING" not in sh(CONTROLLER, f"squeue -h -j {job} -o %T", check=False):
         assert time.monotonic() < deadline, sh(CONTROLLER, f"squeue -h -j {job}", check=False)
@@ -173,11 +187,19 @@ def test_a_new_image_is_copied_once_and_cancel_ends_a_running_job(lab):
         assert time.monotonic() < deadline
         time.sleep(1)
     assert new_id.split(":")[1][:12] in sh(node, "podman ps --format '{{.Names}} {{.ImageID}}'")
+    # the training has written its checkpoints (and its cache) before it is cancelled
+    deadline = time.monotonic() + 60
+    while "absent" in sh(
+        CONTROLLER, f"test -e {LAB}/code/logs/rsl_rl/Isaac-Ant-v0/job-{job}/model_2.pt || echo absent"
+    ):
+        assert time.monotonic() < deadline
+        time.sleep(1)
     cancelled = train(lab, train_job_id=job, train_cancel=True)
     assert cancelled.returncode == 0, cancelled.stdout[-3000:]
     assert f"job {job} CANCELLED" in squash(cancelled.stdout)
     assert sh(CONTROLLER, f"sacct -c -n -P -o State -j {job}").strip() == "CANCELLED"
-    # the training's container goes with the job
+    # the training's container goes with the job, and what it wrote to its cache came back
+    assert job in sh(CONTROLLER, f"cat {LAB}/cache/cache/main/standin-shaders").split()
     deadline = time.monotonic() + 60
     while f"train-{job}-" in sh(node, "podman ps -a --format '{{.Names}}'"):
         assert time.monotonic() < deadline, sh(node, "podman ps -a")

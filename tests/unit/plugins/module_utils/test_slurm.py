@@ -91,15 +91,34 @@ def test_a_request_the_cluster_cannot_run_is_refused_naming_the_variable():
     ]
 
 
-def test_what_squeue_and_sacct_say_of_a_job():
-    assert slurm.parse_squeue("17|RUNNING|0:01|node-1|None") == {
+# `scontrol show job -o 17` (Slurm 22.05), shortened to the words read and a few around them
+SCONTROL_RUNNING = (
+    "JobId=17 JobName=train-ant UserId=root(0) GroupId=root(0) MCS_label=N/A Priority=1 Nice=0 "
+    "Account=(null) QOS=(null) JobState=RUNNING Reason=None Dependency=(null) Requeue=1 Restarts=0 "
+    "BatchFlag=1 Reboot=0 ExitCode=0:0 RunTime=00:01:02 TimeLimit=00:10:00 TimeMin=N/A "
+    "NodeList=node-[1-2] BatchHost=node-1 NumNodes=2 NumCPUs=2 NumTasks=2 CPUs/Task=1\n"
+)
+SCONTROL_PENDING = (
+    "JobId=18 JobName=train-ant JobState=PENDING Reason=Resources Dependency=(null) ExitCode=0:0 "
+    "RunTime=00:00:00 TimeLimit=00:10:00 NodeList=(null) NumNodes=1\n"
+)
+SCONTROL_FAILED = SCONTROL_RUNNING.replace(
+    "JobState=RUNNING Reason=None", "JobState=FAILED Reason=NonZeroExitCode"
+).replace("ExitCode=0:0", "ExitCode=3:0")
+
+
+def test_what_scontrol_and_sacct_say_of_a_job():
+    assert slurm.parse_scontrol_job(SCONTROL_RUNNING) == {
         "id": "17",
         "state": "RUNNING",
-        "elapsed": "0:01",
-        "nodes": "node-1",
+        "elapsed": "00:01:02",
+        "nodes": "node-[1-2]",
         "reason": "None",
+        "exit_code": 0,
+        "signal": 0,
     }
-    assert slurm.parse_squeue("slurm_load_jobs error: Invalid job id specified") is None
+    assert slurm.parse_scontrol_job(SCONTROL_PENDING)["nodes"] == ""
+    assert slurm.parse_scontrol_job("slurm_load_jobs error: Invalid job id specified") is None
     sacct = "2|FAILED|3:0|00:00:12|node-1\n2.batch|FAILED|3:0|00:00:12|node-1\n3|CANCELLED by 0|0:15|00:01:00|node-2\n"
     assert slurm.parse_sacct(sacct, "2") == {
         "id": "2",
@@ -122,7 +141,7 @@ def test_one_gpu_runs_python_and_more_run_torchrun_with_one_process_per_gpu():
     multi = [slurm.shown(w) for w in multi]
     assert multi[:4] == ["/workspace/isaaclab/isaaclab.sh", "-p", "-m", "torch.distributed.run"]
     assert "--nproc_per_node=4" in multi and "--nnodes=$SLURM_NNODES" in multi
-    assert "--rdzv_endpoint=$MASTER_ADDR:29500" in multi and multi[-3:] == [
+    assert "--rdzv_endpoint=$MASTER_ADDR:$MASTER_PORT" in multi and multi[-3:] == [
         "scripts/train.py",
         "--task=Ant",
         "--headless",
@@ -156,9 +175,12 @@ def test_the_batch_script_asks_for_the_resources_and_starts_one_task_per_node():
         "module load apptainer/1.3",
     ):
         assert directive + "\n" in text, directive
+    # srun is told the CPUs per task (Slurm 22.05 no longer passes sbatch's on); a port per job
     assert text.rstrip().endswith(
-        "exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 bash /shared/jobs/train-ant/node.sh"
+        'exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 --cpus-per-task="$SLURM_CPUS_PER_TASK" '
+        "bash /shared/jobs/train-ant/node.sh"
     )
+    assert "MASTER_PORT=$((29500 + SLURM_JOB_ID % 1000))\n" in text
     assert subprocess.run(["bash", "-n"], input=text, text=True, check=False).returncode == 0
 
 
@@ -174,6 +196,7 @@ def node(tmp_path):
     fake.write_text(
         "#!/bin/bash\n"
         'printf "%s\\n" "$@" > "$RECORD"\n'
+        'env | grep ^APPTAINERENV_ | sort > "$RECORD.env"\n'
         'cache=$(printf "%s\\n" "$@" | sed -n "s|^--bind=\\(.*\\)/cache/ov:/root/.cache/ov:rw$|\\1|p")\n'
         'echo more >> "$cache/cache/ov/shaders"\n'
         'exit "${FAKE_EXIT:-0}"\n'
@@ -186,6 +209,8 @@ def node(tmp_path):
         'printf "%s\\n" "$@" > "$RECORD.podman-$1-$2"\n'
         '[ "$1 $2" = "image inspect" ] && exit "${FAKE_IMAGE_MISSING:-0}"\n'
         # a long run ends when the container is stopped
+        'cache=$(printf "%s\\n" "$@" | sed -n "s|^--volume=\\(.*\\)/cache/ov:/root/.cache/ov:rw$|\\1|p")\n'
+        '[ "$1" = run ] && [ -n "$cache" ] && echo "$SLURM_JOB_ID" >> "$cache/cache/ov/shaders"\n'
         '[ "$1" = run ] && [ -n "$FAKE_RUN_SECONDS" ] && echo $$ > "$RECORD.pid" && exec sleep "$FAKE_RUN_SECONDS"\n'
         '[ "$1" = stop ] && kill "$(cat "$RECORD.pid")"\n'
         '[ "$1" = run ] && exit "${FAKE_EXIT:-0}"\n'
@@ -246,7 +271,10 @@ def test_a_node_runs_the_training_with_its_words_intact_and_brings_the_caches_ba
     local = f"{tmp_path}/tmp/isaac-sim-cache-41"
     assert f"--bind={local}/cache/ov:/root/.cache/ov:rw" in argv
     assert "--bind=/shared/jobs/train-ant/code:/workspace/isaaclab:rw" in argv
-    assert "--env=CUDA_VISIBLE_DEVICES=0" in argv and "--env=SLURM_JOB_ID=41" in argv
+    # the environment by Apptainer's prefix, never on the command line
+    assert not [w for w in argv if w.startswith("--env")]
+    passed = (tmp_path / "argv.env").read_text().splitlines()
+    assert "APPTAINERENV_CUDA_VISIBLE_DEVICES=0" in passed and "APPTAINERENV_SLURM_JOB_ID=41" in passed
     # the node-local copy started warm, came back to the shared cache, and is gone from the node
     assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warmmore\n"
     assert not os.path.exists(local)
@@ -315,8 +343,10 @@ def test_a_cancelled_job_stops_its_container_and_still_brings_the_caches_back(no
     # what scancel does first: SIGTERM to the step's processes
     running.send_signal(signal.SIGTERM)
     assert running.wait(timeout=10) == 143
-    assert (tmp_path / "argv.podman-stop--t").read_text().split() == ["stop", "-t", "20", "train-41-0"]
+    assert (tmp_path / "argv.podman-stop--t").read_text().split() == ["stop", "-t", "10", "train-41-0"]
     assert (tmp_path / "argv.podman-rm--f").exists()
+    # what the training wrote to its cache before the cancel is in the shared cache
+    assert (tmp_path / "shared-cache/cache/ov/shaders").read_text() == "warm41\n"
     assert not os.path.exists(f"{tmp_path}/tmp/isaac-sim-cache-41")
 
 
@@ -359,27 +389,30 @@ def test_podman_and_enroot_nodes_take_the_image_from_the_shared_path():
     text = slurm.node_script(job)
     assert "podman image inspect 0a45aa >/dev/null 2>&1 || podman load -q -i /shared/images/isaac-lab.tar" in text
     enroot = slurm.node_script(job_on("/x", runtime="enroot", image="/shared/images/isaac-lab.sqsh"))
-    assert 'enroot create --force --name isaaclab-"${SLURM_JOB_ID}" /shared/images/isaac-lab.sqsh' in enroot
+    name = 'isaaclab-"${SLURM_JOB_ID}"-"${SLURM_NODEID}"'
+    assert f"enroot create --force --name {name} /shared/images/isaac-lab.sqsh" in enroot
+    # enroot runs the image's entrypoint unless its command script is replaced
+    rc = "printf '%s\\n' 'cd /workspace/isaaclab && exec \"$@\"' > \"$LOCAL_CACHE/.enroot-rc\""
+    assert rc in enroot
+    assert 'enroot start --rw --rc="${LOCAL_CACHE}"/.enroot-rc ' in enroot
     for script in (text, enroot):
         assert subprocess.run(["bash", "-n"], input=script, text=True, check=False).returncode == 0
 
 
-def test_submission_ids_and_when_an_image_is_built_again():
+def test_submission_ids():
     assert [slurm.submitted_id(t) for t in ("123\n", "77;lab-cluster", "sbatch: error: x", "")] == [
         "123",
         "77",
         None,
         None,
     ]
-    assert slurm.needs_build("sha256:a", None) and slurm.needs_build("sha256:a", "sha256:b\n")
-    assert not slurm.needs_build("sha256:a", "sha256:a\n")
 
 
 def test_progress_says_where_a_job_runs_or_why_it_waits():
-    running = slurm.parse_squeue("17|RUNNING|1:02|node-[1-2]|None")
-    assert slurm.progress_line(running) == "job 17 RUNNING 1:02 node-[1-2]"
-    pending = slurm.parse_squeue("18|PENDING|0:00||Resources")
-    assert slurm.progress_line(pending) == "job 18 PENDING 0:00 waiting: Resources"
+    running = slurm.parse_scontrol_job(SCONTROL_RUNNING)
+    assert slurm.progress_line(running) == "job 17 RUNNING 00:01:02 node-[1-2]"
+    pending = slurm.parse_scontrol_job(SCONTROL_PENDING)
+    assert slurm.progress_line(pending) == "job 18 PENDING 00:00:00 waiting: Resources"
 
 
 def test_a_node_as_slurmd_finds_it_and_its_gpus_as_gres():
@@ -396,23 +429,32 @@ def test_a_node_as_slurmd_finds_it_and_its_gpus_as_gres():
     )
 
 
-def test_a_job_is_finished_only_with_its_completion_record():
-    queued = "41|RUNNING|0:13|node-1|None\n42|PENDING|0:00||Resources\n"
-    assert slurm.status_of("42", queued, "")["state"] == "PENDING"
-    assert slurm.status_of("41", queued, "")["finished"] is False
-    done = slurm.status_of("41", "41|COMPLETING|0:14|node-1|None\n", "41|COMPLETED|0:0|00:00:14|node-1\n")
-    assert done["finished"] and done["exit_code"] == 0
-    assert slurm.status_of("43", queued, "") is None
+def test_a_job_is_read_from_slurmctld_then_from_accounting():
+    assert slurm.status_of("17", SCONTROL_RUNNING, "")["finished"] is False
+    failed = slurm.status_of("17", SCONTROL_FAILED, "")
+    assert failed["finished"] and (failed["exit_code"], failed["signal"]) == (3, 0)
+    # forgotten by slurmctld (MinJobAge): the completion record
+    done = slurm.status_of(
+        "17", "slurm_load_jobs error: Invalid job id specified", "17|COMPLETED|0:0|00:00:14|node-1\n"
+    )
+    assert done["finished"] and done["exit_code"] == 0 and done["nodes"] == "node-1"
+    assert slurm.status_of("43", "", "") is None
 
 
-def test_each_job_keeps_its_own_scripts_and_the_image_and_caches_follow_the_runtime():
-    job = {"name": "train-ant", "script": "a.py", "args": ["--x"]}
-    assert slurm.script_dir(job) == slurm.script_dir(dict(job))
-    assert slurm.script_dir(job) != slurm.script_dir(dict(job, args=["--y"]))
-    assert slurm.script_dir(job).startswith("train-ant-")
+def test_each_submission_has_its_directory_and_the_image_file_names_its_id():
+    assert slurm.run_dir("train-ant", "20261124-101500-5f0c") == "train-ant-20261124-101500-5f0c"
     podman = slurm.complete({"runtime": "podman", "image_file": "/s/i.tar", "image_id": "sha256:0a45"})
     assert (podman["image"], podman["image_archive"]) == ("0a45", "/s/i.tar")
     assert podman["mounts"] == releases.RELEASES["6.x"]["mounts"]
     apptainer = slurm.complete({"runtime": "apptainer", "image_file": "/s/i.sif", "release": "4.x"})
     assert apptainer["image"] == "/s/i.sif" and apptainer["mounts"]["cache/ov"] == "/root/.cache/ov"
-    assert slurm.image_file("nvcr.io/team/isaac-lab:2.1", "apptainer") == "nvcr.io_team_isaac-lab_2.1.sif"
+    name = slurm.image_file("nvcr.io/team/isaac-lab:2.1", "apptainer", "sha256:0a45aaed62e1252814f0")
+    assert name == "nvcr.io_team_isaac-lab_2.1-0a45aaed62e1.sif"
+
+
+def test_variables_passed_into_the_container_must_be_names():
+    partitions = slurm.parse_sinfo("gpu*|2|16|64000|gpu:4|1-00:00:00\n")
+    job = {"name": "x", "time": "10", "env_names": ["WANDB_API_KEY", "https_proxy", "A-B", "X=1"]}
+    assert slurm.check_request(job, partitions) == [
+        "train_env: 'A-B', 'X=1'. Fix: names of variables (letters, digits, underscore)."
+    ]

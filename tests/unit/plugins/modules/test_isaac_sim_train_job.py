@@ -1,6 +1,6 @@
 """The isaac_sim_train_job module against recording stand-ins for Slurm's commands (sinfo,
-sbatch, squeue, sacct, scancel on PATH, printing what Slurm 22.05 prints): what it refuses before
-submitting, what it writes and submits, where it reads a finished job."""
+sbatch, scontrol, sacct, scancel on PATH, printing what Slurm 22.05 prints) and the real rsync:
+what it refuses before submitting, what it writes and submits, where it reads a job."""
 
 from __future__ import annotations
 
@@ -11,18 +11,22 @@ from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_train_j
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import run_module
 
 SINFO = "gpu*|2|2|20009|gpu:2|infinite\ngpu*|1|2|20009|gpu:1|infinite\n"
+RUNNING = "JobId=4711 JobName=train-ant JobState=RUNNING Reason=None ExitCode=0:0 RunTime=00:01:02 NodeList=node-1\n"
 
 
 @pytest.fixture()
 def slurm(tmp_path, monkeypatch):
-    """Stand-in Slurm commands: each records its words; SACCT_DB=off answers as a cluster without
-    an accounting database; SQUEUE, SACCT_C hold what they print."""
+    """Stand-in Slurm commands: each records its words; sacct answers as a cluster without an
+    accounting database; SCONTROL and SACCT_C hold what scontrol and sacct -c print."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     scripts = {
         "sinfo": f"printf '{SINFO}'",
         "sbatch": "echo 4711",
-        "squeue": 'printf "%s" "$SQUEUE"',
+        "scontrol": (
+            '[ -n "$SCONTROL" ] || { echo "slurm_load_jobs error: Invalid job id specified" >&2; exit 1; }\n'
+            'printf "%s" "$SCONTROL"'
+        ),
         "sacct": (
             'if [ "$1" = -c ]; then printf "%s" "$SACCT_C"; exit 0; fi\n'
             'echo "Slurm accounting storage is disabled" >&2; exit 1'
@@ -34,7 +38,7 @@ def slurm(tmp_path, monkeypatch):
         path.write_text(f'#!/bin/sh\necho "{name} $*" >> "{tmp_path}/calls"\n{body}\n')
         path.chmod(path.stat().st_mode | stat.S_IEXEC)
     monkeypatch.setenv("PATH", f"{bin_dir}:/usr/bin:/bin")
-    monkeypatch.setenv("SQUEUE", "")
+    monkeypatch.setenv("SCONTROL", "")
     monkeypatch.setenv("SACCT_C", "")
     return tmp_path
 
@@ -69,62 +73,79 @@ def job(tmp_path, **over):
     return given
 
 
+def query(job_id, capsys, state="query"):
+    return run_module(isaac_sim_train_job.main, {"state": state, "job_id": job_id}, capsys)
+
+
 def test_a_bad_request_is_refused_with_every_error_and_nothing_is_written_or_submitted(slurm, capsys):
-    result = run_module(
-        isaac_sim_train_job.main,
-        {
-            "job": job(slurm, gpus_per_node=3, time="abc", image_file=str(slurm / "none.tar")),
-            "job_dir": str(slurm / "jobs"),
-        },
-        capsys,
-    )
+    bad = job(slurm, gpus_per_node=3, time="abc", image_file=str(slurm / "none.tar"), env_names=["A-B"])
+    result = run_module(isaac_sim_train_job.main, {"job": bad, "job_dir": str(slurm / "jobs")}, capsys)
     assert result["failed"]
-    assert [e.split(":")[0] for e in result["errors"]] == ["train_time", "train_gpus_per_node", "train_image"]
+    named = [e.split(":")[0] for e in result["errors"]]
+    assert named == ["train_time", "train_gpus_per_node", "train_env", "train_image"]
     assert calls(slurm) == ["sinfo"] and not (slurm / "jobs").exists()
 
 
 def test_check_mode_shows_the_scripts_and_submits_nothing(slurm, capsys):
-    args = {"job": job(slurm), "job_dir": str(slurm / "jobs"), "_ansible_check_mode": True, "_ansible_diff": True}
+    # a first submit in check mode: the image is not on the cluster yet, and that is no error
+    given = job(slurm, image_file=str(slurm / "images" / "not-copied-yet.tar"))
+    args = {"job": given, "job_dir": str(slurm / "jobs"), "_ansible_check_mode": True, "_ansible_diff": True}
     result = run_module(isaac_sim_train_job.main, args, capsys)
     assert result["changed"] and result["job_id"] is None
     assert "exec srun --kill-on-bad-exit=1" in result["diff"][1]["after"]
     assert calls(slurm) == ["sinfo"] and not (slurm / "jobs").exists()
 
 
-def test_a_submit_writes_the_scripts_once_and_returns_sbatch_s_id(slurm, capsys):
+def test_each_submit_runs_a_snapshot_of_the_code_that_the_next_sync_cannot_change(slurm, capsys):
+    code = slurm / "code"
+    (code / "scripts").mkdir(parents=True)
+    (code / "scripts" / "train.py").write_text("v1")
+    (code / "logs" / "old").mkdir(parents=True)
     args = {"job": job(slurm), "job_dir": str(slurm / "jobs")}
     result = run_module(isaac_sim_train_job.main, args, capsys)
     assert result["changed"] and result["job_id"] == "4711"
-    node = (slurm / "jobs").glob("train-ant-*/node.sh")
-    text = next(node).read_text()
+    run = slurm / "jobs" / result["scripts"]["node"].split("/")[-2]
+    text = (run / "node.sh").read_text()
     # the podman node runs the image by its id, loaded from the shared archive
     assert f"podman image inspect 0a45aa >/dev/null 2>&1 || podman load -q -i {slurm}/images/lab.tar" in text
-    assert (slurm / "code" / "logs" / "slurm").is_dir()
+    # the snapshot as the container's code, the shared logs/ over its logs/
+    assert f"--volume={run}/code:/workspace/isaaclab:rw" in text
+    assert f"--volume={code}/logs:/workspace/isaaclab/logs:rw" in text
+    assert (run / "code" / "scripts" / "train.py").stat().st_ino == (code / "scripts" / "train.py").stat().st_ino
+    assert not (run / "code" / "logs" / "old").exists() and (code / "logs" / "slurm").is_dir()
+    assert f"sbatch --parsable --chdir={run}/code {run}/batch.sh" in (slurm / "calls").read_text()
+    # the next sync writes new files (rsync's default): this job's code stays as it was
+    (code / "scripts" / "train.py").unlink()
+    (code / "scripts" / "train.py").write_text("v2")
+    assert (run / "code" / "scripts" / "train.py").read_text() == "v1"
     again = run_module(isaac_sim_train_job.main, args, capsys)
-    assert again["scripts"] == result["scripts"] and again["diff"][0]["before"] == again["diff"][0]["after"]
+    assert again["scripts"]["node"] != result["scripts"]["node"]
 
 
-def test_a_finished_job_is_read_from_the_job_completion_log_without_a_database(slurm, capsys, monkeypatch):
-    monkeypatch.setenv("SQUEUE", "4711|RUNNING|1:02|node-1|None\n")
-    running = run_module(isaac_sim_train_job.main, {"state": "query", "job_id": "4711"}, capsys)
+def test_a_job_is_read_from_slurmctld_then_from_the_job_completion_log(slurm, capsys, monkeypatch):
+    monkeypatch.setenv("SCONTROL", RUNNING)
+    running = query("4711", capsys)
     assert running["finished"] is False and running["state"] == "RUNNING" and running["nodes"] == "node-1"
-    # squeue still lists it as done, the completion record is not written yet: not finished
-    monkeypatch.setenv("SQUEUE", "4711|COMPLETED|1:05|node-1|None\n")
-    assert run_module(isaac_sim_train_job.main, {"state": "query", "job_id": "4711"}, capsys)["finished"] is False
-    monkeypatch.setenv("SQUEUE", "")
+    assert "sacct" not in calls(slurm)
+    # slurmctld has the end and its exit status, wherever the login node is
+    monkeypatch.setenv("SCONTROL", RUNNING.replace("JobState=RUNNING", "JobState=FAILED").replace("=0:0", "=3:0"))
+    ended = query("4711", capsys)
+    assert ended["finished"] and ended["exit_code"] == 3
+    # after MinJobAge slurmctld has forgotten it: the job completion log
+    monkeypatch.setenv("SCONTROL", "")
     monkeypatch.setenv("SACCT_C", "4711|FAILED|3:0|00:01:05|node-1\n")
-    done = run_module(isaac_sim_train_job.main, {"state": "query", "job_id": "4711"}, capsys)
+    done = query("4711", capsys)
     assert done["finished"] and (done["state"], done["exit_code"], done["signal"]) == ("FAILED", 3, 0)
 
 
 def test_cancel_cancels_a_running_job_only_and_an_unknown_job_is_an_error(slurm, capsys, monkeypatch):
-    monkeypatch.setenv("SQUEUE", "4711|RUNNING|1:02|node-1|None\n")
-    assert run_module(isaac_sim_train_job.main, {"state": "cancelled", "job_id": "4711"}, capsys)["changed"]
+    monkeypatch.setenv("SCONTROL", RUNNING)
+    assert query("4711", capsys, "cancelled")["changed"]
     assert "scancel" in calls(slurm)
-    monkeypatch.setenv("SQUEUE", "")
+    monkeypatch.setenv("SCONTROL", "")
     monkeypatch.setenv("SACCT_C", "4711|CANCELLED by 0|0:15|00:01:05|node-1\n")
-    done = run_module(isaac_sim_train_job.main, {"state": "cancelled", "job_id": "4711"}, capsys)
+    done = query("4711", capsys, "cancelled")
     assert done["changed"] is False and done["state"] == "CANCELLED"
     monkeypatch.setenv("SACCT_C", "")
-    unknown = run_module(isaac_sim_train_job.main, {"state": "query", "job_id": "99"}, capsys)
+    unknown = query("99", capsys)
     assert unknown["failed"] and "Slurm knows no job 99" in unknown["msg"]
