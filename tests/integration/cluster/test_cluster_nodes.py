@@ -13,7 +13,7 @@ import subprocess
 
 import pytest
 import testbed
-from clusterhosts import CONTROLLER, MANAGED, NODES, PLAIN, sh, squash
+from clusterhosts import CONTROLLER, MANAGED, NODES, PLAIN, playbook, sh, squash
 from testbed import ROOT, client
 
 
@@ -139,3 +139,26 @@ def test_a_node_whose_gpus_and_device_files_disagree_fails_the_check(tmp_path, s
     assert "nvidia-smi lists 2 GPU(s) on slurm-node-2, and /dev has 1 GPU device file(s) (/dev/nvidia0)" in out, out[
         -2000:
     ]
+
+
+def test_a_site_that_runs_its_own_slurm_keeps_its_configuration_and_gets_the_lines_it_needs():
+    """slurm_node_manage_config: false, on a cluster whose files the site has edited: the role
+    touches no Slurm file and no munge key, restarts nothing, and prints each node's lines."""
+    owned = "/etc/slurm/slurm.conf /etc/slurm/cgroup.conf /etc/slurm/gres.conf /etc/munge/munge.key"
+    hosts = [CONTROLLER, *NODES]
+    for host in hosts:
+        sh(host, "echo '# the site s own line' >> /etc/slurm/slurm.conf")
+    before = {h: sh(h, f"md5sum {owned}; systemctl show -p ActiveEnterTimestamp munge slurmd slurmctld") for h in hosts}
+    try:
+        done = playbook("cluster.yml", {"slurm_node_manage_config": False})
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr
+        assert {
+            h: sh(h, f"md5sum {owned}; systemctl show -p ActiveEnterTimestamp munge slurmd slurmctld") for h in hosts
+        } == before
+        text = squash(done.stdout)
+        for node, gpus in NODES.items():
+            assert re.search(rf"NodeName={node} NodeAddr=\S+ CPUs=\d+ .*Gres=gpu:{gpus}", text), text[-3000:]
+            assert f"NodeName={node} Name=gpu File=/dev/nvidia{gpus - 1}" in text
+    finally:
+        for host in hosts:
+            sh(host, "sed -i '/# the site s own line/d' /etc/slurm/slurm.conf")

@@ -165,6 +165,23 @@ def test_a_second_submit_copies_nothing_applies_deletions_and_a_failing_2_gpu_jo
     assert sh(CONTROLLER, f"sacct -c -n -P -o State,ExitCode -j {job}").strip() == "FAILED|3:0"
 
 
+def test_a_two_node_job_runs_a_task_on_each_node_that_meet_at_the_first_node(lab):
+    done = train(lab, train_nodes=2, train_gpus_per_node=1, train_args=["--task=Isaac-Ant-v0"])
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr
+    job = submitted_id(done)
+    ranks = [rank(job, "Isaac-Ant-v0", n, lab["code"]) for n in range(2)]
+    # one process per node under torchrun, each with its node's number, one world of two
+    assert sorted(r["env"]["SLURMD_NODENAME"] for r in ranks) == ["slurm-node-1", "slurm-node-2"]
+    assert sorted(r["env"]["SLURM_NODEID"] for r in ranks) == ["0", "1"]
+    assert {r["env"]["WORLD_SIZE"] for r in ranks} == {"2"}
+    # the rendezvous: the first node's address from slurm.conf (NodeAddr), a port of this job
+    first = client().containers.get("slurm-node-1").attrs["NetworkSettings"]["IPAddress"]
+    assert {(r["env"]["MASTER_ADDR"], r["env"]["MASTER_PORT"]) for r in ranks} == {
+        (first, str(29500 + int(job) % 1000))
+    }
+    assert all(len(r["gpus"]) == 1 for r in ranks)
+
+
 def test_a_new_image_is_copied_once_and_cancel_ends_a_running_job(lab):
     new_id = build_image(2)
     assert new_id != lab["id"]
@@ -187,20 +204,25 @@ def test_a_new_image_is_copied_once_and_cancel_ends_a_running_job(lab):
         assert time.monotonic() < deadline
         time.sleep(1)
     assert new_id.split(":")[1][:12] in sh(node, "podman ps --format '{{.Names}} {{.ImageID}}'")
-    # the training has written its checkpoints (and its cache) before it is cancelled
+    # the caches run from the node's own disk, a directory for this job (slurm_node's local cache);
+    # the training has written its checkpoints and then its cache before it is cancelled
+    local = f"/var/tmp/isaac-sim-cache/isaac-sim-cache-{job}"
     deadline = time.monotonic() + 60
-    while "absent" in sh(
-        CONTROLLER, f"test -e {LAB}/code/logs/rsl_rl/Isaac-Ant-v0/job-{job}/model_2.pt || echo absent"
-    ):
+    while "standin-shaders" not in sh(node, f"ls {local}/cache/main", check=False):
         assert time.monotonic() < deadline
         time.sleep(1)
+    sh(CONTROLLER, f"test -s {LAB}/code/logs/rsl_rl/Isaac-Ant-v0/job-{job}/model_2.pt")
     cancelled = train(lab, train_job_id=job, train_cancel=True)
     assert cancelled.returncode == 0, cancelled.stdout[-3000:]
     assert f"job {job} CANCELLED" in squash(cancelled.stdout)
-    assert sh(CONTROLLER, f"sacct -c -n -P -o State -j {job}").strip() == "CANCELLED"
-    # the training's container goes with the job, and what it wrote to its cache came back
-    assert job in sh(CONTROLLER, f"cat {LAB}/cache/cache/main/standin-shaders").split()
+    # Slurm says CANCELLED at once; the node script then stops the container, copies the caches
+    # back and removes the job's directory
     deadline = time.monotonic() + 60
-    while f"train-{job}-" in sh(node, "podman ps -a --format '{{.Names}}'"):
-        assert time.monotonic() < deadline, sh(node, "podman ps -a")
+    while "absent" not in sh(node, f"test -e {local} || echo absent") or f"train-{job}-" in sh(
+        node, "podman ps -a --format '{{.Names}}'"
+    ):
+        assert time.monotonic() < deadline, sh(node, "podman ps -a; ls /var/tmp/isaac-sim-cache")
         time.sleep(1)
+    # what the training wrote to its cache came back to the shared one
+    assert job in sh(CONTROLLER, f"cat {LAB}/cache/cache/main/standin-shaders").split()
+    assert sh(CONTROLLER, f"sacct -c -n -P -o State -j {job}").strip() == "CANCELLED"
