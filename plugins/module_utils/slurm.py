@@ -1,7 +1,7 @@
 # Copyright: isaacsim.fleet contributors
 # Apache-2.0
 """Training jobs on a Slurm cluster, as text and argument lists: the batch script sbatch takes,
-the script each node runs, the container runtime's command, and what sinfo, squeue and sacct
+the script each node runs, the container runtime's command, and what sinfo, scontrol and sacct
 say. Pure: the module and the role run these; the unit tests read what they generate.
 
 A job is one batch script that starts one task per node (srun); each task copies the shared
@@ -24,7 +24,7 @@ WORKDIR = "/workspace/isaaclab"
 RENDEZVOUS_PORT = 29500
 # enroot's command script for a job: the code directory, then the training (not the entrypoint)
 ENROOT_RC = f'cd {WORKDIR} && exec "$@"'
-# job states (squeue(1)) after which a job does not run again
+# job states (squeue(1), JOB STATE CODES) after which a job does not run again
 FINISHED = {
     "BOOT_FAIL",
     "CANCELLED",
@@ -249,11 +249,15 @@ def run_dir(name: str, stamp: str) -> str:
     return f"{name}-{stamp}"
 
 
+def _hex(image_id) -> str:
+    """An image id without its algorithm ("sha256:0a45..." -> "0a45..."), as Podman names it."""
+    return str(image_id or "").rsplit(":", maxsplit=1)[-1]
+
+
 def image_file(source: str, runtime: str, image_id: str) -> str:
     """The file name of a job image on the cluster: the team's image name and its id, so that a
     new image never replaces the file a queued job is about to run."""
-    short = str(image_id).rsplit(":", maxsplit=1)[-1][:12]
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + f"-{short}" + IMAGE_SUFFIX[runtime]
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + f"-{_hex(image_id)[:12]}" + IMAGE_SUFFIX[runtime]
 
 
 def complete(job: dict) -> dict:
@@ -262,7 +266,7 @@ def complete(job: dict) -> dict:
     the file), the cache mounts of the release when none are given."""
     job = dict(job)
     if job.get("runtime") in ("podman", "docker"):
-        job["image"] = str(job.get("image_id") or "").rsplit(":", maxsplit=1)[-1]
+        job["image"] = _hex(job.get("image_id"))
         job["image_archive"] = job.get("image_file")
     else:
         job["image"] = job.get("image_file")
@@ -519,21 +523,3 @@ def progress_line(job: dict) -> str:
     if job.get("state") == "PENDING" and job.get("reason") not in (None, "", "None"):
         where = f"waiting: {job['reason']}"
     return f"job {job.get('id')} {job.get('state', '?')} {job.get('elapsed', '')} {where}".rstrip()
-
-
-def parse_slurmd_c(text: str) -> dict:
-    """What `slurmd -C` finds of a node ("NodeName=n1 CPUs=2 Boards=1 ... RealMemory=24105"), as
-    {key: value}; the first line only (the second is its uptime)."""
-    first = (text or "").strip().splitlines()[:1]
-    return dict(word.split("=", 1) for word in (first[0].split() if first else []) if "=" in word)
-
-
-def gres_conf(node: str, devices) -> str:
-    """The node's gres.conf lines: one GPU per device file found (/dev/nvidia0, ...), in order.
-    Slurm wants character devices here (a plain file makes the node INVAL)."""
-    return "".join(f"NodeName={node} Name=gpu File={dev}\n" for dev in sorted(devices, key=_device_order))
-
-
-def _device_order(path: str):
-    match = re.search(r"(\d+)$", path)
-    return (int(match.group(1)) if match else -1, path)

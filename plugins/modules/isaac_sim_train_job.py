@@ -10,7 +10,7 @@ module: isaac_sim_train_job
 short_description: Submit, follow and cancel an Isaac Lab training job on a Slurm cluster
 version_added: "0.4.0"
 description:
-  - Runs on the cluster's login node, with Slurm's own commands (C(sinfo), C(sbatch), C(squeue), C(sacct),
+  - Runs on the cluster's login node, with Slurm's own commands (C(sinfo), C(sbatch), C(scontrol), C(sacct),
     C(scancel)).
   - O(state=checked) checks the request against the cluster's partitions and fails with every error, each naming
     the playbook variable and the fix; nothing changes.

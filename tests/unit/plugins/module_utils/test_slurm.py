@@ -415,20 +415,6 @@ def test_progress_says_where_a_job_runs_or_why_it_waits():
     assert slurm.progress_line(pending) == "job 18 PENDING 00:00:00 waiting: Resources"
 
 
-def test_a_node_as_slurmd_finds_it_and_its_gpus_as_gres():
-    found = slurm.parse_slurmd_c(
-        "NodeName=vm CPUs=2 Boards=1 SocketsPerBoard=1 CoresPerSocket=2 ThreadsPerCore=1 RealMemory=24105\n"
-        "UpTime=0-01:02:03\n"
-    )
-    assert found["NodeName"] == "vm" and found["CPUs"] == "2" and found["RealMemory"] == "24105"
-    assert slurm.parse_slurmd_c("") == {}
-    assert slurm.gres_conf("gpu-1", ["/dev/nvidia10", "/dev/nvidia2", "/dev/nvidia0"]) == (
-        "NodeName=gpu-1 Name=gpu File=/dev/nvidia0\n"
-        "NodeName=gpu-1 Name=gpu File=/dev/nvidia2\n"
-        "NodeName=gpu-1 Name=gpu File=/dev/nvidia10\n"
-    )
-
-
 def test_a_job_is_read_from_slurmctld_then_from_accounting():
     assert slurm.status_of("17", SCONTROL_RUNNING, "")["finished"] is False
     failed = slurm.status_of("17", SCONTROL_FAILED, "")
