@@ -236,6 +236,24 @@ def state_of(unit: dict | None, container: dict | None, ready: bool) -> str:
     return "stopped"
 
 
+def down_reason(unit: dict | None, name: str) -> str | None:
+    """Why a configured instance's unit is down, in a person's words; None while it serves or
+    is on its way back (systemd restarting it)."""
+    active = (unit or {}).get("ActiveState", "")
+    result = (unit or {}).get("Result", "")
+    if active == "failed" and result == "start-limit-hit":
+        return (
+            f"crash loop: it crashed or failed to get ready too often within its start limit, so systemd "
+            f"stopped restarting it (session ends are not counted). Fix: read journalctl -u {name}, then "
+            f"deploy again, or systemctl reset-failed {name} and start it"
+        )
+    if active == "failed":
+        return f"failed ({result or 'unknown result'}): read journalctl -u {name}"
+    if active == "inactive":
+        return "stopped: systemctl stop, isaac-sim.target stopped, or Docker stopped under it"
+    return None
+
+
 def _int(value, default=0):
     try:
         return int(value)
@@ -347,6 +365,9 @@ def build(
                 "enabled": (unit or {}).get("UnitFileState") == "enabled",
                 "unit_file_state": (unit or {}).get("UnitFileState"),
                 "restarts": _int((unit or {}).get("NRestarts")),
+                "down_reason": down_reason(unit if has_unit else None, unit_name(key))
+                if is_configured and isinstance(key, int)
+                else None,
                 "active_since": int(now - (monotonic_now - active_enter / 1e6)) if active and active_enter else None,
                 "container": container,
                 "uptime_s": (container or {}).get("uptime_s"),

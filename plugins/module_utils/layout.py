@@ -374,7 +374,8 @@ ExecStop=-/usr/bin/docker stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}
 ExecStopPost=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
 ExecStopPost=-/bin/rm -f ${{{K_READY_MARKER}}}
 # Any exit, status 0 included, is restarted (6.x quits when a stream session ends);
-# only systemctl stop keeps it down.
+# only systemctl stop keeps it down. {RUN_SCRIPT} flushes the start-limit counter on a
+# clean exit after ready (a session end), so only crashes and failed starts count.
 Restart=always
 RestartSec={restart_sec}
 TimeoutStartSec={ready_timeout + 30}

@@ -85,7 +85,9 @@ def bind(module) -> Host:
     return Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
 
 
-PROPS = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState"
+# InvocationID changes with every start: a session end resets NRestarts (isaac-sim-run), so the
+# count alone could read the same before and after a restart
+PROPS = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState,InvocationID"
 
 
 def show(host: Host, units, props: str = PROPS) -> dict:
@@ -221,13 +223,13 @@ def start(host: Host, ids, renew=(), companions=None) -> dict:
 def soak(host: Host, i: int, seconds: float, interval: float = 1.0) -> tuple:
     """(ok, reason): stay active and ready, with the restart count unchanged, for `seconds`."""
     first = states(host, [i])[i]
-    base = first.get("NRestarts", "0")
+    base, first_start = first.get("NRestarts", "0"), first.get("InvocationID")
     begin = host.now()
     while True:
         state = first if first is not None else states(host, [i])[i]
         first = None
         elapsed = host.now() - begin
-        if state.get("NRestarts", "0") != base:
+        if state.get("NRestarts", "0") != base or state.get("InvocationID") != first_start:
             return (
                 False,
                 f"restarted during the soak (NRestarts {base} -> {state.get('NRestarts')}) after {elapsed:.0f} s",

@@ -161,10 +161,17 @@ MIN_MEMORY = 32 * 1024**3
 NGC_REPOSITORY = "nvcr.io/nvidia/isaac-sim"
 
 
-def healthcheck(release: str, port: int | None) -> str:
-    """The container healthcheck: NVIDIA's own (AppReady in the newest kit log, as its 6.x
-    image and compose recipe check it) and, where the profile opens one, the instance's port
-    answering a request within 5 s (a hung app keeps its socket open but answers nothing)."""
+# Longest wait for the app to take the probe's connection off its listening socket's queue.
+ACCEPT_WAIT_S = 5
+
+
+def healthcheck(release: str, port: int | None, address: str = "") -> str:
+    """The container healthcheck: NVIDIA's own (AppReady in the newest kit log, as its 6.x image
+    and compose recipe check it) and, where the profile opens a port, the port taking a connection
+    at the address clients use. Nothing is sent and no reply is awaited (NVIDIA documents neither
+    for the signalling server): the probe connects, leaves, and reads the kernel's accept queue of
+    the port's listening socket in /proc/net/tcp. A running app takes a connection off that queue
+    at once; a hung one leaves it there (and, once the queue is full, the connect times out)."""
     logs = RELEASES[release]["log_dir"]
     check = (
         f'latest=$(ls -t {logs}/Kit/*/*/kit_*.log 2>/dev/null | head -1) && [ -n "$latest" ] '
@@ -172,8 +179,18 @@ def healthcheck(release: str, port: int | None) -> str:
     )
     if port is None:
         return check
-    probe = f"exec 3<>/dev/tcp/127.0.0.1/{port} && printf 'GET / HTTP/1.0\\r\\n\\r\\n' >&3 && read -r -n1 -t5 _ <&3"
-    return f'{check} && bash -c "{probe}"'
+    # /proc/net/tcp: "sl local_address rem_address st tx_queue:rx_queue ..."; for a listening
+    # socket (st 0A) rx_queue is the number of connections waiting to be accepted
+    hexport = f"{port:04X}"
+    probe = (
+        f"exec 3<>/dev/tcp/{address or '127.0.0.1'}/{port} && exec 3>&- && "
+        f"for t in $(seq {ACCEPT_WAIT_S * 5}); do q=0; "
+        f"while read -r _ l _ st qs _; do "
+        f'[ "$st" = 0A ] && [ "${{l##*:}}" = {hexport} ] && q=$((q + 16#${{qs#*:}})); '
+        f"done < <(cat /proc/net/tcp /proc/net/tcp6 2>/dev/null); "
+        f'[ "$q" = 0 ] && exit 0; sleep 0.2; done; exit 1'
+    )
+    return f"{check} && bash -c '{probe}'"
 
 
 def default_image(release: str) -> str:

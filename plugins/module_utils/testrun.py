@@ -712,7 +712,10 @@ def lend(host, service: str, instance: int, marker_exists) -> tuple:
         )
     given = {layout.K_HOST: service, layout.K_INSTANCE: str(instance)}
     given.update({k: v for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX)})
-    return {"service": service, "address": "host-gateway", "env": given, "instance": instance}, None
+    # the address clients use: 6.x listens on its public address (ISAACSIM_HOST), not on every
+    # address of the host, so Docker's host-gateway is only for an instance that names none
+    address = env.get(layout.K_PUBLIC_ADDRESS) or "host-gateway"
+    return {"service": service, "address": address, "env": given, "instance": instance}, None
 
 
 # at most this many dedicated simulators at once on a host (each keeps a cache directory)

@@ -163,8 +163,16 @@ instances:
       description: systemd's UnitFileState.
       type: str
     restarts:
-      description: systemd's NRestarts - automatic restarts since the unit's counter was last reset.
+      description: >-
+        systemd's NRestarts - automatic restarts since the unit's counter was last reset. A session
+        end (the app exits 0 after it was ready) resets it, so it counts the crashes since the last one.
       type: int
+    down_reason:
+      description: >-
+        Why a configured instance is down - a crash loop that hit the start limit, another failure
+        with systemd's result, or a stop; null while it serves or systemd is bringing it back.
+      type: str
+      sample: "failed (exit-code): read journalctl -u isaac-sim@2.service"
     active_since:
       description: When the unit became active (epoch seconds).
       type: int

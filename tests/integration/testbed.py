@@ -120,7 +120,8 @@ def by_name(result: dict) -> dict:
 
 
 def unit_show(host, unit: str) -> dict:
-    out = sh(host, f"systemctl show {shlex.quote(unit)} -p ActiveState,SubState,NRestarts,UnitFileState").stdout
+    props = "ActiveState,SubState,NRestarts,UnitFileState,InvocationID"
+    out = sh(host, f"systemctl show {shlex.quote(unit)} -p {props}").stdout
     return dict(line.split("=", 1) for line in out.strip().splitlines())
 
 

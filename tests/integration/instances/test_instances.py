@@ -17,6 +17,8 @@ SIGNAL_BASE, STREAM_BASE, VIEWER_BASE = 49100, 47998, 8210
 
 def tcp_answers(ip, port):
     with socket.create_connection((ip, port), timeout=2) as conn:
+        # the stand-in's hook for tests (a real signalling server sends nothing unasked)
+        conn.sendall(b"hello\n")
         return conn.recv(64).startswith(b"isaac-sim-standin")
 
 
@@ -146,13 +148,51 @@ def test_stopping_the_target_stops_every_instance(host):
     all_ready(host)
 
 
-def test_a_crash_loop_hits_the_start_limit_and_a_deploy_recovers_it(host):
+def viewer_session(ip, port):
+    """A person opens a stream (a WebSocket on the signal port) and closes the tab."""
+    with socket.create_connection((ip, port), timeout=5) as conn:
+        conn.sendall(
+            b"GET /sign_in HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        )
+        conn.settimeout(5)
+        assert conn.recv(64).startswith(b"HTTP/1.1 101")
+
+
+def test_session_ends_restart_for_ever_while_a_crash_loop_hits_the_start_limit_and_a_deploy_recovers_it(host):
     # start from the deployed state: after the reboot above the host may have a new
     # address, which rightly changes every instance's configuration
     synced = testbed.run_playbook(host)
     assert synced.returncode == 0, synced.stdout[-3000:] + synced.stderr
     all_ready(host)
-    # make instance 3 crash 4 s after every start, behind the role's back
+    ip = testbed.host_ip(host)
+    # instance 3's app quits 1 s after its last viewer left (6.x: 30 s), behind the role's back
+    sh(
+        host,
+        "sed -i 's/^ISAAC_SIM_DOCKER_ARGS=\"/ISAAC_SIM_DOCKER_ARGS=\"--env=STANDIN_RESUME_TIMEOUT=1 /' "
+        "/etc/isaac-sim/instance-3.env",
+    )
+    sh(host, "systemctl restart isaac-sim@3")
+    all_ready(host, [3])
+    since = sh(host, "date +%s").stdout.strip()
+
+    def journal():
+        return sh(host, f"journalctl -u isaac-sim@3 --since @{since} --no-pager").stdout
+
+    # ten people in a row close their viewer: far more than the start limit (burst 3 here) allows
+    for n in range(10):
+        old = container_id(host, "isaac-sim-3")
+        viewer_session(ip, SIGNAL_BASE + 3)
+        wait_for(lambda old=old: container_id(host, "isaac-sim-3") not in ("", old), timeout=60, what=f"restart {n}")
+        all_ready(host, [3])
+    assert journal().count("isaac-sim-3: session ended (the app exited 0 after it was ready)") == 10
+    assert "session ended: no client resumed it" in journal()
+    assert "Start request repeated too quickly" not in journal()
+    assert tcp_answers(ip, SIGNAL_BASE + 3)
+    record = testbed.by_name(testbed.info(host))["isaac-sim-3"]
+    assert record["state"] == "ready" and record["down_reason"] is None
+
+    # then the app crashes 4 s after every start
     sh(
         host,
         "sed -i 's/^ISAAC_SIM_DOCKER_ARGS=\"/ISAAC_SIM_DOCKER_ARGS=\"--env=STANDIN_CRASH_AFTER=4 /' "
@@ -160,19 +200,22 @@ def test_a_crash_loop_hits_the_start_limit_and_a_deploy_recovers_it(host):
     )
     since = sh(host, "date +%s").stdout.strip()
     # the start itself may already fail, if the crash comes before the gate saw the ready line
-    sh(host, "systemctl reset-failed isaac-sim@3; systemctl restart isaac-sim@3", check=False)
-
-    def journal():
-        return sh(host, f"journalctl -u isaac-sim@3 --since @{since} --no-pager").stdout
-
+    sh(host, "systemctl restart isaac-sim@3", check=False)
     # between a crash and its restart the unit reads "failed" too: wait for systemd giving up
     wait_for(lambda: "Start request repeated too quickly" in journal(), timeout=120, what="isaac-sim@3 to give up")
     assert unit_show(host, "isaac-sim@3.service")["ActiveState"] == "failed"
     # burst 3: the start and two restarts run, the third restart is refused
     assert journal().count("Scheduled restart job") == 3
+    assert "isaac-sim-3 crashed (exit status 1): counted against the start limit" in journal()
+    assert "session ended" not in journal()
     time.sleep(5)
     assert unit_show(host, "isaac-sim@3.service")["ActiveState"] == "failed"
     assert container_id(host, "isaac-sim-3") == ""
+    # systemctl status and the status module both say why it is down
+    status = sh(host, "systemctl status isaac-sim@3 --no-pager -n 0", check=False).stdout
+    assert "start-limit-hit" in status
+    record = testbed.by_name(testbed.info(host))["isaac-sim-3"]
+    assert record["state"] == "failed" and record["down_reason"].startswith("crash loop:"), record["down_reason"]
     others = {i: container_id(host, f"isaac-sim-{i}") for i in range(3)}
     # the next deploy rewrites the env file, clears the failed state and restarts only instance 3
     run = testbed.run_playbook(host)

@@ -60,6 +60,7 @@ def test_2023_1_serves_one_streaming_method_per_instance_webrtc_or_native(host, 
             assert status["isaac-sim-3"]["profile"] == "native"
             assert urls == {"native": f"{ip}:48013"} and f"native={ip}:48013" in result.stdout
             with socket.create_connection((ip, 48013), timeout=2) as conn:
+                conn.sendall(b"hello\n")  # the stand-in's hook for tests
                 assert conn.recv(64).startswith(b"isaac-sim-standin native")
             assert refused(ip, 8214) and refused(ip, 8014)
     # the dashboard embeds each WebRTC instance's own browser client and shows the native address

@@ -51,6 +51,7 @@ def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
         assert inst["gpu"] is None and inst["limits"] == {"memory": "1g", "shm_size": "256m"}
         # the signal address the URL names is the instance's own
         with socket.create_connection((ip, 49100 + i), timeout=2) as conn:
+            conn.sendall(b"hello\n")  # the stand-in's hook for tests
             assert conn.recv(64).startswith(b"isaac-sim-standin")
     # fixed cost: one systemctl show, no nvidia-smi on this host, two Docker API calls
     assert result["cost"] == {"spawns": 1, "docker_api_calls": 2}

@@ -131,6 +131,22 @@ def test_state_words(active, sub, expected):
     assert fleet_status.state_of({"ActiveState": active, "SubState": sub}, None, True) == expected
 
 
+@pytest.mark.parametrize(
+    "active,result,expected",
+    [
+        ("active", "success", None),
+        # systemd is bringing it back: not down
+        ("activating", "exit-code", None),
+        ("failed", "start-limit-hit", "crash loop: "),
+        ("failed", "exit-code", "failed (exit-code): read journalctl -u isaac-sim@2.service"),
+        ("inactive", "success", "stopped: "),
+    ],
+)
+def test_why_an_instance_is_down(active, result, expected):
+    said = fleet_status.down_reason({"ActiveState": active, "Result": result}, "isaac-sim@2.service")
+    assert said == expected if expected is None or not expected.endswith(": ") else said.startswith(expected)
+
+
 def test_restart_count_comes_from_nrestarts():
     units = fleet_status.parse_systemctl_show(recorded("systemctl-show.txt"))
     units[1] = dict(units[1], NRestarts="3", ActiveState="activating", SubState="auto-restart")

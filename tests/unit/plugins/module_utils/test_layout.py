@@ -94,5 +94,10 @@ def test_unit_numbers_are_numbers_whatever_was_given():
     assert "StartLimitIntervalSec=156\n" in unit  # 3 * (2 + 20 + 30)
     assert "RestartSec=2\n" in unit and "TimeoutStartSec=50\n" in unit and "TimeoutStopSec=35\n" in unit
     assert "Restart=always\n" in unit and "RestartPreventExitStatus=76\n" in unit
+    # session ends restart for ever while crash loops stop: every exit restarts, the start limit
+    # is on (isaac-sim-run flushes it on a clean exit after ready), and no exit status is a
+    # success that would end the unit instead of restarting it
+    assert "StartLimitIntervalSec=0" not in unit and "SuccessExitStatus" not in unit
+    assert "ExecStart=/usr/local/libexec/isaac-sim/isaac-sim-run\n" in unit
     assert "ExecStop=-/usr/bin/docker stop" in unit
     assert "EnvironmentFile=/etc/isaac-sim/instance-%i.env\n" in unit

@@ -309,11 +309,12 @@ def test_the_healthcheck_is_nvidias_plus_the_port_answering():
     inst = plan.build(cfg(health_interval="5", health_retries=2), HOST)["instances"][1]
     cmd = next(a for a in inst["docker_args"] if a.startswith("--health-cmd="))
     assert "ls -t /isaac-sim/.nvidia-omniverse/logs/Kit/*/*/kit_*.log" in cmd and "grep -q AppReady" in cmd
-    assert "/dev/tcp/127.0.0.1/49101" in cmd
+    # the port asked at the address clients use, the instance's public one (ISAACSIM_HOST)
+    assert "/dev/tcp/10.0.0.5/49101" in cmd and "--env=ISAACSIM_HOST" in inst["docker_args"]
     assert {"--health-interval=5s", "--health-retries=2", "--health-start-period=300s"} <= set(inst["docker_args"])
     old = plan.build(cfg(release="2023.1", image="nvcr.io/nvidia/isaac-sim:2023.1.1"), HOST)["instances"][0]
     assert "/root/.nvidia-omniverse/logs/Kit" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
-    assert "/dev/tcp/127.0.0.1/8211" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
+    assert "/dev/tcp/10.0.0.5/8211" in next(a for a in old["docker_args"] if a.startswith("--health-cmd="))
 
 
 STATUS = {"enabled": True, "port": 8290, "address": "", "allow": ["10.0.0.0/8"], "origins": ["null"]}

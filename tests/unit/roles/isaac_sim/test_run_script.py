@@ -1,0 +1,71 @@
+"""isaac-sim-run, the instances' ExecStart, run by a real bash: how the end of the app is told
+to systemd. Docker and systemctl are small recording stand-ins on the script's own paths; the
+logic under test is the script's, unchanged."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+FILES = Path(__file__).resolve().parents[4] / "roles" / "isaac_sim" / "files"
+
+
+@pytest.fixture
+def run(tmp_path):
+    """run(app_status, ready) -> (exit status, output, systemctl calls)."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "systemctl.calls"
+    (bin_dir / "docker").write_text('#!/bin/sh\n[ "$1" = run ] && exit "$APP_STATUS"\nexit 0\n')
+    (bin_dir / "systemctl").write_text(f'#!/bin/sh\necho "$*" >>{calls}\n[ "$1" = show ] && echo active\nexit 0\n')
+    # the script as installed, with Docker at the stand-in's path
+    script = tmp_path / "isaac-sim-run"
+    script.write_text((FILES / "isaac-sim-run").read_text().replace("/usr/bin/docker", str(bin_dir / "docker")))
+    (tmp_path / "isaac-sim-ports").write_text("#!/bin/sh\nexit 0\n")
+    for f in (*bin_dir.iterdir(), script, tmp_path / "isaac-sim-ports"):
+        f.chmod(0o755)
+    marker = tmp_path / "instance-2.ready"
+
+    def go(status: int, ready: bool):
+        marker.unlink(missing_ok=True)
+        calls.unlink(missing_ok=True)
+        if ready:
+            marker.write_text("1\n")
+        env = dict(
+            os.environ,
+            PATH=f"{bin_dir}:{os.environ['PATH']}",
+            APP_STATUS=str(status),
+            ISAAC_SIM_CONTAINER="isaac-sim-2",
+            ISAAC_SIM_UNIT="isaac-sim@2.service",
+            ISAAC_SIM_IMAGE="img",
+            ISAAC_SIM_READY_MARKER=str(marker),
+        )
+        done = subprocess.run(["bash", str(script)], capture_output=True, text=True, env=env, timeout=30, check=False)
+        said = calls.read_text().splitlines() if calls.exists() else []
+        return done.returncode, done.stdout + done.stderr, said
+
+    return go
+
+
+def test_a_clean_exit_after_ready_is_a_session_end_that_flushes_the_start_limit(run):
+    rc, out, calls = run(0, ready=True)
+    assert rc == 0
+    assert "isaac-sim-2: session ended (the app exited 0 after it was ready)" in out
+    assert "reset-failed isaac-sim@2.service" in calls
+
+
+def test_a_crash_after_ready_stays_counted(run):
+    rc, out, calls = run(1, ready=True)
+    assert rc == 1
+    assert "isaac-sim-2 crashed (exit status 1): counted against the start limit" in out
+    assert not [c for c in calls if c.startswith("reset-failed")]
+
+
+def test_a_clean_exit_before_ready_stays_counted(run):
+    rc, out, calls = run(0, ready=False)
+    assert rc == 0
+    assert "exited 0 before it was ready: counted as a failed start" in out
+    assert not [c for c in calls if c.startswith("reset-failed")]
