@@ -262,6 +262,13 @@ def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
             f"isaac_sim_status_server_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
             "Fix: choose one, e.g. 8290."
         )
+    elif port in taken and " companion " in taken[port]:
+        # the companion is what moved onto the endpoint's port: name its setting
+        _inst, i, _word, name, port_name = taken[port].split(" ", 4)
+        errors.append(
+            f"{companions.VAR}[{name}].ports.{port_name}: {port} (instance {i}'s) is the status endpoint's port "
+            f"(isaac_sim_status_server_port). Fix: give the companion another port, or move the status endpoint."
+        )
     elif port in taken:
         errors.append(
             f"isaac_sim_status_server_port: {port} is also {taken[port]}'s port. Fix: choose a port outside every "
@@ -479,7 +486,10 @@ def build(cfg: dict, host: dict) -> dict:
     count = cfg["instance_count"]
 
     if count < 0:
-        errors.append("isaac_sim_instance_count: must be 0 or more.")
+        errors.append(
+            f"isaac_sim_instance_count: {count} is below 0. Fix: give the number of instances this host runs "
+            "(0 stops and removes them all)."
+        )
     if count > cfg["max_instances"]:
         errors.append(
             f"isaac_sim_instance_count: {count} is above isaac_sim_max_instances ({cfg['max_instances']}). "

@@ -7,6 +7,7 @@ other instance tests; each test leaves every instance ready again.
 import json
 import re
 import socket
+import time
 import urllib.error
 import urllib.request
 
@@ -72,6 +73,7 @@ def test_a_stopped_instance_reports_stopped(host):
         inst = by_name(testbed.info(host))["isaac-sim-3"]
         assert inst["state"] == "stopped" and inst["ready"] is False and inst["container"] is None
         assert inst["active_state"] == "inactive" and inst["enabled"] is True
+        assert inst["down_reason"].startswith("stopped: ")
     finally:
         sh(host, "systemctl start isaac-sim@3")
     all_ready(host, [3])
@@ -231,6 +233,28 @@ def test_dashboard_in_headless_chromium(host, tmp_path):
     assert found["links"] == []  # 6.x links its web viewers only where they run (test_web_viewer)
     assert {kind for _addr, kind, _port in found["addresses"]} == {"signal", "stream"}
     assert found["frames"] == []  # 6.x serves no browser client of its own
+
+
+def test_markup_in_names_is_shown_as_text_and_never_runs(host, tmp_path):
+    evil = "<img src=x onerror=\"document.body.dataset.pwned='yes'\">"
+    _run, out = dashboard(
+        host,
+        tmp_path,
+        {
+            "fleet_report_title": "Lab " + evil,
+            "isaac_sim_status_public_address": "gpu" + evil,
+            "fleet_report_refresh": 0,
+        },
+    )
+    with chromium() as driver:
+        driver.get((out / "status.html").as_uri())
+        time.sleep(1)
+        assert driver.find_elements("css selector", "img") == []
+        assert driver.execute_script("return document.body.dataset.pwned || ''") == ""
+        assert driver.title == "Lab " + evil
+        assert driver.find_element("tag name", "h1").text == "Lab " + evil
+        assert "gpu" + evil in driver.find_element("css selector", "code.stream-address").text
+        driver.save_screenshot(str(OUTPUT / "dashboard-markup.png"))
 
 
 def test_day2_actions_refuse_bad_input_before_any_change(host):

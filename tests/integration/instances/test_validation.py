@@ -122,3 +122,41 @@ def test_check_mode_on_a_fresh_host_reports_changes_and_changes_nothing(tmp_path
         assert sh(fresh_host, "test -e /etc/isaac-sim", check=False).rc != 0
     finally:
         subprocess.run(["ansible-playbook", str(destroy), "-e", hosts], capture_output=True, cwd=ROOT, check=False)
+
+
+def test_an_inventory_without_the_group_says_which_group_to_fill(tmp_path):
+    inventory = tmp_path / "hosts.yml"
+    inventory.write_text("all:\n  children:\n    gpu_servers:\n      hosts:\n        gpu-01:\n")
+    for book in ("deploy.yml", "status.yml", "test_suite.yml"):
+        run = subprocess.run(
+            ["ansible-playbook", "-i", str(inventory), str(ROOT / "playbooks" / book)],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=120,
+            check=False,
+        )
+        out = " ".join((run.stdout + run.stderr).split())
+        assert run.returncode != 0, out[-2000:]
+        assert "The inventory has no host in group isaac_sim_hosts" in out and "(groups found: gpu_servers)" in out
+        assert "Fix: list your GPU servers under isaac_sim_hosts" in out
+        assert "has no attribute" not in out
+
+
+def test_a_refused_registry_login_names_the_registry_and_the_user_never_the_key(host):
+    key = "wrong-key-0123456789"
+    out = assert_rejected(
+        host,
+        {"isaac_sim_image_pull": "always", "isaac_sim_registry_password": key},
+        "refused the login of user $oauthtoken from " + testbed.name(host),
+        "Fix: check isaac_sim_registry_username and isaac_sim_registry_password",
+    )
+    assert key not in out
+
+
+def test_check_mode_on_the_deployed_host_runs_and_changes_nothing(host):
+    before = testbed.snapshot(host)
+    result = testbed.run_playbook(host, check=True)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    assert testbed.changed_count(result, host) == 0
+    assert testbed.snapshot(host) == before

@@ -358,6 +358,18 @@ def test_bad_status_endpoint_settings_are_refused_before_any_change(settings, ho
     assert wanted in text and "Fix:" in text, text
 
 
+def test_a_companion_on_the_status_endpoints_port_is_named_itself():
+    bridge = {"name": "bridge", "image": "reg.lab/bridge:1", "ports": {"ws": 8290}}
+    text = "\n".join(errors_of(cfg(status_server=STATUS, companions=[bridge])))
+    assert "isaac_sim_companions[bridge].ports.ws: 8290 (instance 0's) is the status endpoint's port" in text, text
+    assert "isaac_sim_status_server_port: 8290 is also" not in text
+
+
+def test_a_negative_count_says_what_to_give():
+    text = "\n".join(errors_of(cfg(instance_count=-1)))
+    assert "isaac_sim_instance_count: -1 is below 0. Fix: " in text, text
+
+
 HUB = {"enabled": True, "image": "nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0", "dir": ""}
 
 
