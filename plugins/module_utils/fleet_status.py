@@ -42,6 +42,7 @@ UNIT_PROPERTIES = (
     "UnitFileState",
     "Result",
     "NRestarts",
+    "ExecMainStatus",
     "MainPID",
     "ActiveEnterTimestampMonotonic",
 )
@@ -239,9 +240,17 @@ def state_of(unit: dict | None, container: dict | None, ready: bool) -> str:
 def down_reason(unit: dict | None, name: str) -> str | None:
     """Why a configured instance's unit is down, in a person's words; None while it serves or
     is on its way back (systemd restarting it)."""
-    active = (unit or {}).get("ActiveState", "")
-    result = (unit or {}).get("Result", "")
-    if active == "failed" and result == "start-limit-hit":
+    unit = unit or {}
+    active = unit.get("ActiveState", "")
+    result = unit.get("Result", "")
+    if active == "failed" and _int(unit.get("ExecMainStatus")) == layout.PORTS_HELD_STATUS:
+        return (
+            f"a port of its block is held by another process, so it is not restarted. Fix: read "
+            f"journalctl -u {name} for the port, free it, then systemctl reset-failed {name} and start it"
+        )
+    # Restart=always: a failed unit is one systemd stopped restarting. A refused manual start reads
+    # start-limit-hit; a refused automatic restart keeps the last run's result (systemd 247-255).
+    if active == "failed" and (result == "start-limit-hit" or _int(unit.get("NRestarts")) > 0):
         return (
             f"crash loop: it crashed or failed to get ready too often within its start limit, so systemd "
             f"stopped restarting it (session ends are not counted). Fix: read journalctl -u {name}, then "

@@ -132,19 +132,25 @@ def test_state_words(active, sub, expected):
 
 
 @pytest.mark.parametrize(
-    "active,result,expected",
+    "active,result,restarts,status,expected",
     [
-        ("active", "success", None),
+        ("active", "success", "0", "0", None),
         # systemd is bringing it back: not down
-        ("activating", "exit-code", None),
-        ("failed", "start-limit-hit", "crash loop: "),
-        ("failed", "exit-code", "failed (exit-code): read journalctl -u isaac-sim@2.service"),
-        ("inactive", "success", "stopped: "),
+        ("activating", "exit-code", "2", "1", None),
+        # a manual start refused by the start limit
+        ("failed", "start-limit-hit", "0", "1", "crash loop: "),
+        # an automatic restart refused: systemd keeps the last run's result
+        ("failed", "exit-code", "2", "1", "crash loop: "),
+        ("failed", "exit-code", "0", "1", "failed (exit-code): read journalctl -u isaac-sim@2.service"),
+        # isaac-sim-ports: never restarted, whatever the count
+        ("failed", "exit-code", "1", "76", "a port of its block is held"),
+        ("inactive", "success", "0", "0", "stopped: "),
     ],
 )
-def test_why_an_instance_is_down(active, result, expected):
-    said = fleet_status.down_reason({"ActiveState": active, "Result": result}, "isaac-sim@2.service")
-    assert said == expected if expected is None or not expected.endswith(": ") else said.startswith(expected)
+def test_why_an_instance_is_down(active, result, restarts, status, expected):
+    unit = {"ActiveState": active, "Result": result, "NRestarts": restarts, "ExecMainStatus": status}
+    said = fleet_status.down_reason(unit, "isaac-sim@2.service")
+    assert said == expected if expected is None or expected.endswith(".service") else said.startswith(expected)
 
 
 def test_restart_count_comes_from_nrestarts():
