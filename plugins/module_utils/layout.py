@@ -23,6 +23,8 @@ DATA_ROOT = "/var/lib/isaac-sim"
 
 UNIT_TEMPLATE = "isaac-sim@.service"
 TARGET = "isaac-sim.target"
+# where systemctl enable links the target for docker.service (its [Install] WantedBy=)
+TARGET_DOCKER_WANT = f"{UNIT_DIR}/docker.service.wants/{TARGET}"
 UNIT_GLOB = "isaac-sim@*.service"
 CONTAINER_PREFIX = "isaac-sim-"
 LABEL_INSTANCE = "org.isaacsim.fleet.instance"
@@ -500,11 +502,13 @@ After={HUB_UNIT}
 def render_target(managed: str) -> str:
     return f"""# {managed}
 # All Isaac Sim instances of this host: systemctl stop {TARGET}
+# Docker stopping stops it and every instance (Requires=); whenever Docker starts again, however it
+# went away, it starts this target and so every enabled instance (WantedBy=docker.service).
 [Unit]
 Description=Isaac Sim instances
 Requires=docker.service
 After=docker.service
 
 [Install]
-WantedBy=multi-user.target
+WantedBy=multi-user.target docker.service
 """

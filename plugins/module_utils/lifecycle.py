@@ -418,7 +418,9 @@ def apply(host: Host, want: dict, check=False) -> dict:
     wanted_companions = {i: _names(files, i) for i, files in desired.items()}
     comp_state = show(host, companion_units(wanted_companions))
     to_start = [i for i in desired if not serving(state[i])]
-    to_roll = [i for i in desired if serving(state[i]) and (i in changed_ids or shared)]
+    # the target only groups the instances: a new target file restarts none of them
+    restarting = [p for p in shared if p != os.path.join(layout.UNIT_DIR, layout.TARGET)]
+    to_roll = [i for i in desired if serving(state[i]) and (i in changed_ids or restarting)]
     to_enable = [i for i in desired if not _enabled(state[i])]
     enable_companions = [
         (i, n)
@@ -435,7 +437,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
     }
     revive = {i: names for i, names in revive.items() if names}
     _rc, target_state, _err = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
-    target_enabled = target_state.strip() == "enabled"
+    # a target enabled before it was wanted by docker.service gets its new link from systemctl enable
+    target_enabled = target_state.strip() == "enabled" and host.exists(layout.TARGET_DOCKER_WANT)
     main_env = {i: layout.env_file(i) for i in desired}
     steps, notes = port_order(
         {i: ports_of(current[i][main_env[i]]) for i in desired},

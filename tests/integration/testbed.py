@@ -72,13 +72,8 @@ def changed_count(result, host) -> int:
     return int(match.group(1))
 
 
-def run_playbook(
-    host, extra_vars: dict | None = None, check=False, extra_inventory=None, playbook=None, raw_vars=()
-) -> subprocess.CompletedProcess:
-    """A playbook (the scenario's converge unless named, e.g. "playbooks/status.yml") on this host only.
-
-    raw_vars: "name=value" strings given with -e as an operator types them (every value a string).
-    """
+def playbook_command(host, extra_vars=None, check=False, extra_inventory=None, playbook=None, raw_vars=()):
+    """The ansible-playbook command line and environment of run_playbook."""
     book = str(ROOT / playbook) if playbook else converge_playbook()
     cmd = ["ansible-playbook", "-i", inventory(), "--limit", name(host), book]
     if extra_inventory:
@@ -89,7 +84,23 @@ def run_playbook(
         cmd += ["-e", raw]
     if check:
         cmd.append("--check")
-    env = dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
+    return cmd, dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
+
+
+def start_playbook(host, extra_vars=None, playbook=None) -> subprocess.Popen:
+    """run_playbook in the background: the caller waits for it (communicate)."""
+    cmd, env = playbook_command(host, extra_vars, playbook=playbook)
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
+
+
+def run_playbook(
+    host, extra_vars: dict | None = None, check=False, extra_inventory=None, playbook=None, raw_vars=()
+) -> subprocess.CompletedProcess:
+    """A playbook (the scenario's converge unless named, e.g. "playbooks/status.yml") on this host only.
+
+    raw_vars: "name=value" strings given with -e as an operator types them (every value a string).
+    """
+    cmd, env = playbook_command(host, extra_vars, check, extra_inventory, playbook, raw_vars)
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT, check=False)
     if f"{name(host)} " not in result.stdout.split("PLAY RECAP", 1)[-1]:
         raise AssertionError(f"the playbook did not run on {name(host)}:\n{result.stdout[-2000:]}{result.stderr}")

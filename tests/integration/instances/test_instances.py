@@ -119,6 +119,28 @@ def test_instances_come_back_after_dockerd_restarts(host, ip):
         assert tcp_answers(ip, SIGNAL_BASE + i)
 
 
+def test_instances_come_back_whenever_docker_comes_back(host, ip):
+    # stopped with its socket, as an operator or a package upgrade does: the instances stop with it
+    sh(host, "systemctl stop docker.socket docker")
+    states = {i: unit_show(host, f"isaac-sim@{i}.service")["ActiveState"] for i in range(INSTANCES)}
+    assert set(states.values()) == {"inactive"}, states
+    time.sleep(5)
+    sh(host, "systemctl start docker")
+    all_ready(host)
+    old = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
+    # dockerd killed: systemd restarts Docker (Debian's unit: Restart=always), and the instances follow
+    sh(host, "pkill -KILL -x dockerd")
+    wait_for(
+        lambda: all(container_id(host, f"isaac-sim-{i}") not in ("", old[i]) for i in range(INSTANCES)),
+        timeout=180,
+        what="new containers after dockerd was killed",
+    )
+    all_ready(host)
+    for i in range(INSTANCES):
+        assert tcp_answers(ip, SIGNAL_BASE + i)
+        assert unit_show(host, f"isaac-sim@{i}.service")["ActiveState"] == "active"
+
+
 def test_instances_come_back_after_a_reboot(host, ip):
     testbed.client().containers.get(testbed.name(host)).restart(timeout=30)
     wait_for(

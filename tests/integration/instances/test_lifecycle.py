@@ -5,6 +5,8 @@ reach systemd as numbers; a size with a space reaches Docker as one word.
 Runs in molecule's verify step on molecule/default; each test leaves every instance ready.
 """
 
+import json
+import socket
 import time
 
 import testbed
@@ -36,6 +38,51 @@ def test_a_deploy_that_breaks_an_instance_stops_there_and_puts_it_back(host):
     assert after[0] != before[0], "isaac-sim-0 was not restarted on its previous settings"
     assert {i: after[i] for i in (1, 2, 3)} == {i: before[i] for i in (1, 2, 3)}
     assert {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)} == envs
+
+
+def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_blocks(host):
+    lock = "/run/isaac-sim/lock.json"
+    envs = {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)}
+    # a rolling restart holds the host for a minute or so
+    first = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 10}, playbook="playbooks/rolling_restart.yml")
+    third = None
+    try:
+        testbed.wait_for(lambda: sh(host, f"cat {lock}", check=False).stdout, timeout=120, what="the first run's lock")
+        # a deploy with other settings meanwhile: refused before it plans, naming the first run
+        second = testbed.run_playbook(host, {"isaac_sim_env": {"STANDIN_CRASH_AFTER": "0"}})
+        out = " ".join((second.stdout + second.stderr).split())
+        assert second.returncode != 0, out[-3000:]
+        assert f"{testbed.name(host)} is held by " in out and "(ansible-playbook pid " in out and " since " in out
+        assert "isaac_sim_lock_wait" in out and "isaac_sim_lock_break=true" in out
+        # another waits for it instead, then runs
+        third = testbed.start_playbook(host, {"isaac_sim_lock_wait": 600})
+        said_first = first.communicate(timeout=600)[0]
+        assert first.returncode == 0, said_first[-3000:]
+        said = third.communicate(timeout=600)[0]
+        assert third.returncode == 0 and "waiting up to 600 s" in said, said[-3000:]
+    finally:
+        for proc in (first, third):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+    assert {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)} == envs
+    assert sh(host, f"test -e {lock}", check=False).rc == 1, "the lock was not given back"
+
+    # a run of this controller killed mid-deploy: its lock is taken at once, with a word
+    dead = {"id": "x", "user": "carol", "controller": socket.gethostname(), "pid": 999999, "started": "1"}
+    dead.update(play="Deploy", since=time.time(), renewed=time.time())
+    sh(host, f"mkdir -p /run/isaac-sim && echo '{json.dumps(dead)}' > {lock}")
+    taken = testbed.run_playbook(host)
+    said = taken.stdout + taken.stderr
+    assert taken.returncode == 0 and "took the lock left by carol" in said, said[-3000:]
+    # another controller's run: refused while fresh, taken when the operator says that run is dead
+    sh(host, f"echo '{json.dumps(dict(dead, controller='elsewhere', id='y'))}' > {lock}")
+    refused = testbed.run_playbook(host)
+    said = refused.stdout + refused.stderr
+    assert refused.returncode != 0 and "is held by carol on elsewhere" in said, said[-3000:]
+    broken = testbed.run_playbook(host, {"isaac_sim_lock_break": True})
+    said = broken.stdout + broken.stderr
+    assert broken.returncode == 0 and "(isaac_sim_lock_break)" in said, said[-3000:]
+    testbed.all_ready(host)
 
 
 def test_an_app_that_quits_by_itself_with_status_0_is_restarted(host):

@@ -6,6 +6,8 @@ does (the gate's message in the journal), one that crashes during the soak,
 an instance stuck activating. The real thing runs in the molecule scenarios.
 """
 
+import os
+
 from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, lifecycle
 
 UNIT_FILE = "/etc/systemd/system/isaac-sim@.service"
@@ -40,6 +42,7 @@ class ScriptedHost:
             self.files[UNIT_FILE] = ("unit v1\n", 0o644)
             self.files[GATE] = ("gate v1\n", 0o755)
         self.target = "enabled" if running else "disabled"
+        self.docker_want = running
         self.markers = {i for i in range(n) if running}
         # companions: {(id, name): unit state}; ready markers {(id, name)}
         self.comps = {}
@@ -55,7 +58,8 @@ class ScriptedHost:
             self.remove,
             lambda p: self.files.get(p, (None, None))[1],
             lambda p: any(p == layout.marker(i) for i in self.markers)
-            or any(p == layout.companion_marker(i, n) for i, n in self.comp_markers),
+            or any(p == layout.companion_marker(i, n) for i, n in self.comp_markers)
+            or (p == layout.TARGET_DOCKER_WANT and self.docker_want),
             self.sleep,
             lambda: self.clock,
             lambda: 1795000000 + self.clock,
@@ -184,6 +188,7 @@ class ScriptedHost:
             for i in ids:
                 self.units[i]["UnitFileState"] = "enabled"
             self.target = "enabled"
+            self.docker_want = True
             return 0, "", ""
         if argv[0] == "journalctl":
             return 0, "\n".join(self.journal.get(ids[0], [])), ""
@@ -217,6 +222,24 @@ def test_a_fresh_host_starts_every_instance_at_once_and_enables_them():
     assert [d["action"] for d in result["done"]] == ["start"] * 4
     assert h.files[layout.env_file(3)] == (NEW, 0o644) and h.files[GATE] == ("gate v1\n", 0o755)
     assert all(u["UnitFileState"] == "enabled" for u in h.units.values()) and h.target == "enabled"
+
+
+def test_a_target_enabled_before_docker_wanted_it_is_enabled_again_and_nothing_restarts():
+    # hosts deployed before the target's WantedBy=docker.service: only systemctl enable links it
+    h = ScriptedHost(3)
+    h.docker_want = False
+    target = os.path.join(layout.UNIT_DIR, layout.TARGET)
+    h.files[target] = ("old target\n", 0o644)
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(3)}, files={target: ("new target\n", 0o644)}))
+    assert result["failed"] is None and result["changed"]
+    assert result["plan"]["enable"] == [layout.TARGET] and h.docker_want
+    assert h.files[target] == ("new target\n", 0o644) and "systemctl daemon-reload" in h.log
+    assert h.commands("restart") == [] and h.commands("start") == []
+
+
+def test_the_target_is_started_by_docker_and_stops_with_it():
+    text = layout.render_target("managed")
+    assert "Requires=docker.service" in text and "WantedBy=multi-user.target docker.service" in text
 
 
 def test_nothing_to_do_changes_nothing():

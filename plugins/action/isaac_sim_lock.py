@@ -1,0 +1,96 @@
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+"""Names this playbook run to the host's lock (the module isaac_sim_lock), waits while another
+run holds it, and finds holders that have ended: a run of this same controller whose
+ansible-playbook process is gone gives its lock up at once, whatever its age."""
+
+import getpass
+import os
+import socket
+import time
+
+from ansible.plugins.action import ActionBase
+from ansible.utils.display import Display
+from ansible_collections.isaacsim.fleet.plugins.module_utils import runlock
+
+display = Display()
+POLL_S = 5
+
+
+def _start_time(pid: int) -> str:
+    """The process's start time in clock ticks since boot (/proc), so a reused pid is another run."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def _alive(pid, started: str) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, TypeError, ValueError):
+        return True
+    return not started or _start_time(int(pid)) in ("", started)
+
+
+def this_run(play: str) -> dict:
+    # action plugins run in a worker forked from ansible-playbook: the parent is the run itself
+    pid = os.getppid()
+    started = _start_time(pid)
+    controller = socket.gethostname()
+    return {
+        "id": f"{controller}:{pid}:{started}",
+        "user": getpass.getuser(),
+        "controller": controller,
+        "pid": pid,
+        "started": started,
+        "play": play,
+    }
+
+
+class ActionModule(ActionBase):
+    _supports_check_mode = True
+
+    def run(self, tmp=None, task_vars=None):
+        result = super().run(tmp, task_vars)
+        args = dict(self._task.args)
+        me = this_run(task_vars.get("ansible_play_name", ""))
+        args["holder"] = me
+        host = task_vars.get("inventory_hostname")
+        wait = int(args.get("wait") or 0)
+        begun, told = time.monotonic(), False
+        while True:
+            looked = self._execute_module(module_args=args, task_vars=task_vars)
+            if looked.get("failed") or looked.get("acquired") or args.get("state") == "absent":
+                if looked.get("note"):
+                    display.warning(f"{host}: {looked['note']}")
+                result.update(looked)
+                return result
+            holder = looked.get("holder") or {}
+            if holder.get("controller") == me["controller"] and not _alive(holder.get("pid"), holder.get("started")):
+                args["dead"] = holder.get("id", "")
+                continue
+            who = runlock.holder_text(holder, time.time())
+            if self._task.check_mode:
+                display.warning(f"{host} is held by {who}; this dry run plans against a host that may be changing")
+                result.update(looked, failed=False)
+                return result
+            if time.monotonic() - begun >= wait:
+                result.update(
+                    looked,
+                    failed=True,
+                    msg=(
+                        f"{host} is held by {who}: another run is changing its instances, and this one changes "
+                        f"nothing while it does. Fix: wait for that run to end and run again, or set "
+                        f"isaac_sim_lock_wait (seconds) to wait for it; if that run is dead (killed, or its "
+                        f"controller gone), run again with -e isaac_sim_lock_break=true."
+                    ),
+                )
+                return result
+            if not told:
+                display.display(f"{host}: held by {who}; waiting up to {wait} s")
+                told = True
+            time.sleep(POLL_S)

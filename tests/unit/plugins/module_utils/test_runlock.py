@@ -1,0 +1,92 @@
+"""The host's run lock against real files: two runs never both hold it, a run renews its own,
+an ended or stale run's lock is taken over and says from whom."""
+
+import json
+import multiprocessing
+import os
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils import runlock
+
+ALICE = {"id": "ctl-1:100:5", "user": "alice", "controller": "ctl-1", "pid": 100, "started": "5", "play": "Deploy"}
+BOB = {"id": "ctl-2:200:7", "user": "bob", "controller": "ctl-2", "pid": 200, "started": "7", "play": "Deploy"}
+NOW = 1795000000.0
+
+
+def paths(tmp_path):
+    return {"path": str(tmp_path / "run" / "lock.json"), "guard": str(tmp_path / "run" / ".guard")}
+
+
+def test_a_free_host_is_taken_and_another_run_is_refused_naming_who_and_since_when(tmp_path):
+    where = paths(tmp_path)
+    assert runlock.acquire(ALICE, NOW, 3600, **where)[0]
+    acquired, holder, who = runlock.acquire(BOB, NOW + 125, 3600, **where)
+    assert not acquired and holder["id"] == ALICE["id"]
+    assert who.startswith("alice on ctl-1 (ansible-playbook pid 100, play 'Deploy') since ")
+    assert who.endswith("(2 min ago)")
+
+
+def test_a_run_renews_its_own_lock_and_keeps_its_start(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    acquired, holder, note = runlock.acquire(ALICE, NOW + 3000, 3600, **where)
+    assert acquired and note == "" and holder["since"] == NOW and holder["renewed"] == NOW + 3000
+    # renewed: still held an hour after it was first taken
+    assert not runlock.acquire(BOB, NOW + 3700, 3600, **where)[0]
+
+
+def test_a_lock_not_renewed_for_stale_after_is_taken_over(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    acquired, holder, note = runlock.acquire(BOB, NOW + 3600, 3600, **where)
+    assert acquired and holder["id"] == BOB["id"]
+    assert note.startswith("took the lock from alice on ctl-1") and "not renewed for 3600 s" in note
+
+
+def test_an_ended_run_or_an_operator_breaking_it_takes_it_at_once(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    # the controller found another holder dead: no takeover
+    assert not runlock.acquire(BOB, NOW + 1, 3600, dead="ctl-9:1:1", **where)[0]
+    acquired, _holder, note = runlock.acquire(BOB, NOW + 1, 3600, dead=ALICE["id"], **where)
+    assert acquired and "that run has ended" in note
+    acquired, _holder, note = runlock.acquire(ALICE, NOW + 2, 0, break_lock=True, **where)
+    assert acquired and "isaac_sim_lock_break" in note and "bob on ctl-2" in note
+
+
+def test_release_frees_only_the_holders_lock(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    assert not runlock.release(BOB, **where)
+    assert os.path.exists(where["path"])
+    assert runlock.release(ALICE, **where)
+    assert runlock.read(where["path"]) is None and not runlock.release(ALICE, **where)
+
+
+def test_an_unreadable_lock_file_is_replaced(tmp_path):
+    where = paths(tmp_path)
+    os.makedirs(os.path.dirname(where["path"]))
+    with open(where["path"], "w") as fh:
+        fh.write("{half")
+    acquired, holder, note = runlock.acquire(BOB, NOW, 3600, **where)
+    assert acquired and holder["user"] == "bob" and "unreadable" in note
+    with open(where["path"]) as fh:
+        assert json.load(fh)["id"] == BOB["id"]
+
+
+def _race(where, n, start, out):
+    me = {"id": f"ctl:{n}:1", "user": f"u{n}", "controller": "ctl", "pid": n, "started": "1", "play": ""}
+    start.wait()
+    out.put(runlock.acquire(me, NOW, 3600, **where)[0])
+
+
+def test_runs_that_find_the_host_free_at_the_same_moment_never_both_take_it(tmp_path):
+    where = paths(tmp_path)
+    ctx = multiprocessing.get_context("fork")
+    start, out = ctx.Event(), ctx.Queue()
+    procs = [ctx.Process(target=_race, args=(where, n, start, out)) for n in range(8)]
+    for p in procs:
+        p.start()
+    start.set()
+    for p in procs:
+        p.join(10)
+    assert sorted(out.get(timeout=5) for _proc in procs) == [False] * 7 + [True]
