@@ -121,6 +121,18 @@ def companion_units(companions: dict, ids=None) -> list:
     ]
 
 
+def leftover_companions(host: Host, wanted: dict) -> list:
+    """Failed units of companions no instance has any more (a companion whose first start failed
+    and whose instance went back): systemd keeps listing them, and the host degraded, until they
+    are reset, whether or not their unit file is still there."""
+    _rc, out, _err = host.run(
+        ["systemctl", "list-units", "--failed", "--all", "--plain", "--no-legend", "isaac-sim-*@*.service"]
+    )
+    units = [line.split()[0] for line in out.splitlines() if line.strip()]
+    found = [(u, layout.COMPANION_UNIT_RE.match(u)) for u in units]
+    return [u for u, m in found if m and m.group(1) not in wanted.get(int(m.group(2)), [])]
+
+
 def serving(state: dict) -> bool:
     return state.get("ActiveState") == "active"
 
@@ -403,8 +415,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
            "companions_found": {id: [names]} (on the host now), "env_mode": int, "remove": [ids],
            "purge": bool, "data_root": str, "soak": seconds, "defer_running": bool}
     An instance changes when its env file or one of its companions' does; it changes with its
-    companions, as one. With defer_running, a host where a serving instance would restart is
-    left as it is (deferred=True): the caller rolls it later, in canary batches.
+    companions, as one. With defer_running, a host where a serving instance would restart or be
+    removed is left as it is (deferred=True): the caller rolls it later, in canary batches.
     """
     desired = {i: _instance_files(i, want) for i in sorted(want["instances"])}
     found = want.get("companions_found") or {}
@@ -417,6 +429,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
     changed_ids = {i for i in desired if current[i] != desired[i]}
     wanted_companions = {i: _names(files, i) for i, files in desired.items()}
     comp_state = show(host, companion_units(wanted_companions))
+    cleared = leftover_companions(host, wanted_companions)
     to_start = [i for i in desired if not serving(state[i])]
     # the target only groups the instances: a new target file restarts none of them
     restarting = [p for p in shared if p != os.path.join(layout.UNIT_DIR, layout.TARGET)]
@@ -455,15 +468,17 @@ def apply(host: Host, want: dict, check=False) -> dict:
         + ([] if target_enabled else [layout.TARGET])
         + [layout.companion_unit(i, n) for i, n in enable_companions],
         "companions": {i: [layout.companion_unit(i, n) for n in names] for i, names in revive.items()},
+        "cleared": cleared,
         "order": [f"{kind} {' '.join(map(str, what)) if isinstance(what, list) else what}" for kind, what in steps],
         "notes": notes,
     }
     result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
-    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive)
+    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared)
     if check or not changed:
         result["changed"] = changed
         return result
-    if want.get("defer_running") and to_roll:
+    # a scale-down that stops serving instances is a change of serving instances: canary batches too
+    if want.get("defer_running") and (to_roll or any(serving(state[i]) for i in gone)):
         result.update(changed=False, deferred=True)
         return result
 
@@ -473,6 +488,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
     # scale-down first: it frees the ports and GPUs of the instances that go
     remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT), found)
     result["removed"] = gone
+    if cleared:
+        host.run(["systemctl", "reset-failed"] + cleared)
     for path, (text, mode) in shared.items():
         files.write(path, text, mode)
     units_changed = any(p.endswith((".service", ".target")) for p in shared)
@@ -487,6 +504,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
         leaving = [layout.companion_unit(i, n) for n in before if n not in after]
         if leaving:
             host.run(["systemctl", "disable", "--now"] + leaving)
+            # a companion whose start failed stays listed as failed after its stop
+            host.run(["systemctl", "reset-failed"] + leaving)
         for path, text in texts.items():
             if text is None:
                 host.remove(path)

@@ -490,6 +490,12 @@ def build(cfg: dict, host: dict) -> dict:
             f"isaac_sim_instance_count: {count} is below 0. Fix: give the number of instances this host runs "
             "(0 stops and removes them all)."
         )
+    if count == 0 and as_int(host.get("serving")) and not cfg.get("scale_to_zero"):
+        errors.append(
+            f"isaac_sim_instance_count: 0 stops and removes every instance of this host, and "
+            f"{as_int(host.get('serving'))} serve now. Fix: set isaac_sim_scale_to_zero: true "
+            "(-e isaac_sim_scale_to_zero=true) to take them all down, or give the number to keep."
+        )
     if count > cfg["max_instances"]:
         errors.append(
             f"isaac_sim_instance_count: {count} is above isaac_sim_max_instances ({cfg['max_instances']}). "

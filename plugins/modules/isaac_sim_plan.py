@@ -35,6 +35,10 @@ options:
     description: Upper bound on O(instance_count) for this host.
     type: int
     default: 8
+  scale_to_zero:
+    description: Confirms an O(instance_count) of 0 on a host where instances serve (all of them go).
+    type: bool
+    default: false
   port_bases:
     description: Base port per port kind, overriding the release's defaults.
     type: dict
@@ -284,6 +288,7 @@ def main():
             image=dict(type="str", default=""),
             instance_count=dict(type="int", required=True),
             max_instances=dict(type="int", default=8),
+            scale_to_zero=dict(type="bool", default=False),
             port_bases=dict(type="dict", default={}),
             port_stride=dict(type="int", default=1),
             gpu_enabled=dict(type="bool", default=True),

@@ -98,7 +98,12 @@ def test_a_companion_that_never_gets_healthy_reverts_its_instance_and_stops_the_
     out = " ".join((result.stdout + result.stderr).split())
     assert "isaac-sim-0: its companion isaac-sim-0-bad did not start" in out, result.stdout[-3000:]
     assert "was not ready within 5 s" in out
+    # the companion's own words, not the pre-start cleanup's
+    assert "No such container" not in out
     all_ready(host)
+    # no failed unit left behind (host degraded, a stray in status)
+    failed = sh(host, "systemctl list-units --failed --all --plain --no-legend 'isaac-sim*'").stdout
+    assert failed.strip() == "", failed
     # instance 0 is back on its previous set (no companion); the others were not touched
     assert all(container_id(host, f"isaac-sim-{i}") == before[i] for i in (1, 2, 3))
     assert sh(host, "ls /etc/isaac-sim/ | grep -c '\\.bad\\.env'", check=False).stdout.strip() == "0"

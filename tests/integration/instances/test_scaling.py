@@ -6,8 +6,18 @@ from testbed import INSTANCES, container_id, sh, unit_show
 
 def test_scale_4_to_2_removes_two_instances_and_keeps_their_caches(host):
     kept = {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1)}
+    # every instance of a serving host down: only when confirmed
+    before = testbed.snapshot(host)
+    refused = testbed.run_playbook(host, {"isaac_sim_instance_count": 0})
+    said = " ".join((refused.stdout + refused.stderr).split())
+    assert refused.returncode != 0 and "isaac_sim_instance_count: 0 stops and removes every instance" in said, said[
+        -3000:
+    ]
+    assert "Fix: set isaac_sim_scale_to_zero: true" in said and testbed.snapshot(host) == before
     result = testbed.run_playbook(host, {"isaac_sim_instance_count": 2})
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    # serving instances removed in the rollout's canary batches, as any change of serving instances
+    assert "TASK [Roll this batch's hosts, one instance at a time on each]" in result.stdout, result.stdout[-3000:]
     for i in (2, 3):
         show = unit_show(host, f"isaac-sim@{i}.service")
         assert show["ActiveState"] == "inactive"

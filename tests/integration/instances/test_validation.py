@@ -35,7 +35,13 @@ def assert_rejected(host, extra_vars, *needles):
         ({"isaac_sim_shm_size": "2 gigs"}, ["isaac_sim_shm_size: '2 gigs' is not a size"]),
         ({"isaac_sim_memory_limit": "4096g"}, ["isaac_sim_memory_limit: 4 instances x 4096g", "more than this host's"]),
         ({"isaac_sim_release": "7.x"}, ["isaac_sim_release: '7.x' is not a release this collection knows"]),
-        ({"isaac_sim_instance_count": "many"}, ["isaac_sim_instance_count"]),
+        (
+            {"isaac_sim_instance_count": "many", "isaac_sim_rollout_soak": "abc"},
+            [
+                "isaac_sim_instance_count: 'many' is not a whole number. Fix: give a whole number",
+                "isaac_sim_rollout_soak: 'abc' is not a number. Fix: give a number",
+            ],
+        ),
         ({"isaac_sim_port_bases": {"signal": "abc"}}, ["isaac_sim_port_bases.signal: 'abc' is not a port number"]),
         ({"isaac_sim_gpu_enabled": True}, ["isaac_sim_gpu_enabled: true, but this host has no nvidia-smi"]),
         (
@@ -62,10 +68,8 @@ def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
     out = assert_rejected(host, extra_vars, *needles)
     # no raw Python error, and no dump of the argument spec after the message
     assert "Traceback" not in out and "invalid literal" not in out and "[Errno" not in out
-    # a wrong type is refused by Ansible's own role argument validation, which prints the spec;
-    # everything the plan refuses comes without it
-    if extra_vars.get("isaac_sim_instance_count") != "many":
-        assert "argument_spec" not in out
+    # a wrong type is refused before Ansible's own role argument validation, which prints the spec
+    assert "argument_spec" not in out and "_AnsibleTagged" not in out
 
 
 def test_more_instances_than_gpus(host):

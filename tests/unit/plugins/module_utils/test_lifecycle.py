@@ -150,6 +150,13 @@ class ScriptedHost:
             for i, n in comps:
                 self.comp(i, n).update(ActiveState="inactive", SubState="dead", UnitFileState="disabled")
                 self.comp_markers.discard((i, n))
+        if argv[:3] == ["systemctl", "list-units", "--failed"]:
+            failed = [layout.companion_unit(i, n) for (i, n), c in self.comps.items() if c["ActiveState"] == "failed"]
+            return 0, "".join(f"{u} loaded failed failed Isaac Sim companion\n" for u in failed), ""
+        if comps and argv[:2] == ["systemctl", "reset-failed"]:
+            for i, n in comps:
+                if self.comp(i, n)["ActiveState"] == "failed":
+                    self.comp(i, n).update(ActiveState="inactive", SubState="dead")
         if argv[0] == "journalctl" and layout.COMPANION_UNIT_RE.match(argv[2]):
             return 0, "\n".join(self.journal.get(argv[2], [])), ""
         if argv[:2] == ["systemctl", "show"] and layout.TARGET in argv:
@@ -201,6 +208,10 @@ class ScriptedHost:
         return [line for line in self.log if line.startswith(f"systemctl {verb}")]
 
 
+# what the lifecycle reads before it changes anything
+READS = ("systemctl show", "systemctl list-units")
+
+
 def want(instances, files=None, **over):
     w = {
         "files": files if files is not None else {UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755)},
@@ -246,7 +257,7 @@ def test_nothing_to_do_changes_nothing():
     h = ScriptedHost(4)
     result = lifecycle.apply(h.host, want({i: OLD for i in range(4)}))
     assert not result["changed"] and result["done"] == []
-    assert [line for line in h.log if not line.startswith("systemctl show")] == []
+    assert [line for line in h.log if not line.startswith(READS)] == []
 
 
 def test_a_changed_image_rolls_one_instance_at_a_time_with_a_soak_each():
@@ -296,9 +307,20 @@ def test_defer_running_changes_nothing_on_a_host_that_would_restart():
     h = ScriptedHost(2)
     result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, defer_running=True))
     assert result["deferred"] and not result["changed"] and result["plan"]["roll"] == [0, 1]
-    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if "show" not in x] == []
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if not x.startswith(READS)] == []
     fresh = ScriptedHost(2, running=False)
     assert not lifecycle.apply(fresh.host, want({0: NEW, 1: NEW}, defer_running=True))["deferred"]
+
+
+def test_defer_running_leaves_a_scale_down_of_serving_instances_to_the_batches():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({}, remove=[0, 1, 2, 3], defer_running=True))
+    assert result["deferred"] and not result["changed"] and h.commands("disable") == []
+    assert all(u["ActiveState"] == "active" for u in h.units.values())
+    # instances that no longer serve go at once
+    h.units[3].update(ActiveState="failed", SubState="failed")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD, 2: OLD}, remove=[3], defer_running=True))
+    assert not result["deferred"] and result["removed"] == [3]
 
 
 def test_a_new_instance_that_does_not_start_is_stopped_and_forgotten():
@@ -346,7 +368,7 @@ def test_check_mode_reports_and_changes_nothing():
     h = ScriptedHost(2)
     result = lifecycle.apply(h.host, want({0: NEW, 1: OLD}, remove=[3]), check=True)
     assert result["changed"] and result["plan"]["roll"] == [0] and result["plan"]["remove"] == [3]
-    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if "show" not in x] == []
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if not x.startswith(READS)] == []
 
 
 def test_rolling_restart_soaks_and_stops_at_a_crash():
@@ -602,6 +624,21 @@ def test_a_new_companion_that_fails_leaves_before_its_new_template_is_taken_back
     assert h.log.index("systemctl disable --now isaac-sim-viewer@0.service") < h.log.index(f"rm {VIEWER_UNIT}")
     assert VIEWER_UNIT not in h.files and layout.companion_env_file(0, "viewer") not in h.files
     assert h.units[0]["ActiveState"] == "active"
+    # its failed start is not left listed (host degraded, a stray in status)
+    assert "systemctl reset-failed isaac-sim-viewer@0.service" in h.log
+    assert h.comp(0, "viewer")["ActiveState"] != "failed"
+
+
+def test_a_failed_companion_left_by_an_earlier_run_is_cleared_and_a_wanted_one_is_not():
+    h = ScriptedHost(2)
+    h.comp(0, "bridge").update(ActiveState="failed", SubState="failed")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD}))
+    assert result["changed"] and result["plan"]["cleared"] == ["isaac-sim-bridge@0.service"]
+    assert h.comp(0, "bridge")["ActiveState"] == "inactive" and h.commands("restart") == []
+    # a companion the plan has is the lifecycle's to start again, never merely cleared
+    h = ScriptedHost(2)
+    h.comp(1, "viewer").update(ActiveState="failed", SubState="failed")
+    assert lifecycle.leftover_companions(h.host, {1: ["viewer"]}) == []
 
 
 def test_moving_to_own_addresses_keeps_the_port_numbers_and_blocks_nobody():

@@ -370,6 +370,16 @@ def test_a_negative_count_says_what_to_give():
     assert "isaac_sim_instance_count: -1 is below 0. Fix: " in text, text
 
 
+def test_a_count_of_0_on_a_serving_host_asks_for_a_confirmation():
+    serving = dict(HOST, serving=4)
+    text = "\n".join(errors_of(cfg(instance_count=0), serving))
+    assert "isaac_sim_instance_count: 0 stops and removes every instance of this host, and 4 serve now" in text
+    assert "Fix: set isaac_sim_scale_to_zero: true" in text
+    assert plan.build(cfg(instance_count=0, scale_to_zero=True), serving)["ids"] == []
+    # nothing serves: nothing to confirm
+    assert plan.build(cfg(instance_count=0), HOST)["ids"] == []
+
+
 HUB = {"enabled": True, "image": "nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0", "dir": ""}
 
 
