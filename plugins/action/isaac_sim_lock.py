@@ -64,7 +64,7 @@ class ActionModule(ActionBase):
         begun, told = time.monotonic(), False
         while True:
             looked = self._execute_module(module_args=args, task_vars=task_vars)
-            if looked.get("failed") or looked.get("acquired") or args.get("state") == "absent":
+            if looked.get("failed") or looked.get("acquired") or args.get("state") in ("absent", "renewed"):
                 if looked.get("note"):
                     display.warning(f"{host}: {looked['note']}")
                 result.update(looked)

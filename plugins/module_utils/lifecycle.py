@@ -42,9 +42,11 @@ class Host:
     epoch seconds for the journal.
     """
 
-    def __init__(self, run, read, write, remove, mode, exists, sleep, now, wall):
+    def __init__(self, run, read, write, remove, mode, exists, sleep, now, wall, interrupted=None):
         self.run, self.read, self.write, self.remove, self.mode = run, read, write, remove, mode
         self.exists, self.sleep, self.now, self.wall = exists, sleep, now, wall
+        # why the run that asked for this is gone ("" while it is there): checked between instances
+        self.interrupted = interrupted or (lambda: "")
 
 
 def bind(module) -> Host:
@@ -583,6 +585,12 @@ def apply(host: Host, want: dict, check=False) -> dict:
                 )
             continue
         i = what
+        why = host.interrupted()
+        if why:
+            if stopped:
+                start(host, stopped, companions={j: _names(current[j], j) for j in stopped})
+            later = [w for kind, w in steps[n:] if kind == "roll"]
+            return interrupt(host, result, why, [j for j in later if j not in stopped] + stopped)
         if i in changed_ids:
             write_new(i)
         ok, reason, restart_s = restart(host, i, handover(i), wanted_companions[i])
@@ -635,6 +643,19 @@ def apply(host: Host, want: dict, check=False) -> dict:
     return result
 
 
+def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
+    """Stop before the next instance: the one in hand is ready or back, the rest as they were;
+    said in the journal, where the next run and a person find it."""
+    done = [d["id"] for d in result["done"]]
+    said = ", ".join(layout.container(i) for i in done) or "none"
+    rest = ", ".join(layout.container(i) for i in left) or "none"
+    host.run(
+        ["logger", "-t", "isaac-sim-lifecycle", f"rollout interrupted: {why}; done: {said}; left as they were: {rest}"]
+    )
+    result.update(interrupted=why, untouched=list(left), changed=bool(done) or result.get("changed", False))
+    return result
+
+
 def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=None) -> dict:
     """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
     companions ({id: [names]}).
@@ -648,6 +669,9 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=N
         result["done"] = [{"id": i, "action": "restart", "restart_s": 0.0, "soak_s": 0.0} for i in ids]
         return result
     for n, i in enumerate(ids):
+        why = host.interrupted()
+        if why:
+            return interrupt(host, result, why, ids[n:])
         text = host.read(layout.env_file(i))
         if text is None:
             result["failed"] = {

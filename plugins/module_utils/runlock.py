@@ -20,6 +20,11 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
 
 LOCK = os.path.join(layout.RUN_DIR, "lock.json")
 GUARD = os.path.join(layout.RUN_DIR, ".lock.guard")
+# what the last rollout step on this host did, for the run that comes after an interrupted one
+RECORD = os.path.join(layout.RUN_DIR, "rollout.json")
+# a lifecycle call's controller renews the lock every few seconds while it waits (the action
+# plugin isaac_sim_lifecycle); silent this long, the controller is taken for gone
+HEARTBEAT_LIMIT_S = 30
 HOLDER_KEYS = ("id", "user", "controller", "pid", "started", "play")
 
 
@@ -82,6 +87,8 @@ def acquire(me: dict, now: float, stale_after: int, break_lock=False, dead="", p
         verdict, said = decide(current, me, now, stale_after, break_lock, dead)
         if verdict == "held":
             return False, current, said
+        if said and current:
+            said += recorded_text(read(os.path.join(os.path.dirname(path), os.path.basename(RECORD))), current["id"])
         keep = current if current and current.get("id") == me["id"] else {}
         holder = {k: me.get(k) for k in HOLDER_KEYS}
         holder.update(since=keep.get("since", now), renewed=now)
@@ -91,6 +98,55 @@ def acquire(me: dict, now: float, stale_after: int, break_lock=False, dead="", p
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
         return True, holder, said
+
+
+def renew(me: dict, now: float, path: str = LOCK, guard: str = GUARD) -> bool:
+    """The controller's heartbeat: renews the lock when `me` holds it, never takes it."""
+    if not os.path.exists(path):
+        return False
+    with open(guard, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        current = read(path)
+        if not current or current.get("id") != me["id"]:
+            return False
+        current["renewed"] = now
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "w") as out:
+            json.dump(current, out, sort_keys=True)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+        return True
+
+
+def gone(run_id: str, now: float, limit: float = HEARTBEAT_LIMIT_S, path: str = LOCK) -> str:
+    """Why the run `run_id`, which held the lock, is taken for gone; "" while it renews it."""
+    current = read(path)
+    if not current:
+        return "the host's lock was given back or removed"
+    if current.get("id") != run_id:
+        return f"the host's lock was taken by {holder_text(current, now)}"
+    age = now - float(current.get("renewed") or 0)
+    if age > limit:
+        return f"its controller stopped renewing its hold on the host {int(age)} s ago (interrupted, or gone)"
+    return ""
+
+
+def record(entry: dict, path: str = RECORD) -> None:
+    """Keep what a rollout step did (run, at, done, untouched, interrupted) for the next run."""
+    os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as out:
+        json.dump(entry, out, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def recorded_text(entry, run_id: str) -> str:
+    """What run `run_id` left on the host, from its record, for the note of the run that takes over."""
+    if not isinstance(entry, dict) or entry.get("run") != run_id or not entry.get("interrupted"):
+        return ""
+    done = ", ".join(f"isaac-sim-{i}" for i in entry.get("done", [])) or "none"
+    left = ", ".join(f"isaac-sim-{i}" for i in entry.get("untouched", [])) or "none"
+    return f"; its rollout here was interrupted ({entry['interrupted']}): done {done}; left as they were {left}"
 
 
 def release(me: dict, path: str = LOCK, guard: str = GUARD) -> bool:

@@ -92,6 +92,15 @@ options:
       O(action=apply) takes it from the plan.
     type: path
     default: /var/lib/isaac-sim
+  controller_run:
+    description:
+      - The playbook run that asks, filled by the action plugin of the same name. When that run holds the
+        host's lock (M(isaacsim.fleet.isaac_sim_lock)), the action plugin renews it while it waits, and a
+        lock not renewed for 30 s means the controller is gone (Ctrl-C, killed): the rollout stops before
+        the next instance, the one in hand left ready or reverted, and says so in the journal
+        (C(journalctl -t isaac-sim-lifecycle)); the next run's lock note repeats it.
+    type: str
+    default: ""
 notes:
   - The module runs for as long as the instances take; one call per host keeps Ansible's per-task cost out of
     a rollout's time.
@@ -160,9 +169,10 @@ network:
 """
 
 import os
+import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle, network
+from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle, network, runlock
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
 
@@ -291,12 +301,17 @@ def main():
             remove_others=dict(type="bool", default=True),
             purge=dict(type="bool", default=False),
             data_root=dict(type="path", default=layout.DATA_ROOT),
+            controller_run=dict(type="str", default=""),
         ),
         required_if=[("action", "apply", ["plan"])],
         supports_check_mode=True,
     )
     p = module.params
     host = lifecycle.bind(module)
+    run = p["controller_run"]
+    held = run and (runlock.read() or {}).get("id") == run
+    if held and not module.check_mode:
+        host.interrupted = lambda: runlock.gone(run, time.time())
     out = dict(changed=False, done=[], failed_instance=None, untouched=[])
     found = hostprobe.existing_companions(layout.CONFIG_DIR)
 
@@ -384,6 +399,16 @@ def main():
     out.update(done=result["done"], failed_instance=result["failed"], untouched=result["untouched"])
     if p["action"] == "restart":
         out["changed"] = result["changed"]
+    if result.get("interrupted"):
+        entry = {"run": run, "at": time.time(), "interrupted": result["interrupted"], "untouched": result["untouched"]}
+        runlock.record(dict(entry, done=[d["id"] for d in result["done"]]))
+        out["changed"] = out["changed"] or result["changed"]
+        module.fail_json(
+            msg=f"rollout interrupted: {result['interrupted']}; it stopped before "
+            f"{', '.join(layout.container(i) for i in result['untouched'])}, which are as they were",
+            interrupted=result["interrupted"],
+            **out,
+        )
     failed = result["failed"]
     if failed:
         if failed.get("reverted") is None:

@@ -24,9 +24,11 @@ description:
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   state:
-    description: C(present) takes or renews the lock, C(absent) gives it back.
+    description:
+      - C(present) takes or renews the lock, C(absent) gives it back, C(renewed) only renews it when this run
+        holds it (the heartbeat of M(isaacsim.fleet.isaac_sim_lifecycle)'s action plugin).
     type: str
-    choices: [present, absent]
+    choices: [present, absent, renewed]
     default: present
   holder:
     description:
@@ -81,7 +83,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import runlock
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            state=dict(type="str", choices=["present", "absent"], default="present"),
+            state=dict(type="str", choices=["present", "absent", "renewed"], default="present"),
             holder=dict(type="dict", required=True),
             stale_after=dict(type="int", default=3600),
             break_lock=dict(type="bool", default=False),
@@ -98,6 +100,9 @@ def main():
         )
     now = time.time()
     try:
+        if p["state"] == "renewed":
+            renewed = False if module.check_mode else runlock.renew(me, now)
+            module.exit_json(changed=False, acquired=renewed, holder=None, note="")
         if p["state"] == "absent":
             released = False if module.check_mode else runlock.release(me)
             module.exit_json(changed=False, acquired=False, released=released, holder=None, note="")

@@ -6,6 +6,7 @@ Runs in molecule's verify step on molecule/default; each test leaves every insta
 """
 
 import json
+import signal
 import socket
 import time
 
@@ -83,6 +84,37 @@ def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_
     said = broken.stdout + broken.stderr
     assert broken.returncode == 0 and "(isaac_sim_lock_break)" in said, said[-3000:]
     testbed.all_ready(host)
+
+
+def test_ctrl_c_mid_rollout_stops_after_the_instance_in_hand_and_the_next_run_says_what_it_did(host):
+    def invocations():
+        return {i: unit_show(host, f"isaac-sim@{i}.service")["InvocationID"] for i in range(INSTANCES)}
+
+    def journal():
+        return sh(host, f"journalctl -t isaac-sim-lifecycle --since @{since} --no-pager").stdout
+
+    before, since = invocations(), sh(host, "date +%s").stdout.strip()
+    # each instance soaks 20 s: far longer than the whole rollout takes to notice a silent controller
+    run = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 20}, playbook="playbooks/rolling_restart.yml")
+    try:
+        testbed.wait_for(lambda: invocations()[0] != before[0], timeout=180, what="isaac-sim@0 restarted")
+        run.send_signal(signal.SIGINT)
+        run.communicate(timeout=60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    # the host stops at its next instance once the heartbeat is 30 s silent: never all four
+    testbed.wait_for(lambda: "rollout interrupted" in journal(), timeout=150, what="the lifecycle to stop")
+    restarted = [i for i, inv in invocations().items() if inv != before[i]]
+    assert restarted in ([0], [0, 1]), restarted
+    said = journal()
+    assert "its controller stopped renewing its hold on the host" in said and "left as they were: isaac-sim-" in said
+    testbed.all_ready(host)
+    # the next run takes the lock the interrupted one left, and says what it did
+    again = testbed.run_playbook(host)
+    out = " ".join((again.stdout + again.stderr).split())
+    assert again.returncode == 0, out[-3000:]
+    assert "took the lock left by" in out and "its rollout here was interrupted" in out, out[-3000:]
 
 
 def test_an_app_that_quits_by_itself_with_status_0_is_restarted(host):

@@ -323,6 +323,30 @@ def test_defer_running_leaves_a_scale_down_of_serving_instances_to_the_batches()
     assert not result["deferred"] and result["removed"] == [3]
 
 
+def test_a_rollout_whose_controller_went_away_stops_after_the_instance_in_hand():
+    h = ScriptedHost(4)
+    # the controller is gone once the first instance is done
+    h.host.interrupted = lambda: "its controller stopped" if h.commands("restart") else ""
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(4)}))
+    assert result["interrupted"] == "its controller stopped" and result["failed"] is None
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [1, 2, 3]
+    assert all(h.units[i]["ActiveState"] == "active" for i in range(4))
+    said = [line for line in h.log if line.startswith("logger -t isaac-sim-lifecycle")]
+    assert said == [
+        "logger -t isaac-sim-lifecycle rollout interrupted: its controller stopped; done: isaac-sim-0; "
+        "left as they were: isaac-sim-1, isaac-sim-2, isaac-sim-3"
+    ]
+
+
+def test_a_rolling_restart_whose_controller_went_away_stops_too():
+    h = ScriptedHost(3)
+    h.host.interrupted = lambda: "gone" if len(h.commands("restart")) == 2 else ""
+    result = lifecycle.restart_each(h.host, [0, 1, 2], 0)
+    assert [d["id"] for d in result["done"]] == [0, 1] and result["untouched"] == [2]
+    assert result["interrupted"] == "gone"
+
+
 def test_a_new_instance_that_does_not_start_is_stopped_and_forgotten():
     h = ScriptedHost(2)
     h.units[2] = dict(h.units[0], ActiveState="inactive", UnitFileState="disabled")

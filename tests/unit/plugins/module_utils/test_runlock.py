@@ -90,3 +90,36 @@ def test_runs_that_find_the_host_free_at_the_same_moment_never_both_take_it(tmp_
     for p in procs:
         p.join(10)
     assert sorted(out.get(timeout=5) for _proc in procs) == [False] * 7 + [True]
+
+
+def test_the_heartbeat_renews_only_the_holders_lock_and_a_silent_holder_is_gone(tmp_path):
+    where = paths(tmp_path)
+    assert not runlock.renew(ALICE, NOW, **where)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    assert not runlock.renew(BOB, NOW + 10, **where)
+    assert runlock.renew(ALICE, NOW + 40, **where) and runlock.read(where["path"])["since"] == NOW
+    assert runlock.gone(ALICE["id"], NOW + 80, 45, where["path"]) == ""
+    assert runlock.HEARTBEAT_LIMIT_S == 30
+    assert "stopped renewing its hold on the host 46 s ago" in runlock.gone(ALICE["id"], NOW + 86, 45, where["path"])
+    runlock.acquire(BOB, NOW + 90, 3600, break_lock=True, **where)
+    assert runlock.gone(ALICE["id"], NOW + 91, 45, where["path"]).startswith("the host's lock was taken by bob")
+    os.unlink(where["path"])
+    assert "given back" in runlock.gone(ALICE["id"], NOW + 92, 45, where["path"])
+
+
+def test_the_run_that_takes_over_an_interrupted_runs_lock_is_told_what_it_left(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    entry = {
+        "run": ALICE["id"],
+        "at": NOW + 5,
+        "interrupted": "its controller stopped",
+        "done": [0],
+        "untouched": [2, 3],
+    }
+    runlock.record(entry, str(tmp_path / "run" / "rollout.json"))
+    acquired, _holder, note = runlock.acquire(BOB, NOW + 60, 3600, dead=ALICE["id"], **where)
+    assert acquired and "that run has ended" in note
+    assert "interrupted (its controller stopped): done isaac-sim-0; left as they were isaac-sim-2, isaac-sim-3" in note
+    # a record of another run says nothing
+    assert runlock.recorded_text(entry, BOB["id"]) == ""
