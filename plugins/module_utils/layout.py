@@ -372,8 +372,8 @@ RestartPreventExitStatus={PORTS_HELD_STATUS}
 ExecStart={LIBEXEC_DIR}/{RUN_SCRIPT}
 ExecStartPost={LIBEXEC_DIR}/{READY_SCRIPT}
 # the container may have exited already (an app that quit): not an error
-ExecStop=-/usr/bin/docker stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}
-ExecStopPost=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
+ExecStop=-{docker_if_up(f"stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}")}
+ExecStopPost=-{docker_if_up(f"rm -f ${{{K_CONTAINER}}}")}
 ExecStopPost=-/bin/rm -f ${{{K_READY_MARKER}}}
 # Any exit, status 0 included, is restarted (6.x quits when a stream session ends);
 # only systemctl stop keeps it down. {RUN_SCRIPT} flushes the start-limit counter on a
@@ -392,6 +392,14 @@ def _start_limit(settings: dict, ready_timeout: int) -> str:
 StartLimitIntervalSec={interval}
 StartLimitBurst={burst}
 """
+
+
+def docker_if_up(args: str) -> str:
+    """A docker command for a unit's stop, run only while Docker runs: when dockerd died, systemd
+    restarts it after stopping the units that need it, and a docker call would wait on the socket
+    for the daemon that waits for this stop (until TimeoutStopSec). The daemon that comes back
+    removes the containers left."""
+    return f"/bin/sh -c 'systemctl -q is-active docker.service || exit 0; exec /usr/bin/docker {args}'"
 
 
 def render_unit(settings: dict, managed: str) -> str:
@@ -480,7 +488,7 @@ Wants=network-online.target
 ExecStartPre=-/usr/bin/docker rm -f {HUB_CONTAINER}
 ExecStart={" ".join(run)}
 ExecStartPost=/bin/bash -c "{wait}"
-ExecStop=-/usr/bin/docker stop -t 10 {HUB_CONTAINER}
+ExecStop=-{docker_if_up(f"stop -t 10 {HUB_CONTAINER}")}
 Restart=always
 RestartSec=5
 TimeoutStartSec=90
