@@ -20,7 +20,12 @@ def run(tmp_path):
     bin_dir.mkdir()
     calls = tmp_path / "systemctl.calls"
     (bin_dir / "docker").write_text('#!/bin/sh\n[ "$1" = run ] && exit "$APP_STATUS"\nexit 0\n')
-    (bin_dir / "systemctl").write_text(f'#!/bin/sh\necho "$*" >>{calls}\n[ "$1" = show ] && echo active\nexit 0\n')
+    (bin_dir / "systemctl").write_text(
+        f'#!/bin/sh\necho "$*" >>{calls}\n'
+        'case "$*" in *"docker.service"*) [ "$1" = show ] && echo "$DOCKER_STATE"; '
+        '[ "$1" = list-jobs ] && echo "$DOCKER_JOB"; exit 0 ;; esac\n'
+        '[ "$1" = show ] && echo active\nexit 0\n'
+    )
     # the script as installed, with Docker at the stand-in's path
     script = tmp_path / "isaac-sim-run"
     script.write_text((FILES / "isaac-sim-run").read_text().replace("/usr/bin/docker", str(bin_dir / "docker")))
@@ -29,7 +34,7 @@ def run(tmp_path):
         f.chmod(0o755)
     marker = tmp_path / "instance-2.ready"
 
-    def go(status: int, ready: bool):
+    def go(status: int, ready: bool, docker_state="active", docker_job=""):
         marker.unlink(missing_ok=True)
         calls.unlink(missing_ok=True)
         if ready:
@@ -42,6 +47,8 @@ def run(tmp_path):
             ISAAC_SIM_UNIT="isaac-sim@2.service",
             ISAAC_SIM_IMAGE="img",
             ISAAC_SIM_READY_MARKER=str(marker),
+            DOCKER_STATE=docker_state,
+            DOCKER_JOB=docker_job,
         )
         done = subprocess.run(["bash", str(script)], capture_output=True, text=True, env=env, timeout=30, check=False)
         said = calls.read_text().splitlines() if calls.exists() else []
@@ -69,3 +76,24 @@ def test_a_clean_exit_before_ready_stays_counted(run):
     assert rc == 0
     assert "exited 0 before it was ready: counted as a failed start" in out
     assert not [c for c in calls if c.startswith("reset-failed")]
+
+
+@pytest.mark.parametrize(
+    "state, job",
+    [
+        # dockerd killed: systemd restarts it
+        ("activating", ""),
+        # systemctl stop docker / restart docker: its job waits for the instances to stop first
+        ("active", "812 docker.service stop waiting"),
+        ("active", "813 docker.service restart waiting"),
+    ],
+)
+def test_docker_going_away_is_no_crash_and_its_restart_is_not_counted(run, state, job):
+    rc, out, calls = run(1, ready=True, docker_state=state, docker_job=job)
+    assert "isaac-sim-2: Docker went away under it" in out and "not counted as a crash" in out
+    assert "reset-failed isaac-sim@2.service" in calls
+
+
+def test_a_crash_while_docker_runs_is_a_crash(run):
+    _rc, out, calls = run(1, ready=True, docker_job="900 isaac-sim@2.service restart waiting")
+    assert "Docker went away" not in out and not [c for c in calls if c.startswith("reset-failed")]
