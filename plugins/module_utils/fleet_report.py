@@ -46,6 +46,18 @@ def gpu_text(inst: dict) -> str:
     return f"{inst['gpu']}" if mem is None else f"{inst['gpu']} ({mem} MiB)"
 
 
+def restarts_text(inst: dict) -> str:
+    """systemd's count, and the last day's ends from the journal where there were any: NRestarts
+    is reset by every session end and every deliberate start."""
+    day = inst.get("last_day") or {}
+    said = [
+        f"{day[k]} {word}"
+        for k, word in (("crashes", "crashed"), ("unhealthy_restarts", "unhealthy"), ("session_ends", "sessions ended"))
+        if day.get(k)
+    ]
+    return str(inst.get("restarts") or 0) + (f" (24h: {', '.join(said)})" if said else "")
+
+
 def build(results: dict, targets: list, generated_at: str = "") -> dict:
     """One report over the hosts asked for; a host without a result is unreachable or failed.
 
@@ -76,6 +88,7 @@ def build(results: dict, targets: list, generated_at: str = "") -> dict:
             view = dict(inst)
             view["uptime"] = duration(inst.get("uptime_s"))
             view["gpu_text"] = gpu_text(inst)
+            view["restarts_text"] = restarts_text(inst)
             view["primary_url"] = primary_url(inst)
             view["digest_short"] = (inst.get("digest") or inst.get("image_id") or "")[7:19] or "-"
             # what the dashboard can show inline: a page served by the instance itself
@@ -120,7 +133,7 @@ def table(report: dict) -> list:
                     i["state"] + (" (stray)" if i.get("stray") else ""),
                     "yes" if i["ready"] else "no",
                     i["uptime"],
-                    str(i["restarts"]),
+                    i.get("restarts_text") or str(i["restarts"]),
                     i["gpu_text"],
                     i["primary_url"],
                 )
@@ -158,6 +171,8 @@ _METRICS = (
         "gauge",
     ),
     ("isaac_sim_uptime_seconds", "Seconds the instance's container has been running.", "gauge"),
+    ("isaac_sim_crashes_last_day", "Crashes and failed starts in the last 24 h (the journal).", "gauge"),
+    ("isaac_sim_session_ends_last_day", "Stream sessions that ended (clean exits) in the last 24 h.", "gauge"),
     ("isaac_sim_gpu_memory_used_bytes", "GPU memory held by the instance's processes.", "gauge"),
     ("isaac_sim_info", "Release, image and GPU of the instance (always 1).", "gauge"),
 )
@@ -183,6 +198,9 @@ def prometheus(result: dict) -> str:
         samples["isaac_sim_ready"].append((lab, 1 if inst.get("ready") else 0))
         samples["isaac_sim_restarts"].append((lab, inst.get("restarts") or 0))
         samples["isaac_sim_uptime_seconds"].append((lab, inst.get("uptime_s") or 0))
+        if inst.get("last_day") is not None:
+            samples["isaac_sim_crashes_last_day"].append((lab, inst["last_day"]["crashes"]))
+            samples["isaac_sim_session_ends_last_day"].append((lab, inst["last_day"]["session_ends"]))
         if inst.get("gpu_memory_used_mib") is not None:
             samples["isaac_sim_gpu_memory_used_bytes"].append((lab, inst["gpu_memory_used_mib"] * 1024 * 1024))
         gpu = "" if inst.get("gpu") is None else inst["gpu"]

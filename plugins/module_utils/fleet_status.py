@@ -490,6 +490,33 @@ def take_journal_tail(lines, ids, count: int) -> dict:
     return {i: list(reversed(t)) for i, t in tails.items()}
 
 
+# isaac-sim-run's words for how an app ended (journalctl -t isaac-sim-events), by kind
+EVENTS_TAG = "isaac-sim-events"
+_EVENTS = (
+    ("session_ends", re.compile(r"^(isaac-sim-\d+): session ended ")),
+    ("crashes", re.compile(r"^(isaac-sim-\d+) (?:crashed \(exit status|exited 0 before it was ready)")),
+    ("unhealthy_restarts", re.compile(r"^(isaac-sim-\d+) unhealthy for ")),
+    ("docker_away", re.compile(r"^(isaac-sim-\d+): Docker went away ")),
+)
+
+
+def events_argv(since: str = "-24h") -> list:
+    return ["journalctl", "-t", EVENTS_TAG, "--since", since, "-o", "cat", "--no-pager", "-q"]
+
+
+def parse_events(text: str) -> dict:
+    """{container: {kind: count}} from isaac-sim-run's event lines: what systemd's NRestarts, reset
+    by every session end and every deliberate start, cannot keep."""
+    counts = {}
+    for line in text.splitlines():
+        for kind, pattern in _EVENTS:
+            m = pattern.match(line.strip())
+            if m:
+                counts.setdefault(m.group(1), {k: 0 for k, _p in _EVENTS})[kind] += 1
+                break
+    return counts
+
+
 def read_journal_tails(run, ids, count: int) -> tuple:
     """({id: [messages, oldest first]}, error or None): the last `count` journal lines of each unit.
 
@@ -586,6 +613,13 @@ def gather(
         companion_units=companion_units,
         companion_markers=read_companion_markers(run_dir),
     )
+    rc, out, err = run(events_argv())
+    if rc != 0:
+        errors.append(f"journalctl -t {EVENTS_TAG} failed: {(err or out).strip()}")
+    events = parse_events(out) if rc == 0 else {}
+    for r in records:
+        if r["id"] is not None:
+            r["last_day"] = events.get(r["name"], {k: 0 for k, _p in _EVENTS}) if rc == 0 else None
     with_units = [r["id"] for r in records if r["unit"]]
     if log_lines and with_units:
         tails, journal_error = read_journal_tails(run, with_units, log_lines)

@@ -167,6 +167,25 @@ instances:
         systemd's NRestarts - automatic restarts since the unit's counter was last reset. A session
         end (the app exits 0 after it was ready) resets it, so it counts the crashes since the last one.
       type: int
+    last_day:
+      description: >-
+        What ended the instance's app in the last 24 hours, from the journal (C(journalctl -t
+        isaac-sim-events)), which systemd's O(restarts) count cannot keep - it is reset by every session
+        end and deliberate start. Null when the journal could not be read.
+      type: dict
+      contains:
+        session_ends:
+          description: Clean exits after ready (a stream session ended).
+          type: int
+        crashes:
+          description: Non-zero exits, and clean exits before the instance was ready.
+          type: int
+        unhealthy_restarts:
+          description: Stops by the unhealthy restart (isaac_sim_unhealthy_restart).
+          type: int
+        docker_away:
+          description: Ends because Docker went away under the container.
+          type: int
     down_reason:
       description: >-
         Why a configured instance is down - a crash loop that hit the start limit, another failure

@@ -217,6 +217,8 @@ def test_session_ends_restart_for_ever_while_a_crash_loop_hits_the_start_limit_a
     assert tcp_answers(ip, SIGNAL_BASE + 3)
     record = testbed.by_name(testbed.info(host))["isaac-sim-3"]
     assert record["state"] == "ready" and record["down_reason"] is None
+    # systemd's count is reset by every session end; the journal keeps the day
+    assert record["last_day"]["session_ends"] >= 10 and record["restarts"] <= 1, record
 
     # then the app crashes 4 s after every start
     sh(
@@ -243,6 +245,7 @@ def test_session_ends_restart_for_ever_while_a_crash_loop_hits_the_start_limit_a
     assert "Start request repeated too quickly" in status
     record = testbed.by_name(testbed.info(host))["isaac-sim-3"]
     assert record["state"] == "failed" and record["down_reason"].startswith("crash loop:"), record["down_reason"]
+    assert record["last_day"]["crashes"] >= 3, record["last_day"]
     others = {i: container_id(host, f"isaac-sim-{i}") for i in range(3)}
     # the next deploy rewrites the env file, clears the failed state and restarts only instance 3
     run = testbed.run_playbook(host)

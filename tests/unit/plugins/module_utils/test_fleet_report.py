@@ -79,3 +79,12 @@ def test_table_lists_each_companion_under_its_instance():
     rows = [line.split() for line in lines[1:-1]]
     assert [r[1] for r in rows] == ["0", "1", "1/viewer", "2", "3", "9"]
     assert rows[2] == ["gpu-node-1", "1/viewer", "ready", "yes", "1m05s", "1", "-", "8211/tcp"]
+
+
+def test_the_table_and_metrics_keep_the_last_days_ends_that_nrestarts_forgets():
+    inst = {"restarts": 0, "last_day": {"session_ends": 10, "crashes": 3, "unhealthy_restarts": 0, "docker_away": 1}}
+    assert fleet_report.restarts_text(inst) == "0 (24h: 3 crashed, 10 sessions ended)"
+    assert fleet_report.restarts_text({"restarts": 2, "last_day": None}) == "2"
+    text = fleet_report.prometheus({"instances": [dict(inst, id=3, name="isaac-sim-3")]})
+    assert 'isaac_sim_crashes_last_day{isaac_sim_instance="3"} 3' in text
+    assert 'isaac_sim_session_ends_last_day{isaac_sim_instance="3"} 10' in text

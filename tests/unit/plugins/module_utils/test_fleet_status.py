@@ -353,7 +353,8 @@ def test_cost_does_not_grow_with_instances(tmp_path, n):
         run, None, docker, no_nvml, config_dir=str(config), run_dir=str(tmp_path / "run"), log_lines=5
     )
     assert len([r for r in result["instances"] if r["configured"]]) == n
-    assert sorted(spawned) == ["journalctl", "nvidia-smi", "systemctl"]
+    # the journal twice: the last day's events, and the log tails
+    assert sorted(spawned) == ["journalctl", "journalctl", "nvidia-smi", "systemctl"]
     assert docker.calls == 2
     assert result["deployed"] and result["summary"]["configured"] == n
     three = next(r for r in result["instances"] if r["id"] == 3)
@@ -421,3 +422,21 @@ def test_companions_show_under_their_instance_never_as_strays():
     assert viewer["uptime_s"] == 300
     assert rec["state"] == "failed" and not rec["ready"] and rec["configured"]
     assert next(r for r in records if r["id"] == 0)["companions"] == []
+
+
+def test_the_last_days_session_ends_and_crashes_come_from_the_events_journal():
+    text = "\n".join(
+        [
+            "isaac-sim-3: session ended (the app exited 0 after it was ready); restarting it, not counted as a crash",
+            "isaac-sim-3: session ended (the app exited 0 after it was ready); restarting it, not counted as a crash",
+            "isaac-sim-3 crashed (exit status 1): counted against the start limit",
+            "isaac-sim-3 exited 0 before it was ready: counted as a failed start",
+            "isaac-sim-1 unhealthy for 300 s (limit 300 s): stopping it so systemd restarts it",
+            "isaac-sim-1: Docker went away under it (docker.service activating); it comes back with Docker",
+            "-- No entries --",
+        ]
+    )
+    counts = fleet_status.parse_events(text)
+    assert counts["isaac-sim-3"] == {"session_ends": 2, "crashes": 2, "unhealthy_restarts": 0, "docker_away": 0}
+    assert counts["isaac-sim-1"] == {"session_ends": 0, "crashes": 0, "unhealthy_restarts": 1, "docker_away": 1}
+    assert fleet_status.events_argv()[:3] == ["journalctl", "-t", "isaac-sim-events"]

@@ -45,8 +45,10 @@ def test_reads_every_instance_and_reports_what_it_could_not(host, capsys):
     assert [r["id"] for r in result["instances"]] == [0, 1, 2, 3]
     assert result["instances"][1]["urls"]["signal"] == "sim-1.example.org:49101"
     assert result["docker_available"] is False and "cannot reach the Docker daemon" in result["errors"][0]
-    assert result["cost"] == {"spawns": 1, "docker_api_calls": 1}  # the first call found no daemon
-    assert [c[0] for c in commands] == ["/usr/bin/systemctl"]
+    # systemctl, and the last day's events; the first Docker call found no daemon
+    assert result["cost"] == {"spawns": 2, "docker_api_calls": 1}
+    assert [c[0] for c in commands] == ["/usr/bin/systemctl", "/usr/bin/journalctl"]
+    assert "-t" in commands[1] and "isaac-sim-events" in commands[1]
     assert "logs" not in result["instances"][0]
 
 
@@ -58,7 +60,7 @@ def test_log_lines_cost_one_journalctl_through_run_command(host, capsys):
         "isaac-sim@3.service: Deactivated successfully.",
         "Stopped isaac-sim@3.service - Isaac Sim instance 3.",
     ]
-    assert result["cost"]["spawns"] == 2
+    assert result["cost"]["spawns"] == 3
     journal = commands[-1]
     assert (
         journal[0] == "/usr/bin/journalctl" and "--lines=2" in journal and journal[-2:] == ["-u", "isaac-sim@3.service"]

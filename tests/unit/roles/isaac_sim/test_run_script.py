@@ -20,6 +20,8 @@ def run(tmp_path):
     bin_dir.mkdir()
     calls = tmp_path / "systemctl.calls"
     (bin_dir / "docker").write_text('#!/bin/sh\n[ "$1" = run ] && exit "$APP_STATUS"\nexit 0\n')
+    # the journal's stream: what the script tags isaac-sim-events, printed with its tag
+    (bin_dir / "systemd-cat").write_text('#!/bin/sh\nsed "s/^/[$2] /"\n')
     (bin_dir / "systemctl").write_text(
         f'#!/bin/sh\necho "$*" >>{calls}\n'
         'case "$*" in *"docker.service"*) [ "$1" = show ] && echo "$DOCKER_STATE"; '
@@ -60,7 +62,7 @@ def run(tmp_path):
 def test_a_clean_exit_after_ready_is_a_session_end_that_flushes_the_start_limit(run):
     rc, out, calls = run(0, ready=True)
     assert rc == 0
-    assert "isaac-sim-2: session ended (the app exited 0 after it was ready)" in out
+    assert "[isaac-sim-events] isaac-sim-2: session ended (the app exited 0 after it was ready)" in out
     assert "reset-failed isaac-sim@2.service" in calls
 
 
