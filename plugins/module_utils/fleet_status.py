@@ -490,14 +490,15 @@ def take_journal_tail(lines, ids, count: int) -> dict:
     return {i: list(reversed(t)) for i, t in tails.items()}
 
 
-# isaac-sim-run's words for how an app ended (journalctl -t isaac-sim-events), by kind
+# isaac-sim-run's records of how an app ended (journalctl -t isaac-sim-events), by kind
 EVENTS_TAG = "isaac-sim-events"
-_EVENTS = (
-    ("session_ends", re.compile(r"^(isaac-sim-\d+): session ended ")),
-    ("crashes", re.compile(r"^(isaac-sim-\d+) (?:crashed \(exit status|exited 0 before it was ready)")),
-    ("unhealthy_restarts", re.compile(r"^(isaac-sim-\d+) unhealthy for ")),
-    ("docker_away", re.compile(r"^(isaac-sim-\d+): Docker went away ")),
-)
+_EVENT_KINDS = {
+    "session_end": "session_ends",
+    "crash": "crashes",
+    "unhealthy_restart": "unhealthy_restarts",
+    "docker_away": "docker_away",
+}
+_EVENT = re.compile(r"^event=([a-z_]+) container=(isaac-sim-\d+)$")
 
 
 def events_argv(since: str = "-24h") -> list:
@@ -505,15 +506,13 @@ def events_argv(since: str = "-24h") -> list:
 
 
 def parse_events(text: str) -> dict:
-    """{container: {kind: count}} from isaac-sim-run's event lines: what systemd's NRestarts, reset
-    by every session end and every deliberate start, cannot keep."""
+    """{container: {kind: count}} from isaac-sim-run's records: what systemd's NRestarts, reset by
+    every session end and every deliberate start, cannot keep."""
     counts = {}
     for line in text.splitlines():
-        for kind, pattern in _EVENTS:
-            m = pattern.match(line.strip())
-            if m:
-                counts.setdefault(m.group(1), {k: 0 for k, _p in _EVENTS})[kind] += 1
-                break
+        m = _EVENT.match(line.strip())
+        if m and m.group(1) in _EVENT_KINDS:
+            counts.setdefault(m.group(2), dict.fromkeys(_EVENT_KINDS.values(), 0))[_EVENT_KINDS[m.group(1)]] += 1
     return counts
 
 
@@ -619,7 +618,7 @@ def gather(
     events = parse_events(out) if rc == 0 else {}
     for r in records:
         if r["id"] is not None:
-            r["last_day"] = events.get(r["name"], {k: 0 for k, _p in _EVENTS}) if rc == 0 else None
+            r["last_day"] = events.get(r["name"], dict.fromkeys(_EVENT_KINDS.values(), 0)) if rc == 0 else None
     with_units = [r["id"] for r in records if r["unit"]]
     if log_lines and with_units:
         tails, journal_error = read_journal_tails(run, with_units, log_lines)

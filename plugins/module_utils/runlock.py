@@ -3,7 +3,8 @@
 """One run at a time per host: every playbook that changes instances holds the host's lock from
 before it plans until it ends, so two deploys never interleave their settings on one host.
 
-The lock is a JSON file under /run (a reboot ends every run, and takes the file with it). Its
+The lock is a JSON file under /run/lock (a reboot ends every run, and takes the file with it;
+cleanup.yml, which empties /run/isaac-sim, leaves it to the run that holds it). Its
 read-decide-write is one critical section under flock(2) on a guard file, so two runs that
 find it free, or stale, at the same moment never both take it. The holder is a playbook run:
 the controller's host name, the ansible-playbook process and its start time.
@@ -16,12 +17,10 @@ import json
 import os
 import time
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
-
-LOCK = os.path.join(layout.RUN_DIR, "lock.json")
-GUARD = os.path.join(layout.RUN_DIR, ".lock.guard")
+LOCK = "/run/lock/isaac-sim.json"
+GUARD = "/run/lock/.isaac-sim.guard"
 # what the last rollout step on this host did, for the run that comes after an interrupted one
-RECORD = os.path.join(layout.RUN_DIR, "rollout.json")
+RECORD = "/run/lock/isaac-sim.rollout.json"
 # a lifecycle call's controller renews the lock every few seconds while it waits (the action
 # plugin isaac_sim_lifecycle); silent this long, the controller is taken for gone
 HEARTBEAT_LIMIT_S = 30
@@ -77,7 +76,9 @@ def read(path: str = LOCK):
     return data if isinstance(data, dict) else {}
 
 
-def acquire(me: dict, now: float, stale_after: int, break_lock=False, dead="", path: str = LOCK, guard: str = GUARD):
+def acquire(
+    me: dict, now: float, stale_after: int, break_lock=False, dead="", path=LOCK, guard=GUARD, record_path=RECORD
+):
     """Take or renew the lock for `me`. Returns (acquired, holder, note); holder is the run that
     holds it after the call."""
     os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
@@ -88,7 +89,7 @@ def acquire(me: dict, now: float, stale_after: int, break_lock=False, dead="", p
         if verdict == "held":
             return False, current, said
         if said and current:
-            said += recorded_text(read(os.path.join(os.path.dirname(path), os.path.basename(RECORD))), current["id"])
+            said += recorded_text(read(record_path), current["id"])
         keep = current if current and current.get("id") == me["id"] else {}
         holder = {k: me.get(k) for k in HOLDER_KEYS}
         holder.update(since=keep.get("since", now), renewed=now)

@@ -12,7 +12,7 @@ version_added: "0.1.0"
 description:
   - Every playbook of the collection that changes instances takes the host's lock before it plans
     and gives it back at its end, so two deploys never mix their settings on one host.
-  - The lock is C(/run/isaac-sim/lock.json); a reboot frees it. Taking it is one critical section
+  - The lock is C(/run/lock/isaac-sim.json); a reboot frees it. Taking it is one critical section
     under C(flock), so two runs never both hold it.
   - A lock held by another run is taken over only when that run has ended (its C(ansible-playbook)
     process on this controller is gone), when it was not renewed for I(stale_after) seconds, or

@@ -42,7 +42,7 @@ def test_a_deploy_that_breaks_an_instance_stops_there_and_puts_it_back(host):
 
 
 def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_blocks(host):
-    lock = "/run/isaac-sim/lock.json"
+    lock = "/run/lock/isaac-sim.json"
     envs = {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)}
     # a rolling restart holds the host for a minute or so
     first = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 10}, playbook="playbooks/rolling_restart.yml")
@@ -71,7 +71,7 @@ def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_
     # a run of this controller killed mid-deploy: its lock is taken at once, with a word
     dead = {"id": "x", "user": "carol", "controller": socket.gethostname(), "pid": 999999, "started": "1"}
     dead.update(play="Deploy", since=time.time(), renewed=time.time())
-    sh(host, f"mkdir -p /run/isaac-sim && echo '{json.dumps(dead)}' > {lock}")
+    sh(host, f"mkdir -p /run/lock && echo '{json.dumps(dead)}' > {lock}")
     taken = testbed.run_playbook(host)
     said = taken.stdout + taken.stderr
     assert taken.returncode == 0 and "took the lock left by carol" in said, said[-3000:]

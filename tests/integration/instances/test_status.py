@@ -54,8 +54,11 @@ def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
         with socket.create_connection((ip, 49100 + i), timeout=2) as conn:
             conn.sendall(b"hello\n")  # the stand-in's hook for tests
             assert conn.recv(64).startswith(b"isaac-sim-standin")
-    # fixed cost: one systemctl show, no nvidia-smi on this host, two Docker API calls
-    assert result["cost"] == {"spawns": 1, "docker_api_calls": 2}
+    # fixed cost: one systemctl show, one journalctl for the last day's ends, no nvidia-smi on this
+    # host, two Docker API calls
+    assert result["cost"] == {"spawns": 2, "docker_api_calls": 2}
+    kinds = {"session_ends", "crashes", "unhealthy_restarts", "docker_away"}
+    assert all(set(i["last_day"]) == kinds for i in result["instances"])
 
 
 def test_info_in_check_mode_and_with_log_lines(host):
@@ -64,7 +67,7 @@ def test_info_in_check_mode_and_with_log_lines(host):
     assert [i["name"] for i in result["instances"]] == ["isaac-sim-1"]
     logs = result["instances"][0]["logs"]
     assert 1 <= len(logs) <= 5 and any("is loaded" in line or "is ready" in line for line in logs)
-    assert result["cost"]["spawns"] == 2  # + one journalctl for all asked units
+    assert result["cost"]["spawns"] == 3  # + one journalctl for all asked units
 
 
 def test_a_stopped_instance_reports_stopped(host):
@@ -260,7 +263,7 @@ def test_markup_in_names_is_shown_as_text_and_never_runs(host, tmp_path):
 def test_day2_actions_refuse_bad_input_before_any_change(host):
     before = testbed.snapshot(host)
     for extra, message in (
-        ({"isaac_sim_action": "bounce"}, "isaac_sim_action must be one of: start, stop, restart, remove"),
+        ({"isaac_sim_action": "bounce"}, "isaac_sim_action: 'bounce' is not one of start, stop, restart, remove. Fix:"),
         (
             {"isaac_sim_action": "restart", "isaac_sim_instances_selected": [7]},
             "isaac_sim_instances_selected: 7 not configured",

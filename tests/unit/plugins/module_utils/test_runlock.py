@@ -16,6 +16,10 @@ def paths(tmp_path):
     return {"path": str(tmp_path / "run" / "lock.json"), "guard": str(tmp_path / "run" / ".guard")}
 
 
+def recorded(tmp_path):
+    return str(tmp_path / "run" / "rollout.json")
+
+
 def test_a_free_host_is_taken_and_another_run_is_refused_naming_who_and_since_when(tmp_path):
     where = paths(tmp_path)
     assert runlock.acquire(ALICE, NOW, 3600, **where)[0]
@@ -117,8 +121,10 @@ def test_the_run_that_takes_over_an_interrupted_runs_lock_is_told_what_it_left(t
         "done": [0],
         "untouched": [2, 3],
     }
-    runlock.record(entry, str(tmp_path / "run" / "rollout.json"))
-    acquired, _holder, note = runlock.acquire(BOB, NOW + 60, 3600, dead=ALICE["id"], **where)
+    runlock.record(entry, recorded(tmp_path))
+    acquired, _holder, note = runlock.acquire(
+        BOB, NOW + 60, 3600, dead=ALICE["id"], record_path=recorded(tmp_path), **where
+    )
     assert acquired and "that run has ended" in note
     assert "interrupted (its controller stopped): done isaac-sim-0; left as they were isaac-sim-2, isaac-sim-3" in note
     # a record of another run says nothing

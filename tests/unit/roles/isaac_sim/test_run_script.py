@@ -62,7 +62,8 @@ def run(tmp_path):
 def test_a_clean_exit_after_ready_is_a_session_end_that_flushes_the_start_limit(run):
     rc, out, calls = run(0, ready=True)
     assert rc == 0
-    assert "[isaac-sim-events] isaac-sim-2: session ended (the app exited 0 after it was ready)" in out
+    assert "isaac-sim-2: session ended (the app exited 0 after it was ready)" in out
+    assert "[isaac-sim-events] event=session_end container=isaac-sim-2" in out
     assert "reset-failed isaac-sim@2.service" in calls
 
 
@@ -70,6 +71,7 @@ def test_a_crash_after_ready_stays_counted(run):
     rc, out, calls = run(1, ready=True)
     assert rc == 1
     assert "isaac-sim-2 crashed (exit status 1): counted against the start limit" in out
+    assert "[isaac-sim-events] event=crash container=isaac-sim-2" in out
     assert not [c for c in calls if c.startswith("reset-failed")]
 
 
