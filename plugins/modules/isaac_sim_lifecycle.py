@@ -96,7 +96,7 @@ options:
     description:
       - The playbook run that asks, filled by the action plugin of the same name. When that run holds the
         host's lock (M(isaacsim.fleet.isaac_sim_lock)), the action plugin renews it while it waits, and a
-        lock not renewed for 30 s means the controller is gone (Ctrl-C, killed): the rollout stops before
+        lock not renewed for 30 s means the controller is gone (Ctrl-C, killed); the rollout stops before
         the next instance, the one in hand left ready or reverted, and says so in the journal
         (C(journalctl -t isaac-sim-lifecycle)); the next run's lock note repeats it.
     type: str
