@@ -170,7 +170,7 @@ instances:
     last_day:
       description: >-
         What ended the instance's app in the last 24 hours, from the journal (C(journalctl -t
-        isaac-sim-events)), which systemd's O(restarts) count cannot keep - it is reset by every session
+        isaac-sim-events)), which systemd's C(restarts) count cannot keep - it is reset by every session
         end and deliberate start. Null when the journal could not be read.
       type: dict
       contains:

@@ -6,7 +6,7 @@ that fail at the canary, a
 preflight that refuses an unhealthy fleet and one with a host that does not
 answer, a rollout scoped by --limit and
 instance selection, a canary pause nobody answers, a Docker settings change that
-restarts Docker one host at a time, and an upgrade approved at
+restarts Docker one host at a time, a fleet-wide scale-down, and an upgrade approved at
 the canary prompt that goes through.
 """
 
@@ -241,6 +241,33 @@ def test_a_docker_settings_change_restarts_docker_one_host_at_a_time(fleet):
     assert watcher.most_disturbed_at_once(INSTANCES) == 1
     assert all(watcher.lowest()[h] < INSTANCES for h in rest), watcher.lowest()
     assert watcher.lowest()[canary] == INSTANCES
+
+
+def test_a_fleet_wide_scale_down_goes_host_by_host_and_to_zero_only_when_confirmed(fleet):
+    before = {h: containers(h) for h in fleet}
+    refused = playbook("deploy.yml", {"isaac_sim_instance_count": 0})
+    out = squash(refused.stdout + refused.stderr)
+    assert refused.returncode != 0 and "Fix: set isaac_sim_scale_to_zero: true" in out, out[-3000:]
+    assert {h: containers(h) for h in fleet} == before
+    # 4 -> 3 everywhere: the instances that go serve, so they go in the canary batches
+    watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + INSTANCES - 1])
+    watcher.start()
+    try:
+        run = playbook("deploy.yml", {"isaac_sim_instance_count": INSTANCES - 1, "isaac_sim_rollout_soak": 3})
+    finally:
+        watcher.stop()
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr
+    gone = {h: next((t for t, seen in watcher.samples if seen[h] == 0), None) for h in fleet}
+    assert None not in gone.values(), gone
+    # one host at a time, in inventory order: the canary first, never two in one step
+    assert gone[fleet[0]] + 2 < gone[fleet[1]] and gone[fleet[1]] + 2 < gone[fleet[2]], gone
+    for h in fleet:
+        assert sorted(containers(h)) == [f"isaac-sim-{i}" for i in range(INSTANCES - 1)]
+        assert {n: before[h][n] for n in containers(h)} == containers(h), "a kept instance was restarted"
+    back = playbook("deploy.yml")
+    assert back.returncode == 0, back.stdout[-4000:] + back.stderr
+    for h in fleet:
+        testbed.wait_for(lambda h=h: all_ready(h), timeout=180, what=f"{h} ready")
 
 
 def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
