@@ -44,9 +44,13 @@ def test_units_are_stamped_and_wired_to_docker(host):
     for line in (
         "Requires=docker.service",
         "Restart=always",
-        "ExecStopPost=-/usr/bin/docker rm -f ${ISAAC_SIM_CONTAINER}",
+        # docker is asked only while dockerd runs (a stop while systemd restarts it must not wait on it)
+        "ExecStopPost=-/bin/sh -c 'systemctl -q is-active docker.service || exit 0; "
+        "exec /usr/bin/docker rm -f ${ISAAC_SIM_CONTAINER}'",
     ):
         assert line in unit
+    # every start of Docker starts the target, and so every enabled instance
+    assert sh(host, "test -L /etc/systemd/system/docker.service.wants/isaac-sim.target", check=False).rc == 0
     assert "--pull" not in sh(host, "grep ^ExecStart= /etc/systemd/system/isaac-sim@.service").stdout
     assert sh(host, "systemctl is-enabled isaac-sim.target").stdout.strip() == "enabled"
 
