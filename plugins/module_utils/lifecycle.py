@@ -541,12 +541,17 @@ def apply(host: Host, want: dict, check=False) -> dict:
             return None
         return lambda: want["reown"](i)
 
-    def stop_here(failed, n):
-        """The failure ends the apply: instances stopped for ports come back as they were."""
+    def wind_down(first):
+        """The apply ends before step `first`: instances stopped for ports come back as they were.
+        Returns the instances left as they were."""
         if stopped:
             start(host, stopped, companions={i: _names(current[i], i) for i in stopped})
-        later = [w for kind, w in steps[n + 1 :] if kind == "roll"]
-        result.update(failed=failed, untouched=[i for i in later if i not in stopped] + stopped, changed=True)
+        later = [w for kind, w in steps[first:] if kind == "roll"]
+        return [i for i in later if i not in stopped] + stopped
+
+    def stop_here(failed, n):
+        """The failure ends the apply."""
+        result.update(failed=failed, untouched=wind_down(n + 1), changed=True)
         return result
 
     for n, (kind, what) in enumerate(steps):
@@ -587,10 +592,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
         i = what
         why = host.interrupted()
         if why:
-            if stopped:
-                start(host, stopped, companions={j: _names(current[j], j) for j in stopped})
-            later = [w for kind, w in steps[n:] if kind == "roll"]
-            return interrupt(host, result, why, [j for j in later if j not in stopped] + stopped)
+            return interrupt(host, result, why, wind_down(n))
         if i in changed_ids:
             write_new(i)
         ok, reason, restart_s = restart(host, i, handover(i), wanted_companions[i])

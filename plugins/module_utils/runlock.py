@@ -17,6 +17,8 @@ import json
 import os
 import time
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
+
 LOCK = "/run/lock/isaac-sim.json"
 GUARD = "/run/lock/.isaac-sim.guard"
 # what the last rollout step on this host did, for the run that comes after an interrupted one
@@ -62,6 +64,16 @@ def decide(current: dict | None, me: dict, now: float, stale_after: int, break_l
     return "held", who
 
 
+def _write(path: str, data: dict, mode=None) -> None:
+    """The whole file or none of it: readers never see half a holder."""
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as out:
+        json.dump(data, out, sort_keys=True)
+    if mode is not None:
+        os.chmod(tmp, mode)
+    os.replace(tmp, path)
+
+
 def read(path: str = LOCK):
     """The lock's holder, None when free, {} when the file cannot be read as a holder."""
     try:
@@ -93,11 +105,7 @@ def acquire(
         keep = current if current and current.get("id") == me["id"] else {}
         holder = {k: me.get(k) for k in HOLDER_KEYS}
         holder.update(since=keep.get("since", now), renewed=now)
-        tmp = f"{path}.{os.getpid()}.tmp"
-        with open(tmp, "w") as out:
-            json.dump(holder, out, sort_keys=True)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        _write(path, holder, 0o644)
         return True, holder, said
 
 
@@ -111,11 +119,7 @@ def renew(me: dict, now: float, path: str = LOCK, guard: str = GUARD) -> bool:
         if not current or current.get("id") != me["id"]:
             return False
         current["renewed"] = now
-        tmp = f"{path}.{os.getpid()}.tmp"
-        with open(tmp, "w") as out:
-            json.dump(current, out, sort_keys=True)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        _write(path, current, 0o644)
         return True
 
 
@@ -135,18 +139,15 @@ def gone(run_id: str, now: float, limit: float = HEARTBEAT_LIMIT_S, path: str = 
 def record(entry: dict, path: str = RECORD) -> None:
     """Keep what a rollout step did (run, at, done, untouched, interrupted) for the next run."""
     os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "w") as out:
-        json.dump(entry, out, sort_keys=True)
-    os.replace(tmp, path)
+    _write(path, entry)
 
 
 def recorded_text(entry, run_id: str) -> str:
     """What run `run_id` left on the host, from its record, for the note of the run that takes over."""
     if not isinstance(entry, dict) or entry.get("run") != run_id or not entry.get("interrupted"):
         return ""
-    done = ", ".join(f"isaac-sim-{i}" for i in entry.get("done", [])) or "none"
-    left = ", ".join(f"isaac-sim-{i}" for i in entry.get("untouched", [])) or "none"
+    done = ", ".join(layout.container(i) for i in entry.get("done", [])) or "none"
+    left = ", ".join(layout.container(i) for i in entry.get("untouched", [])) or "none"
     return f"; its rollout here was interrupted ({entry['interrupted']}): done {done}; left as they were {left}"
 
 

@@ -400,8 +400,15 @@ def main():
     if p["action"] == "restart":
         out["changed"] = result["changed"]
     if result.get("interrupted"):
-        entry = {"run": run, "at": time.time(), "interrupted": result["interrupted"], "untouched": result["untouched"]}
-        runlock.record(dict(entry, done=[d["id"] for d in result["done"]]))
+        runlock.record(
+            {
+                "run": run,
+                "at": time.time(),
+                "interrupted": result["interrupted"],
+                "done": [d["id"] for d in result["done"]],
+                "untouched": result["untouched"],
+            }
+        )
         out["changed"] = out["changed"] or result["changed"]
         module.fail_json(
             msg=f"rollout interrupted: {result['interrupted']}; it stopped before "
