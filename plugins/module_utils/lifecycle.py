@@ -27,7 +27,7 @@ import re
 import shutil
 import time
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, reserved_ports
 
 _GATE_WORDS = re.compile(
     r"not ready within|stopped before it was ready|went away before it was ready|docker run exited"
@@ -63,6 +63,10 @@ def bind(module) -> Host:
             return None
 
     def write(path, text, mode):
+        if path.startswith("/proc/sys/"):  # a kernel setting: written in place, never replaced
+            with open(path, "w") as fh:
+                fh.write(text)
+            return
         directory = os.path.dirname(path)
         os.makedirs(directory, mode=0o755, exist_ok=True)
         tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
@@ -409,13 +413,42 @@ def _names(files: dict, i: int) -> list:
     return sorted(names)
 
 
+def reserve(host: Host, ports, managed: str, grow: bool, check=False) -> bool:
+    """Keep `ports` out of the host's ephemeral range (reserved_ports.py): in the kernel now, in
+    sysctl.d for the next boot. Returns whether anything changed (or would, in check mode)."""
+    runtime = host.read(reserved_ports.PROC)
+    if runtime is None:  # not Linux's /proc: nothing to keep
+        return False
+    before = host.read(reserved_ports.CONF)
+    value, added = reserved_ports.wanted(runtime, before, ports, grow)
+    text = reserved_ports.conf(value, added, managed)
+    kernel = value != reserved_ports.parse(runtime)
+    if check or not (kernel or text != before):
+        return kernel or text != before
+    if text is None:
+        host.remove(reserved_ports.CONF)
+    elif text != before:
+        host.write(reserved_ports.CONF, text, 0o644)
+    if kernel:
+        try:
+            host.write(reserved_ports.PROC, reserved_ports.render(value) + "\n", 0o644)
+        except OSError as exc:
+            raise OSError(
+                f"could not reserve the instances' ports ({reserved_ports.KEY}={reserved_ports.render(value)}): "
+                f"{exc}. Fix: a host that is itself a container needs a writable /proc/sys, or the value set "
+                f"where it is created (docker run --sysctl {reserved_ports.KEY}=...)"
+            ) from exc
+    return True
+
+
 def apply(host: Host, want: dict, check=False) -> dict:
     """Bring the host to `want`, never taking more than one serving instance down at a time.
 
     want: {"files": {path: (text, mode), or (None, None) to remove} shared by every instance
            (units, scripts), "instances": {id: env text}, "companions": {id: {name: env text}},
            "companions_found": {id: [names]} (on the host now), "env_mode": int, "remove": [ids],
-           "purge": bool, "data_root": str, "soak": seconds, "defer_running": bool}
+           "purge": bool, "data_root": str, "soak": seconds, "defer_running": bool,
+           "reserve": [ports] to keep out of the ephemeral range, or None, "managed": str}
     An instance changes when its env file or one of its companions' does; it changes with its
     companions, as one. With defer_running, a host where a serving instance would restart or be
     removed is left as it is (deferred=True): the caller rolls it later, in canary batches.
@@ -475,7 +508,11 @@ def apply(host: Host, want: dict, check=False) -> dict:
         "notes": notes,
     }
     result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
-    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared)
+    ports = want.get("reserve")
+    managed = want.get("managed", "")
+    reserving = ports is not None and reserve(host, ports, managed, grow=False, check=True)
+    plan["reserved_ports"] = reserving
+    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared or reserving)
     if check or not changed:
         result["changed"] = changed
         return result
@@ -486,6 +523,9 @@ def apply(host: Host, want: dict, check=False) -> dict:
 
     if want.get("prepare"):
         want["prepare"]()
+    # before any instance binds a new port; the old ones stay reserved until the end
+    if reserving:
+        reserve(host, ports, managed, grow=True)
     files = _Files(host)
     # scale-down first: it frees the ports and GPUs of the instances that go
     remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT), found)
@@ -641,6 +681,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
         host.remove(path)
     if stale:
         host.run(["systemctl", "daemon-reload"])
+    if reserving:
+        reserve(host, ports, managed, grow=False)
     result["changed"] = True
     return result
 

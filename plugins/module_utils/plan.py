@@ -698,6 +698,8 @@ def build(cfg: dict, host: dict) -> dict:
         "status_server": status,
         "hub_cache": hub,
         "network": net,
+        # on the host's network, no outgoing connection may take one of them (reserved_ports.py)
+        "reserved_ports": sorted(taken),
         "warnings": warnings,
     }
 

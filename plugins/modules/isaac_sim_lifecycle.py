@@ -26,6 +26,11 @@ description:
   - With addresses of their own (the plan's C(network)), the Docker macvlan network is created before the first
     instance changes, and removed once no instance wants it and nobody is on it; a network in use is never
     changed under its containers.
+  - On the host's network, the instances' and companions' ports (the plan's C(reserved_ports)) are kept out of the
+    host's ephemeral range in C(net.ipv4.ip_local_reserved_ports), in the kernel and in
+    C(/etc/sysctl.d/99-zz-isaac-sim-reserved-ports.conf), before an instance binds a new one, so that no outgoing
+    connection from the host takes a port an instance is about to bind. Ports the host reserved itself are kept;
+    those the collection added leave with the last instance that has them.
   - O(action=restart) restarts O(ids) one at a time, each ready and soaked. O(action=start) starts them together,
     O(action=stop) stops them (they stay enabled), O(action=remove) stops, disables and forgets them; caches, logs
     and data stay unless O(purge).
@@ -132,7 +137,7 @@ plan:
   description: What O(action=apply) found to do - shared files to write, instances to start, roll, remove, enable.
   returned: action is apply
   type: dict
-  sample: {"files": [], "start": [], "roll": [0, 1], "remove": [], "enable": []}
+  sample: {"files": [], "start": [], "roll": [0, 1], "remove": [], "enable": [], "reserved_ports": false}
 deferred:
   description: O(defer_running) left the host unchanged because serving instances would restart.
   returned: action is apply
@@ -166,6 +171,10 @@ network:
       on it), or null. In check mode, what would be done.
   returned: action is apply or remove
   type: str
+reserved_ports:
+  description: Whether the host's reserved ports (C(net.ipv4.ip_local_reserved_ports)) changed, or would in check mode.
+  returned: action is remove and no instance is left
+  type: bool
 """
 
 import os
@@ -224,6 +233,8 @@ def _want(module, host, found):
         "data_root": plan["layout"]["data_root"],
         "soak": p["soak_seconds"],
         "defer_running": p["defer_running"],
+        "reserve": plan.get("reserved_ports", []),
+        "managed": p["managed"],
     }
 
 
@@ -391,10 +402,16 @@ def main():
             lifecycle.stop(host, p["ids"])
         else:
             lifecycle.remove(host, p["ids"], p["purge"], p["data_root"], companions=found)
-            # the last instance on it gone (cleanup, scale to 0): the network goes too
+            # the last instance on it gone (cleanup, scale to 0): the network goes too, and the ports
             out["network"] = _drop_network(module, host)
+            wants = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")
+            if not hostprobe.existing_instances(layout.CONFIG_DIR, wants):
+                try:
+                    out["reserved_ports"] = lifecycle.reserve(host, [], p["managed"], grow=False)
+                except OSError as exc:
+                    module.fail_json(msg=str(exc))
         result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
-        out["changed"] = bool(p["ids"]) or out.get("network") == "remove"
+        out["changed"] = bool(p["ids"]) or out.get("network") == "remove" or bool(out.get("reserved_ports"))
 
     out.update(done=result["done"], failed_instance=result["failed"], untouched=result["untouched"])
     if p["action"] == "restart":

@@ -149,6 +149,53 @@ def test_instances_come_back_whenever_docker_comes_back(host, ip):
     assert "isaac-sim-0: Docker went away under it" in journal and "Start request repeated too quickly" not in journal
 
 
+RESERVED = "/proc/sys/net/ipv4/ip_local_reserved_ports"
+RESERVED_CONF = "/etc/sysctl.d/99-zz-isaac-sim-reserved-ports.conf"
+
+
+def instance_ports(host):
+    """Every ISAAC_SIM_PORT_* of every instance's env file."""
+    out = sh(host, "cat /etc/isaac-sim/instance-*.env | sed -n 's/^ISAAC_SIM_PORT_[A-Z_]*=//p'").stdout
+    return {int(p) for p in out.split()}
+
+
+def reserved(host):
+    ports = set()
+    for part in sh(host, f"cat {RESERVED}").stdout.strip().split(","):
+        if part:
+            low, _sep, high = part.partition("-")
+            ports.update(range(int(low), int(high or low) + 1))
+    return ports
+
+
+def test_no_outgoing_connection_of_the_host_can_take_an_instance_port(host):
+    ports = instance_ports(host)
+    assert len(ports) >= 3 * INSTANCES and ports <= reserved(host)
+    conf = sh(host, f"cat {RESERVED_CONF}").stdout
+    assert conf.startswith("# Ansible managed") and "net.ipv4.ip_local_reserved_ports = " in conf
+    # the kernel at work: with the ephemeral range narrowed onto the signal ports, 30 connections
+    # from the host (as its health probes make) take only the ports between them
+    narrow = f"{SIGNAL_BASE - 20} {SIGNAL_BASE + INSTANCES + 20}"
+    wide = sh(host, "cat /proc/sys/net/ipv4/ip_local_port_range").stdout.strip()
+    probe = (
+        "import socket\n"
+        "srv = socket.create_server(('127.0.0.1', 0))\n"
+        "for _ in range(30):\n"
+        "    c = socket.create_connection(srv.getsockname())\n"
+        "    print(c.getsockname()[1])\n"
+        "    srv.accept()[0].close()\n"
+        "    c.close()\n"
+    )
+    sh(host, f"echo '{narrow}' > /proc/sys/net/ipv4/ip_local_port_range")
+    try:
+        taken = {int(p) for p in sh(host, f"python3 - <<'EOF'\n{probe}EOF").stdout.split()}
+    finally:
+        sh(host, f"echo '{wide}' > /proc/sys/net/ipv4/ip_local_port_range")
+    low, high = map(int, narrow.split())
+    assert taken and all(low <= p <= high for p in taken), taken
+    assert not taken & ports, taken & ports
+
+
 def test_instances_come_back_after_a_reboot(host, ip):
     testbed.client().containers.get(testbed.name(host)).restart(timeout=30)
     wait_for(
@@ -163,6 +210,8 @@ def test_instances_come_back_after_a_reboot(host, ip):
     # warm start: the shader cache written before the reboot was found
     log = sh(host, "journalctl -b -u isaac-sim@0 --no-pager").stdout
     assert "shader cache warm" in log
+    # a new network namespace, whose reservation can only come from the role's sysctl.d file
+    assert instance_ports(host) <= reserved(host)
 
 
 def test_stopping_the_target_stops_every_instance(host):

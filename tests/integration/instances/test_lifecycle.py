@@ -215,6 +215,10 @@ def test_a_hung_instance_turns_unhealthy_and_its_host_restarts_it(host):
     testbed.wait_for(lambda: health() == "healthy", timeout=60, what="the new isaac-sim-2 healthy")
 
 
+def reserved_ports(host):
+    return sh(host, "cat /proc/sys/net/ipv4/ip_local_reserved_ports").stdout.strip()
+
+
 def test_a_port_layout_change_rolls_without_an_instance_starting_on_a_held_port(host):
     # stride 1 -> 2 with the stream port next to the signal port: new instance 1 wants
     # 49102-49103, which old instances 2 and 3 still hold until they are rolled
@@ -232,7 +236,10 @@ def test_a_port_layout_change_rolls_without_an_instance_starting_on_a_held_port(
             assert '"python3",pid=' in ports, (i, ports)
         journal = sh(host, f"journalctl -u 'isaac-sim@*' --since @{since} --no-pager").stdout
         assert "cannot start: port" not in journal
+        # the new blocks (the web viewer strides too) are reserved, the old ports let go
+        assert reserved_ports(host) == "8210,8212,8214,8216,49100-49107", reserved_ports(host)
     finally:
         restored = testbed.run_playbook(host)
         assert restored.returncode == 0, restored.stdout[-3000:] + restored.stderr
         testbed.all_ready(host)
+    assert reserved_ports(host) == "8210-8213,47998-48001,49100-49103"

@@ -311,9 +311,14 @@ def test_remove_and_cleanup_keep_caches_and_foreign_containers(host):
     assert sh(host, "test -d /var/lib/isaac-sim/instance-3/cache", check=False).rc == 0
     assert [i["id"] for i in testbed.info(host)["instances"]] == [0, 1, 2]
     sh(host, f"docker run -d --name not-ours --network none --entrypoint sleep {image} 600")
+    # a port the site reserved itself, after the deploy: the collection never takes it away
+    reserved = "/proc/sys/net/ipv4/ip_local_reserved_ports"
+    sh(host, f"echo $(cat {reserved}),9999 > {reserved}")
     try:
         cleanup = ok(testbed.run_playbook(host, playbook="playbooks/cleanup.yml"))
         assert "caches, logs and data stay" in cleanup.stdout
+        assert sh(host, f"cat {reserved}").stdout.strip() == "9999"
+        assert sh(host, "ls /etc/sysctl.d/ | grep -c isaac-sim", check=False).stdout.strip() == "0"
         assert sh(host, "ls /etc/systemd/system/ | grep -c isaac-sim", check=False).stdout.strip() == "0"
         assert sh(host, "docker ps -q --filter name=isaac-sim-", check=False).stdout.strip() == ""
         assert container_id(host, "not-ours")
@@ -328,6 +333,7 @@ def test_remove_and_cleanup_keep_caches_and_foreign_containers(host):
         assert testbed.changed_count(again, host) == 0
     finally:
         sh(host, "docker rm -f not-ours", check=False)
+        sh(host, f"echo > {reserved}")
     # redeploy with metrics on: all four back, warm caches
     ok(testbed.run_playbook(host, {"isaac_sim_metrics_enabled": True, "isaac_sim_metrics_interval": "5s"}))
     all_ready(host)

@@ -8,7 +8,7 @@ an instance stuck activating. The real thing runs in the molecule scenarios.
 
 import os
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, lifecycle
+from ansible_collections.isaacsim.fleet.plugins.module_utils import layout, lifecycle, reserved_ports
 
 UNIT_FILE = "/etc/systemd/system/isaac-sim@.service"
 GATE = "/usr/local/libexec/isaac-sim/isaac-sim-ready"
@@ -680,3 +680,55 @@ def test_moving_to_own_addresses_keeps_the_port_numbers_and_blocks_nobody():
         [],
     )
     assert steps[0] == ("stop", [1]) and "port(s) 10.0.0.51:49100" in notes[0]
+
+
+def test_new_ports_are_reserved_before_an_instance_binds_one_and_the_old_ones_leave_at_the_end():
+    h = ScriptedHost(2)
+    h.files[reserved_ports.PROC] = ("9000 49100-49101\n".replace(" ", ","), 0o644)
+    h.files[reserved_ports.CONF] = (reserved_ports.conf({9000, 49100, 49101}, {49100, 49101}, "m"), 0o644)
+    seen = []
+    start = h._start
+
+    def spy(i):
+        seen.append(h.files[reserved_ports.PROC][0])
+        return start(i)
+
+    h._start = spy
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(2)}, reserve=[49104, 49105], managed="m"))
+    assert result["failed"] is None and result["plan"]["reserved_ports"]
+    # while the instances roll, both layouts are reserved
+    assert seen and all(s == "9000,49100-49101,49104-49105\n" for s in seen)
+    assert h.files[reserved_ports.PROC][0] == "9000,49104-49105\n"
+    assert reserved_ports.ours(h.files[reserved_ports.CONF][0]) == {49104, 49105}
+    again = lifecycle.apply(h.host, want({i: NEW for i in range(2)}, reserve=[49104, 49105], managed="m"))
+    assert not again["changed"] and not again["plan"]["reserved_ports"]
+
+
+def test_reserved_ports_alone_are_a_change_that_check_mode_reports_without_writing():
+    h = ScriptedHost(2)
+    h.files[reserved_ports.PROC] = ("\n", 0o644)
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, reserve=[49100, 49101]), check=True)
+    assert result["changed"] and result["plan"]["reserved_ports"]
+    assert h.files[reserved_ports.PROC][0] == "\n" and reserved_ports.CONF not in h.files
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, reserve=[49100, 49101]))
+    assert result["changed"] and h.commands("restart") == [] and h.commands("start") == []
+    assert h.files[reserved_ports.PROC][0] == "49100-49101\n"
+
+
+def test_a_read_only_kernel_setting_is_an_error_that_says_the_fix():
+    h = ScriptedHost(1)
+    h.files[reserved_ports.PROC] = ("\n", 0o644)
+    real = h.host.write
+
+    def write(path, text, mode):
+        if path == reserved_ports.PROC:
+            raise OSError(30, "Read-only file system")
+        real(path, text, mode)
+
+    h.host.write = write
+    try:
+        lifecycle.reserve(h.host, [49100], "m", grow=False)
+    except OSError as exc:
+        assert "docker run --sysctl net.ipv4.ip_local_reserved_ports" in str(exc)
+    else:
+        raise AssertionError("no error")

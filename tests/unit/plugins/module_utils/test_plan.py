@@ -108,6 +108,14 @@ def test_stride_and_bases():
     assert [i["ports"]["signal"] for i in result["instances"]] == [50000, 50010, 50020, 50030]
 
 
+def test_every_instance_and_companion_port_on_the_hosts_network_is_kept_from_outgoing_connections():
+    comp = [{"name": "bridge", "image": "reg/bridge:1", "ports": {"dds": 7400}}]
+    result = plan.build(cfg(port_bases={"signal": 50000}, port_stride=10, companions=comp), HOST)
+    every = {port for inst in result["instances"] for port in inst["ports"].values()}
+    assert set(result["reserved_ports"]) == every | {7400, 7410, 7420, 7430}
+    assert result["reserved_ports"] == sorted(result["reserved_ports"])
+
+
 def test_empty_image_means_the_release_image():
     assert plan.build(cfg(image="", release="5.x"), HOST)["image"] == "nvcr.io/nvidia/isaac-sim:5.1.0"
 
@@ -452,6 +460,8 @@ def test_own_addresses_keep_the_release_ports_and_companions_share_the_instance_
     )
     result = plan.build(c, LAN_HOST)
     assert result["network"]["parent"] == "eth0" and result["network"]["subnet"] == "10.0.0.0/24"
+    # each binds in a namespace of its own: the host's outgoing connections cannot take its ports
+    assert result["reserved_ports"] == []
     for i, inst in enumerate(result["instances"]):
         address = f"10.0.0.{50 + i}"
         assert inst["address"] == address
