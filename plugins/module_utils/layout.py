@@ -116,6 +116,12 @@ def env_file(i: int, config_dir: str = CONFIG_DIR) -> str:
     return os.path.join(config_dir, f"instance-{i}.env")
 
 
+def lent_marker(i: int, run_dir: str = RUN_DIR) -> str:
+    """A directory while instance i is lent to a test run (mkdir is atomic: one borrower), with
+    the run's name in its file `run`."""
+    return f"{run_dir}/instance-{i}.lent"
+
+
 def marker(i: int, run_dir: str = RUN_DIR) -> str:
     return os.path.join(run_dir, f"instance-{i}.ready")
 

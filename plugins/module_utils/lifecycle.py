@@ -633,6 +633,20 @@ def apply(host: Host, want: dict, check=False) -> dict:
         why = host.interrupted()
         if why:
             return interrupt(host, result, why, wind_down(n))
+        holder = lent_to(host, i)
+        if holder is not None:  # a test run has it: its settings change after the run, not under it
+            result.update(
+                failed={
+                    "id": i,
+                    "reason": f"lent to test run {holder}, which it serves until the run ends; not changed. "
+                    "Fix: run again once the run is over",
+                    "reverted": None,
+                    "left": "running",
+                },
+                untouched=[j for j in wind_down(n) if j != i],
+                changed=True,
+            )
+            return result
         if i in changed_ids:
             write_new(i)
         ok, reason, restart_s = restart(host, i, handover(i), wanted_companions[i])
@@ -700,12 +714,65 @@ def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
     return result
 
 
-def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=None) -> dict:
+def lent_to(host: Host, i: int) -> str | None:
+    """The run instance i is lent to, or None."""
+    if not host.exists(layout.lent_marker(i)):
+        return None
+    return (host.read(f"{layout.lent_marker(i)}/run") or "").strip() or "a run"
+
+
+def _mark(host: Host, i: int, run: str) -> tuple:
+    rc, _out, err = host.run(["mkdir", layout.lent_marker(i)])
+    if rc == 0:
+        host.write(f"{layout.lent_marker(i)}/run", run + "\n", 0o644)
+    return rc == 0, err
+
+
+def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.0) -> str | None:
+    """Lend instance i to `run`, waiting up to wait_s for the run that has it to give it back.
+    Returns None once lent, else the run that still has it. A lent instance is restarted by no
+    one but its borrower's give_back."""
+    deadline = host.now() + wait_s
+    while True:
+        ok, err = _mark(host, i, run)
+        if ok:
+            return None
+        if not host.exists(layout.lent_marker(i)):
+            ok, err = _mark(host, i, run)  # given back in between
+            if ok:
+                return None
+            if not host.exists(layout.lent_marker(i)):
+                raise OSError(f"cannot lend {layout.container(i)}: {err.strip()}")
+        if host.now() >= deadline:
+            return lent_to(host, i) or "a run"
+        host.sleep(interval)
+
+
+def unlend(host: Host, i: int, run: str) -> None:
+    """End a loan that nothing ran on: free as it was, no restart."""
+    if lent_to(host, i) == run:
+        host.remove(layout.lent_marker(i))
+
+
+def give_back(host: Host, i: int, run: str, companions=None) -> str | None:
+    """The end of a loan, in this order: instance i restarted clean, ready, then free, so the
+    next borrower never gets what the last one left. Returns why the restart failed (the
+    instance is free all the same: a failed instance is not ready, so it is not lent again)."""
+    holder = lent_to(host, i)
+    if holder != run:
+        return f"{layout.container(i)} is lent to {holder or 'no run'}, not to {run}; left alone"
+    outcome = restart_each(host, [i], 0, companions=companions, borrower=run)
+    host.remove(layout.lent_marker(i))
+    return outcome["failed"]["reason"] if outcome["failed"] else None
+
+
+def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=None, borrower=None) -> dict:
     """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
     companions ({id: [names]}).
 
     An instance that fails is restarted once more with the same settings (there is
-    nothing older to go back to) and the restart stops there.
+    nothing older to go back to) and the restart stops there. An instance lent to a run
+    other than `borrower` is not touched: the restart stops before it.
     """
     ids = list(ids)
     result = {"done": [], "failed": None, "untouched": [], "changed": bool(ids)}
@@ -716,6 +783,18 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=N
         why = host.interrupted()
         if why:
             return interrupt(host, result, why, ids[n:])
+        holder = lent_to(host, i)
+        if holder is not None and holder != borrower:
+            result["failed"] = {
+                "id": i,
+                "reason": f"lent to test run {holder}, which it serves until the run ends; not restarted. "
+                "Fix: run again once the run is over",
+                "reverted": None,
+                "left": "running",
+            }
+            result["untouched"] = ids[n + 1 :]
+            result["changed"] = bool(result["done"])
+            return result
         text = host.read(layout.env_file(i))
         if text is None:
             result["failed"] = {

@@ -623,8 +623,9 @@ def teardown(host, run: str, created: dict, docker, keep_directory=True) -> None
 
 
 def sweep(host, docker, alive) -> list:
-    """Tear down the runs whose runner is gone (alive(pid) is False); returns the instances they
-    had borrowed, which the caller restarts through the lifecycle."""
+    """Tear down the runs whose runner is gone (alive(pid) is False); returns (instance, run) of
+    the instances they had borrowed, still lent: the caller gives them back through the
+    lifecycle (restarted clean, then free)."""
     _rc, out, _err = host.run(["find", f"{layout.RUN_DIR}/runs", "-maxdepth", "1", "-name", "*.json"])
     lent = []
     for path in sorted(p for p in out.splitlines() if p.strip()):
@@ -643,8 +644,7 @@ def sweep(host, docker, alive) -> list:
         }
         teardown(host, run, created, docker, keep_directory=True)
         if owner.get("instance") is not None:
-            release(host, owner["instance"])
-            lent.append(owner["instance"])
+            lent.append((owner["instance"], run))
         if owner.get("slot") is not None:
             release_slot(host, owner["slot"])
         host.remove(path)
@@ -679,27 +679,10 @@ def summary_lines(result: dict) -> list:
     return lines
 
 
-def lent_marker(instance: int) -> str:
-    """A directory: mkdir is atomic, so two runners cannot both lend one instance."""
-    return f"{layout.RUN_DIR}/instance-{instance}.lent"
-
-
-def claim(host, instance: int, run: str) -> str | None:
-    """Lend an instance to a run; the run that has it when it cannot be lent."""
-    rc, _out, _err = host.run(["mkdir", lent_marker(instance)])
-    if rc != 0:
-        return (host.read(f"{lent_marker(instance)}/run") or "another run").strip()
-    host.write(f"{lent_marker(instance)}/run", run + "\n", 0o644)
-    return None
-
-
-def release(host, instance: int) -> None:
-    host.remove(lent_marker(instance))
-
-
-def lend(host, service: str, instance: int, marker_exists) -> tuple:
+def borrowed(host, service: str, instance: int, marker_exists) -> tuple:
     """(simulator, error): what a run's services are given of a borrowed instance, or why it
-    cannot be lent. marker_exists(path) tells whether the instance is ready."""
+    cannot be lent. marker_exists(path) tells whether the instance is ready. Lending itself
+    (lifecycle.lend, lifecycle.give_back) is the lifecycle's."""
     env = layout.parse(host.read(layout.env_file(instance)) or "")
     if not env:
         return None, f"instance: {instance} is not configured on this host. Fix: pick one of its instances."
@@ -870,9 +853,7 @@ def own_simulator(host, run: str, experience: dict, settings: dict, data_root: s
 
 
 def give_back(host, simulator) -> None:
-    """Release what a run held for its simulator: the lent instance's marker, or the slot."""
-    if simulator and simulator.get("instance") is not None:
-        release(host, simulator["instance"])
+    """Release a dedicated simulator's slot (a borrowed instance goes back through the lifecycle)."""
     if simulator and simulator.get("slot") is not None:
         release_slot(host, simulator["slot"])
 
@@ -907,18 +888,17 @@ def cache_argv(cache: str, release: str) -> list:
     ]
 
 
-def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_instance, threading) -> list:
+def run_queue(runs: list, parallel: int, instances, gpus, execute_one, threading) -> list:
     """Run a host's share of a suite, at most `parallel` at once, and return one result per run
     (in the order given).
 
     A run that borrows the simulator waits for a free instance of `instances`; one that reserves
-    GPUs waits for that many free ids of `gpus`. execute_one(run, instance, gpu_ids) -> result;
-    restart_instance(i) -> error or None restarts a returned instance clean, one at a time (a
-    borrowed instance serves no one, and two restarting at once would take two down). An
-    instance whose restart failed is not lent again. `threading` is the threading module.
+    GPUs waits for that many free ids of `gpus`. execute_one(run, instance, gpu_ids) -> result
+    borrows the instance and gives it back through the lifecycle itself (lend, run, restart,
+    free); a result with `restart_error` means the instance did not come back, and it is not
+    lent again. `threading` is the threading module.
     """
     lock = threading.Condition()
-    restart_lock = threading.Lock()
     results = [None] * len(runs)
     pending = []
     for index, run in enumerate(runs):
@@ -956,16 +936,7 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, restart_i
             results[index] = execute_one(run, instance, ids)
         except BaseException as exc:  # noqa: BLE001 - one run's failure never stops the others
             results[index] = dict(run, error=f"{type(exc).__name__}: {exc}")
-        if instance is None:
-            return True
-        try:
-            with restart_lock:
-                error = restart_instance(instance)
-        except BaseException as exc:  # noqa: BLE001 - nor does an instance that cannot be restarted
-            error = f"{type(exc).__name__}: {exc}"
-        if error:
-            results[index]["restart_error"] = f"isaac-sim@{instance} did not come back: {error}"
-        return not error
+        return instance is None or not results[index].get("restart_error")
 
     def worker():
         while True:

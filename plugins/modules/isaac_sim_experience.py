@@ -20,8 +20,10 @@ description:
     or times out; then every container is stopped and the units, network and volumes are removed.
   - The run's directory on the host keeps each service's log, the compose file as run, metrics over time
     (C(metrics.csv)), C(result.json) and C(junit.xml). A failed verdict is a result, not a module failure.
-  - Never restarts an Isaac Sim instance; a borrowed instance (O(instance)) is returned in RV(restart_instance)
-    for M(isaacsim.fleet.isaac_sim_lifecycle) to restart clean.
+  - A borrowed instance (O(instance)) is lent through the collection's one lifecycle - the run waits, up to
+    O(timeout), for another run that holds it - and given back by it when the run ends, here on the host (a
+    controller that went away changes nothing) - restarted clean, ready, then free, so no run ever gets an instance
+    that another run used, and nothing else restarts it while it is lent.
   - Run it with C(async) so a long run survives the controller's connection.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
@@ -166,10 +168,14 @@ ignored:
   returned: always
   type: list
   elements: str
-restart_instance:
-  description: The borrowed instance, to be restarted clean through the lifecycle; null when none was borrowed.
+borrowed_instance:
+  description: The instance the run borrowed (given back, restarted clean, when the module returns); null when none.
   returned: always
   type: int
+restart_error:
+  description: Why the borrowed instance did not come back after the run (it is not ready, so it is not lent again).
+  returned: when its restart failed
+  type: str
 simulator_slot:
   description: The slot of a dedicated simulator (its caches are in C(DATA_ROOT/simulators/SLOT)).
   returned: when O(simulator=dedicated) and the run started
@@ -192,8 +198,9 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import (
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
 
-def _simulator(module, host, exp, instance):
-    """What the services are given of the borrowed instance; fails the module when it cannot be lent."""
+def _simulator(module, host, exp, instance, lent_to=None):
+    """What the services are given of the borrowed instance; fails the module when it cannot be
+    lent (and ends the loan `lent_to` holds: nothing ran on it)."""
     if exp["simulator"] is None or module.params["simulator"] == "dedicated":
         return None
     if instance is None:
@@ -201,8 +208,10 @@ def _simulator(module, host, exp, instance):
             msg=f"{exp['name']}: service {exp['simulator']} is the simulator (image: isaac-sim), and no instance was "
             "given to borrow. Fix: set instance (experience_instance) to a ready instance of the host."
         )
-    simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
+    simulator, error = testrun.borrowed(host, exp["simulator"], instance, os.path.exists)
     if error:
+        if lent_to:
+            lifecycle.unlend(host, instance, lent_to)
         module.fail_json(msg=error)
     return simulator
 
@@ -266,7 +275,7 @@ def main():
         "run": run,
         "directory": layout.run_dir(run, p["data_root"]),
         "ignored": warnings,
-        "restart_instance": None,
+        "borrowed_instance": None,
     }
     if errors:
         module.fail_json(msg=" ".join(errors), errors=errors, **base)
@@ -293,18 +302,23 @@ def main():
     simulator = _simulator(module, host, exp, p["instance"])
     if module.check_mode:
         module.exit_json(changed=True, order=exp["order"], **base)
-    swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
-    if swept:
-        # runs whose runner was killed had these instances: back clean, through the lifecycle
-        lifecycle.restart_each(host, swept, 0, companions=hostprobe.existing_companions(layout.CONFIG_DIR))
-    if simulator and simulator["instance"] is not None:
-        holder = testrun.claim(host, simulator["instance"], run)
+    companions = hostprobe.existing_companions(layout.CONFIG_DIR)
+    # runs whose runner was killed had these instances: back clean, then free, through the lifecycle
+    for i, gone in testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}")):
+        lifecycle.give_back(host, i, gone, companions=companions)
+    lent = simulator and simulator["instance"] is not None
+    if lent:
+        # another run's loan is waited out, up to this run's timeout
+        holder = lifecycle.lend(host, simulator["instance"], run, wait_s=p["timeout"])
         if holder:
             module.fail_json(
-                msg=f"instance: isaac-sim@{simulator['instance']} is lent to run {holder}. Fix: pick a free one.",
+                msg=f"instance: isaac-sim@{simulator['instance']} stayed lent to run {holder} for this run's whole "
+                f"timeout ({p['timeout']:g} s). Fix: pick a free one, or a longer timeout.",
                 **base,
             )
-        base["restart_instance"] = simulator["instance"]
+        # lent only once ready: a run waited for may have found it restarting
+        simulator = _simulator(module, host, exp, p["instance"], lent_to=run)
+        base["borrowed_instance"] = simulator["instance"]
     if dedicated:
         exp, simulator, error = testrun.own_simulator(host, run, read, dedicated, p["data_root"], p["timeout"])
         if error:
@@ -330,6 +344,12 @@ def main():
         module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)
     finally:
         testrun.give_back(host, simulator)
+        # restarted clean and ready, then free: here, on the host, so a controller that is gone
+        # (or an Ansible task that never comes) cannot leave the next run a used instance
+        if lent:
+            error = lifecycle.give_back(host, simulator["instance"], run, companions=companions)
+            if error:
+                base["restart_error"] = f"isaac-sim@{simulator['instance']} did not come back: {error}"
     result.pop("orchestrator_output", None)
     base.update(result)
     module.exit_json(changed=True, **base)

@@ -13,9 +13,10 @@ description:
   - Runs the given runs (experiences as M(isaacsim.fleet.isaac_sim_experience) runs them) with at most O(parallel)
     at once. A run whose file has the simulator (C(image=isaac-sim)) waits for a free instance of O(instances) and
     borrows it; a run that reserves GPUs waits for that many free ids of O(gpus).
-  - A borrowed instance is restarted clean after its run through the collection's one lifecycle
-    (C(module_utils/lifecycle.py), as M(isaacsim.fleet.isaac_sim_lifecycle) restarts it), one at a time; one that
-    does not come back is not lent again.
+  - Lending is the collection's one lifecycle's (C(module_utils/lifecycle.py)) - a run borrows an instance, and
+    after it the instance is restarted clean and ready before it is free again, one at a time; one that does not come
+    back is not lent again. An instance that another suite or run holds is waited for, up to the run's timeout;
+    no restart ever touches an instance lent to another run.
   - One run failing, hanging (it ends at its own timeout) or not starting never stops the others.
   - Use C(async) - a suite takes as long as its runs.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
@@ -147,9 +148,11 @@ def main():
         own, own_errors = testrun.dedicated_settings(
             None, None, testrun.deployed_simulator(host.read), None, p["gpus"], host_gpus
         )
-    swept = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
-    if swept:
-        lifecycle.restart_each(host, swept, 0, companions=companions)
+    # runs whose runner was killed: torn down, their instances back clean, then free
+    for i, gone in testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}")):
+        lifecycle.give_back(host, i, gone, companions=companions)
+    # one give-back at a time: each restart ends ready before the next begins
+    restart_lock = threading.Lock()
 
     def execute_one(run, instance, gpu_ids):
         exp = read[run["_index"]]
@@ -165,12 +168,19 @@ def main():
             if error:
                 return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
         elif exp["simulator"]:
-            simulator, error = testrun.lend(host, exp["simulator"], instance, os.path.exists)
-            holder = None if error else testrun.claim(host, instance, run_id)
-            if error or holder:
+            # another suite's or run's loan is waited out, up to the run's own timeout
+            holder = lifecycle.lend(host, instance, run_id, wait_s=float(run["timeout"]))
+            if holder:
                 return dict(
-                    {k: run[k] for k in KEEP}, host=hostname, error=error or f"isaac-sim@{instance} is lent to {holder}"
+                    {k: run[k] for k in KEEP},
+                    host=hostname,
+                    error=f"isaac-sim@{instance} stayed lent to {holder} for the run's whole timeout",
                 )
+            simulator, error = testrun.borrowed(host, exp["simulator"], instance, os.path.exists)
+            if error:
+                lifecycle.unlend(host, instance, run_id)
+                return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
+        restart_error = None
         try:
             result = testrun.execute(
                 host,
@@ -186,15 +196,16 @@ def main():
             )
         finally:
             testrun.give_back(host, simulator)
+            if simulator and simulator.get("instance") is not None:
+                with restart_lock:
+                    restart_error = lifecycle.give_back(host, instance, run_id, companions=companions)
         result.pop("orchestrator_output", None)
         result.update({k: run[k] for k in KEEP})
         if instance is not None:
             result["instance"] = instance
+        if restart_error:
+            result["restart_error"] = f"isaac-sim@{instance} did not come back: {restart_error}"
         return result
-
-    def restart_instance(i):
-        outcome = lifecycle.restart_each(host, [i], 0, companions=companions)
-        return outcome["failed"]["reason"] if outcome["failed"] else None
 
     def gpus_of(n, run):
         """GPUs a run reserves: its services', and its own simulator's."""
@@ -206,9 +217,7 @@ def main():
         dict(run, _index=n, gpus=gpus_of(n, run), simulator=bool(read[n]["simulator"]) and not run.get("dedicated"))
         for n, run in enumerate(p["runs"])
     ]
-    results = testrun.run_queue(
-        runs, p["parallel"], p["instances"], p["gpus"], execute_one, restart_instance, threading
-    )
+    results = testrun.run_queue(runs, p["parallel"], p["instances"], p["gpus"], execute_one, threading)
     for n, result in enumerate(results):
         if "error" in result and "run" not in result:
             results[n] = dict({k: runs[n][k] for k in KEEP}, host=hostname, error=result["error"])

@@ -7,6 +7,7 @@ runs them all in one playbook."""
 
 import json
 import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
 
 from testbed import ROOT, RUN_LEFTOVERS, all_ready, container_id, registry_image, run_playbook, sh
 
@@ -60,17 +61,25 @@ def test_a_passing_run_stops_the_companion_still_running_and_brings_everything_b
     assert sh(host, f"test -e /var/lib/isaac-sim/runs/{run_id}", check=False).rc != 0
 
 
-def test_the_simulator_is_a_borrowed_instance_restarted_clean_after_the_run(host, tmp_path):
+def test_two_runs_on_one_borrowed_instance_each_get_it_clean_one_after_the_other(host, tmp_path):
+    # started together: one borrows instance 0, the other waits until it is back, restarted
     before = container_id(host, "isaac-sim-0")
-    result, outcome, directory = run(host, tmp_path, "sim", experience_instance=0)
-    assert result.returncode == 0, result.stdout[-3000:]
-    assert outcome["verdict"]["result"] == "passed", outcome
-    # the orchestrator reached instance 0 by the simulator's service name
-    log = (directory / f"{outcome['run']}-check.log").read_text()
-    assert "simulator says: isaac-sim-standin signal" in log
-    assert (directory / "outputs" / "banner.txt").read_text().startswith("isaac-sim-standin signal")
+    with ThreadPoolExecutor(2) as pool:
+        done = list(pool.map(lambda d: run(host, tmp_path / d, "sim", experience_instance=0), ("a", "b")))
+    seen = []
+    for result, outcome, directory in done:
+        assert result.returncode == 0, result.stdout[-3000:]
+        assert outcome["verdict"]["result"] == "passed", outcome
+        # the orchestrator reached instance 0 by the simulator's service name
+        log = (directory / f"{outcome['run']}-check.log").read_text()
+        assert "simulator says: isaac-sim-standin signal" in log
+        banner = (directory / "outputs" / "banner.txt").read_text()
+        assert banner.startswith("isaac-sim-standin signal")
+        seen.append(banner.split()[-1])  # the container's host name: its short id
     all_ready(host, ids=[0])
-    assert container_id(host, "isaac-sim-0") != before
+    after = container_id(host, "isaac-sim-0")
+    # three containers: the one before, the one the second run got, the one after it
+    assert len({before[:12], *seen, after[:12]}) == 3, (before, seen, after)
     assert sh(host, "ls /run/isaac-sim").stdout.count(".lent") == 0
     assert left_behind(host) == ""
 

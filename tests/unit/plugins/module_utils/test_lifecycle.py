@@ -51,6 +51,7 @@ class ScriptedHost:
         self.clock = 1000.0
         self.log = []
         self.journal = {}
+        self.dirs = set()  # made with mkdir (a lent instance's marker)
         self.host = lifecycle.Host(
             self.run,
             lambda p: self.files.get(p, (None, None))[0],
@@ -59,7 +60,8 @@ class ScriptedHost:
             lambda p: self.files.get(p, (None, None))[1],
             lambda p: any(p == layout.marker(i) for i in self.markers)
             or any(p == layout.companion_marker(i, n) for i, n in self.comp_markers)
-            or (p == layout.TARGET_DOCKER_WANT and self.docker_want),
+            or (p == layout.TARGET_DOCKER_WANT and self.docker_want)
+            or p in self.dirs,
             self.sleep,
             lambda: self.clock,
             lambda: 1795000000 + self.clock,
@@ -70,6 +72,7 @@ class ScriptedHost:
 
     def remove(self, path):
         self.log.append(f"rm {path}")
+        self.dirs.discard(path)
         for p in [p for p in self.files if p == path or p.startswith(path + "/")]:
             del self.files[p]
 
@@ -129,6 +132,11 @@ class ScriptedHost:
 
     def run(self, argv):
         self.log.append(" ".join(argv))
+        if argv[0] == "mkdir":
+            if argv[1] in self.dirs:
+                return 1, "", f"mkdir: cannot create directory '{argv[1]}': File exists"
+            self.dirs.add(argv[1])
+            return 0, "", ""
         ids = [layout.instance_id(layout.UNIT_RE, a) for a in argv if layout.instance_id(layout.UNIT_RE, a) is not None]
         comps = [
             (int(m.group(2)), m.group(1)) for m in (layout.COMPANION_UNIT_RE.match(a) for a in argv) if m is not None
@@ -732,3 +740,62 @@ def test_a_read_only_kernel_setting_is_an_error_that_says_the_fix():
         assert "docker run --sysctl net.ipv4.ip_local_reserved_ports" in str(exc)
     else:
         raise AssertionError("no error")
+
+
+def test_a_loan_ends_restarted_and_ready_before_the_instance_is_free():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 1, "run-a") is None and lifecycle.lent_to(h.host, 1) == "run-a"
+    order = []
+    start = h._start
+
+    def spy(i):
+        order.append(("start", i, lifecycle.lent_to(h.host, i)))
+        return start(i)
+
+    h._start = spy
+    assert lifecycle.give_back(h.host, 1, "run-a") is None
+    # restarted while still lent: no one could borrow it half-way
+    assert order == [("start", 1, "run-a")] and lifecycle.lent_to(h.host, 1) is None
+    assert h.log.index(f"systemctl restart {layout.unit(1)}") < h.log.index(f"rm {layout.lent_marker(1)}")
+
+
+def test_a_claim_that_fails_restarts_nothing_and_a_waiting_run_gets_the_instance_once_it_is_back():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 0, "run-a") is None
+    # run-b waits 30 s; run-a ends 10 s into the wait
+    slept = []
+
+    def sleep(s):
+        slept.append(s)
+        h.clock += s
+        if len(slept) == 10:
+            assert lifecycle.give_back(h.host, 0, "run-a") is None
+
+    h.host.sleep = sleep
+    assert lifecycle.lend(h.host, 0, "run-b", wait_s=30) is None and lifecycle.lent_to(h.host, 0) == "run-b"
+    # a third run gives up at its bound, and restarts nothing
+    restarts = len(h.commands("restart"))
+    assert lifecycle.lend(h.host, 0, "run-c", wait_s=5) == "run-b"
+    assert len(h.commands("restart")) == restarts and lifecycle.lent_to(h.host, 0) == "run-b"
+    # a give-back by a run that does not hold it touches nothing
+    assert "lent to run-b, not to run-c" in lifecycle.give_back(h.host, 0, "run-c")
+    assert len(h.commands("restart")) == restarts
+
+
+def test_no_restart_touches_an_instance_lent_to_a_run():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 1, "run-a")
+    result = lifecycle.restart_each(h.host, [0, 1, 2], 0)
+    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
+    assert "lent to test run run-a" in result["failed"]["reason"]
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+
+
+def test_a_deploy_stops_before_an_instance_lent_to_a_run_and_leaves_it_as_it_was():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 1, "run-a")
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}))
+    assert result["failed"]["id"] == 1 and "lent to test run run-a" in result["failed"]["reason"]
+    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
+    assert h.files[layout.env_file(1)][0] == OLD and h.units[1]["ActiveState"] == "active"
+    assert f"systemctl restart {layout.unit(1)}" not in h.log
