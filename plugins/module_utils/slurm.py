@@ -119,6 +119,25 @@ def parse_sinfo(text: str) -> dict:
     return out
 
 
+# (job key, lowest, default when not given, what it counts): checked before anything is
+# copied or submitted (sbatch would take --nodes=-1 for one node, or refuse in its own words)
+_COUNTS = (
+    ("nodes", 1, 1, "nodes"),
+    ("gpus_per_node", 0, 0, "GPUs per node"),
+    ("cpus_per_node", 1, 1, "CPUs per node"),
+)
+
+
+def _integer(value):
+    """A whole number, from an int or its decimal text (a bool is no count), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    text = str(value).strip()
+    return int(text) if text.lstrip("-").isdigit() else None
+
+
 def check_request(job: dict, partitions: dict) -> list:
     """Errors in a job's request against what the cluster's partitions have (parse_sinfo), each
     naming the variable and the fix, before anything is submitted."""
@@ -144,7 +163,14 @@ def check_request(job: dict, partitions: dict) -> list:
             f"train_time: {job.get('time')} is longer than partition {name} allows "
             f"({_clock(part['max_time'])}). Fix: ask for less time."
         )
-    gpus, nodes = int(job.get("gpus_per_node") or 0), int(job.get("nodes") or 1)
+    counts = {}
+    for key, lowest, default, what in _COUNTS:
+        value = job.get(key)
+        number = default if value is None or value == "" else _integer(value)
+        if number is None or number < lowest:
+            errors.append(f"train_{key}: {value!r} is not a count of {what}. Fix: a whole number, {lowest} or more.")
+        counts[key] = number if isinstance(number, int) and number >= lowest else default
+    gpus, nodes = counts["gpus_per_node"], counts["nodes"]
     if gpus > part["gpus"]:
         errors.append(
             f"train_gpus_per_node: {gpus}, and no node of partition {name} has more than {part['gpus']}. "
@@ -152,7 +178,7 @@ def check_request(job: dict, partitions: dict) -> list:
         )
     if nodes > part["nodes"]:
         errors.append(f"train_nodes: {nodes}, and partition {name} has {part['nodes']}. Fix: ask for fewer nodes.")
-    cpus = int(job.get("cpus_per_node") or 1)
+    cpus = counts["cpus_per_node"]
     if part["cpus"] and cpus > part["cpus"]:
         errors.append(
             f"train_cpus_per_node: {cpus}, and no node of partition {name} has more than {part['cpus']}. "
@@ -161,7 +187,7 @@ def check_request(job: dict, partitions: dict) -> list:
     memory = job.get("memory")
     if memory:
         mib = memory_mib(memory)
-        if mib is None:
+        if mib is None or mib < 1:
             errors.append(f"train_memory: {memory!r} is not a size. Fix: e.g. 64G or 32000 (MiB).")
         elif part["memory_mib"] and mib > part["memory_mib"]:
             errors.append(

@@ -91,6 +91,27 @@ def test_a_request_the_cluster_cannot_run_is_refused_naming_the_variable():
     ]
 
 
+def test_counts_out_of_range_are_refused_before_anything_is_copied():
+    parts = slurm.parse_sinfo(SINFO)
+
+    def errors(**over):
+        return " ".join(slurm.check_request(dict(JOB, **over), parts))
+
+    # -1 and 0 nodes once ran a one-node job without a word
+    assert "train_nodes: -1 is not a count of nodes. Fix: a whole number, 1 or more." in errors(nodes=-1)
+    assert "train_nodes: 0 is not a count of nodes" in errors(nodes=0)
+    assert "train_gpus_per_node: -2 is not a count of GPUs per node" in errors(gpus_per_node=-2)
+    assert "train_cpus_per_node: -4 is not a count of CPUs per node" in errors(cpus_per_node=-4)
+    assert "train_cpus_per_node: 0 is not a count" in errors(cpus_per_node=0)
+    assert "train_nodes: 'two' is not a count" in errors(nodes="two")
+    assert "train_nodes: 1.5 is not a count" in errors(nodes=1.5)
+    assert "train_memory: '0' is not a size" in errors(memory="0")
+    assert "train_memory: '-5G' is not a size" in errors(memory="-5G")
+    # given as text (-e train_nodes=2) they are numbers all the same; none given is the default
+    assert errors(nodes="2", gpus_per_node="0", cpus_per_node="1") == ""
+    assert errors(nodes=None, gpus_per_node=None) == ""
+
+
 # `scontrol show job -o 17` (Slurm 22.05), shortened to the words read and a few around them
 SCONTROL_RUNNING = (
     "JobId=17 JobName=train-ant UserId=root(0) GroupId=root(0) MCS_label=N/A Priority=1 Nice=0 "
