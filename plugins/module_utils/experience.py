@@ -50,7 +50,8 @@ REFUSED = {
     "network_mode": "every run has one network of its own; remove it",
     "pid": "a run does not share the host's processes; remove it",
     "ipc": "a run does not share the host's IPC; remove it",
-    "privileged": "test runs never run privileged; give the capabilities it needs with cap_add",
+    "privileged": "test runs never run privileged, and keep Docker's default capabilities (cap_add is ignored); "
+    "remove it",
     "devices": "host devices are not given to test runs; GPUs go under deploy.resources.reservations.devices",
     "volumes_from": "share a named volume instead",
     "secrets": "give secrets at the experience level (environment), from a vault",
@@ -102,13 +103,27 @@ def duration(value, where, errors, default=None):
     return sum(float(n) * _UNITS[u] for n, u in parts)
 
 
-def interpolate(value, env: dict, where: str, errors: list, warnings: list):
+def _one_line(where: str, key: str, value: str) -> list:
+    """Docker's env file ends a value at a newline and drops a trailing carriage return: refused."""
+    bad = next((c for c in ("\n", "\r") if c in value), None)
+    if not bad:
+        return []
+    what = "a newline" if bad == "\n" else "a carriage return"
+    return [
+        f"{where}: {key} holds {what}, which a run cannot pass to the container. Fix: give the value on one "
+        "line without control characters (or put the text in the image or a volume)."
+    ]
+
+
+def interpolate(value, env: dict, where: str, errors: list, warnings: list, used=None):
     """Compose's ${VAR}, ${VAR:-default}, ${VAR-default}, ${VAR:?message}, $VAR and $$, from the
-    experience's environment (what the team's shell gives `docker compose` locally)."""
+    experience's environment (what the team's shell gives `docker compose` locally). used: a
+    set that gets (where, VAR) for every variable whose value went in."""
+    used = set() if used is None else used
     if isinstance(value, dict):
-        return {k: interpolate(v, env, f"{where}.{k}", errors, warnings) for k, v in value.items()}
+        return {k: interpolate(v, env, f"{where}.{k}", errors, warnings, used) for k, v in value.items()}
     if isinstance(value, list):
-        return [interpolate(v, env, where, errors, warnings) for v in value]
+        return [interpolate(v, env, where, errors, warnings, used) for v in value]
     if not isinstance(value, str):
         return value
 
@@ -121,6 +136,8 @@ def interpolate(value, env: dict, where: str, errors: list, warnings: list):
         empty = not str(env.get(name, ""))
         if op in (":-", "-"):
             use_default = not present or (op == ":-" and empty)
+            if not use_default:
+                used.add((where, name))
             return arg if use_default else str(env[name])
         if op in (":?", "?"):
             if not present or (op == ":?" and empty):
@@ -129,13 +146,37 @@ def interpolate(value, env: dict, where: str, errors: list, warnings: list):
                     f"Fix: set {name} in the experience's environment."
                 )
                 return ""
+            used.add((where, name))
             return str(env[name])
         if not present:
             warnings.append(f"{where}: ${{{name}}} is not set; it becomes an empty string, as with docker compose.")
             return ""
+        used.add((where, name))
         return str(env[name])
 
     return _VAR.sub(one, value)
+
+
+def _secret_fields(used, secret, where: str, environment: dict, errors: list) -> set:
+    """The environment keys of a service that carry a secret's value (masked wherever the run is
+    written down); a secret substituted anywhere else would reach a unit file or a command line,
+    and is refused."""
+    keys = set()
+    prefix = f"{where}.environment"
+    for path, var in sorted(used):
+        if var not in secret:
+            continue
+        if path.startswith(prefix + "."):
+            keys.add(path[len(prefix) + 1 :])
+        elif path == prefix:  # the list form: the entries that hold it
+            keys.update(k for k, v in environment.items() if str(secret[var]) and str(secret[var]) in str(v))
+        else:
+            errors.append(
+                f"{path}: ${{{var}}} is a secret (experience_secret_environment), and this would put its value on a "
+                "command line and in a unit file. Fix: pass it in the service's environment and read it there "
+                f"(in a shell entrypoint, $${var})."
+            )
+    return keys
 
 
 def _words(value, where, errors):
@@ -324,14 +365,18 @@ def _cycle(graph: dict):
     return None
 
 
-def read(compose, env=None, profiles=(), name="experience") -> tuple:
+def read(compose, env=None, profiles=(), name="experience", secret=None) -> tuple:
     """(experience, errors, warnings) for one compose file (a parsed mapping).
 
     env: the experience's environment, which overrides every service's and is given to each;
-    profiles: the compose profiles the experience runs.
+    profiles: the compose profiles the experience runs; secret: {name: value} of the
+    environment's secret part (also in env). The experience's `secret_keys` are the environment
+    keys that carry a secret's value.
     """
     errors, warnings = [], []
     env = {str(k): str(v) for k, v in (env or {}).items()}
+    secret = {str(k): str(v) for k, v in (secret or {}).items()}
+    secret_keys = set(secret)
     if not isinstance(compose, dict) or not isinstance(compose.get("services"), dict) or not compose["services"]:
         return (
             None,
@@ -346,12 +391,19 @@ def read(compose, env=None, profiles=(), name="experience") -> tuple:
                 warnings.append(f"{name}: top-level {key} is ignored.")
     if compose.get("networks"):
         warnings.append(f"{name}: networks are ignored; {IGNORED['networks']}.")
+    for key, value in (env or {}).items():
+        errors += _one_line("experience_environment", key, str(value))
     declared = {}
     for vol, spec in (compose.get("volumes") or {}).items():
         if isinstance(spec, dict) and spec.get("external"):
             errors.append(
                 f"{name}: volume {vol} is external; a run's volumes are created for it and removed after. "
                 "Fix: drop external."
+            )
+        if isinstance(spec, dict) and (spec.get("driver") or spec.get("driver_opts")):
+            warnings.append(
+                f"{name}: volume {vol}: driver and driver_opts are ignored; a run's volumes are the host's local "
+                "Docker volumes, made for the run and removed after it."
             )
         declared[str(vol)] = spec
     chosen = {str(p) for p in profiles or ()}
@@ -365,7 +417,8 @@ def read(compose, env=None, profiles=(), name="experience") -> tuple:
         if not isinstance(spec, dict):
             errors.append(f"{where}: must be a mapping with at least image.")
             continue
-        spec = interpolate(spec, env, where, errors, warnings)
+        used = set()
+        spec = interpolate(spec, env, where, errors, warnings, used)
         active = not spec.get("profiles") or bool(chosen & {str(p) for p in spec["profiles"]})
         for key in spec:
             if key in REFUSED:
@@ -390,12 +443,10 @@ def read(compose, env=None, profiles=(), name="experience") -> tuple:
                     )
                     environment.pop(key)
         environment.update(env)
+        secret_keys |= _secret_fields(used, secret, where, environment, errors)
         for key, value in environment.items():
-            if "\n" in value:
-                errors.append(
-                    f"{where}.environment: {key} holds a newline, which a run cannot pass to the container. "
-                    "Fix: give the value on one line (or put the text in the image or a volume)."
-                )
+            if key not in env:  # the experience's own are checked once, above
+                errors += _one_line(f"{where}.environment", key, value)
         restart, retries = _restart(spec.get("restart"), f"{where}.restart", errors, warnings)
         orchestrator = _is_orchestrator(labels)
         if orchestrator and restart != "no":
@@ -501,6 +552,8 @@ def read(compose, env=None, profiles=(), name="experience") -> tuple:
         "gpus": sum(s["gpus"] for s in active.values() if not s["simulator"]),
         "order": _order(active) if not cycle else [],
         "images": sorted({s["image"] for s in active.values() if s["image"] and not s["simulator"]}),
+        # masked wherever the run is written down (its compose.yml, results); given by a 0600 file
+        "secret_keys": sorted(secret_keys),
     }
     return experience, errors, warnings
 

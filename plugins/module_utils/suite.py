@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import os
 import re
-from xml.sax.saxutils import escape, quoteattr
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, judge
+from ansible_collections.isaacsim.fleet.plugins.module_utils import experience, judge, xml_safe
 
 KEYS = {"file", "name", "repeat", "environment", "parameters", "profiles", "timeout", "simulator"}
 SIMULATOR_MODES = ("borrow", "dedicated")
@@ -179,19 +178,19 @@ def junit(results: list) -> str:
         v = r.get("verdict") or {"result": judge.ERROR, "reason": r.get("error", "no verdict"), "seconds": 0}
         total += v["seconds"]
         case = (
-            f"  <testcase classname={quoteattr('isaacsim.fleet.' + str(r.get('host')))} "
-            f'name={quoteattr(r["title"])} time="{v["seconds"]:.3f}">\n'
+            f"  <testcase classname={xml_safe.attr('isaacsim.fleet.' + str(r.get('host')))} "
+            f'name={xml_safe.attr(r["title"])} time="{v["seconds"]:.3f}">\n'
         )
         if v["result"] in (judge.FAILED, judge.TIMEOUT):
             failures += 1
-            case += f"    <failure message={quoteattr(v['reason'])} type={quoteattr(v['result'])}/>\n"
+            case += f"    <failure message={xml_safe.attr(v['reason'])} type={xml_safe.attr(v['result'])}/>\n"
         elif v["result"] != judge.PASSED:
             errors += 1
-            case += f'    <error message={quoteattr(v["reason"])} type="error"/>\n'
+            case += f'    <error message={xml_safe.attr(v["reason"])} type="error"/>\n'
         if r.get("run"):
-            case += f"    <system-out>{escape('run ' + r['run'] + ' on ' + str(r.get('host')))}</system-out>\n"
+            case += f"    <system-out>{xml_safe.text('run ' + r['run'] + ' on ' + str(r.get('host')))}</system-out>\n"
         elif r.get("error"):
-            case += f"    <system-out>{escape(str(r['error']))}</system-out>\n"
+            case += f"    <system-out>{xml_safe.text(str(r['error']))}</system-out>\n"
         cases.append(case + "  </testcase>\n")
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'

@@ -21,7 +21,6 @@ import json
 import math
 import re
 import signal
-from xml.sax.saxutils import escape, quoteattr
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils import (
     fleet_status,
@@ -31,12 +30,12 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import (
     lifecycle,
     plan,
     releases,
+    xml_safe,
 )
 
 DOCKER = "/usr/bin/docker"
 PROPS = "Id,LoadState,ActiveState,SubState,NRestarts,Result,ExecMainCode,ExecMainStatus"
 CLD_EXITED = "1"  # ExecMainCode: the main process exited (else it was killed: status is the signal)
-_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff]")
 _SLUG = re.compile(r"[^a-z0-9]+")
 
 
@@ -200,11 +199,12 @@ def parse_exit(text):
     return 128 + int(signum) if signum is not None else None
 
 
-def observe(shown: dict, containers: list, run: str, services, started, ran, exits=None) -> dict:
+def observe(shown: dict, containers: list, run: str, services, started, ran, exits=None, retries=None) -> dict:
     """{service: judge.observation} from `systemctl show` of the run's units, Docker's list of
     the run's containers and the units' exit files ({service: text}). started: services the
-    runner started; ran: those seen running."""
+    runner started; ran: those seen running; retries: {service: compose's on-failure:N}."""
     exits = exits or {}
+    retries = retries or {}
     by_service = {}
     for c in containers:
         svc = (c.get("Labels") or {}).get(layout.LABEL_RUN_SERVICE)
@@ -214,6 +214,9 @@ def observe(shown: dict, containers: list, run: str, services, started, ran, exi
     for name in services:
         props = shown.get(layout.run_unit(run, name)) or {}
         restarts = int(props.get("NRestarts") or 0)
+        if retries.get(name):
+            # systemd counts the restart its start limit refused too: on-failure:2 is 3 starts, 2 restarts
+            restarts = min(restarts, retries[name])
         if name not in started:
             out[name] = judge.observation()
             continue
@@ -283,11 +286,6 @@ class Metrics:
         return "\n".join(lines) + "\n"
 
 
-def xml_text(text: str) -> str:
-    """Text for an XML file: escaped, without the control characters XML 1.0 forbids (a log's colours)."""
-    return escape(_NOT_XML.sub("", text or ""))
-
-
 def junit(result: dict) -> str:
     """A JUnit XML file of one run: one test case, failed or errored with the verdict's reason,
     the orchestrators' log tails as its output."""
@@ -296,19 +294,19 @@ def junit(result: dict) -> str:
     failures = 1 if verdict["result"] in (judge.FAILED, judge.TIMEOUT) else 0
     errors = 1 if verdict["result"] == judge.ERROR else 0
     case = (
-        f"  <testcase classname={quoteattr('isaacsim.fleet.' + result['host'])} name={quoteattr(name)} "
+        f"  <testcase classname={xml_safe.attr('isaacsim.fleet.' + result['host'])} name={xml_safe.attr(name)} "
         f'time="{verdict["seconds"]:.3f}">\n'
     )
-    message = quoteattr(verdict["reason"])
+    message = xml_safe.attr(verdict["reason"])
     if failures:
-        case += f"    <failure message={message} type={quoteattr(verdict['result'])}/>\n"
+        case += f"    <failure message={message} type={xml_safe.attr(verdict['result'])}/>\n"
     if errors:
         case += f'    <error message={message} type="error"/>\n'
     props = "".join(
-        f"      <property name={quoteattr(k)} value={quoteattr(str(v))}/>\n"
+        f"      <property name={xml_safe.attr(k)} value={xml_safe.attr(str(v))}/>\n"
         for k, v in (("run", result["run"]), ("host", result["host"]), ("result", verdict["result"]))
     )
-    out = xml_text(result.get("orchestrator_output") or "")
+    out = xml_safe.text(result.get("orchestrator_output") or "")
     case += f"    <system-out>{out}</system-out>\n  </testcase>\n"
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
@@ -461,6 +459,7 @@ def execute(
     (logs, exit codes, metrics, the compose file as run, junit.xml, the services' outputs).
     Returns the run's result."""
     services = [s for s in experience["order"] if s != experience.get("simulator")]
+    retries = {s: experience["services"][s].get("restart_retries") or 0 for s in services}
     units = [layout.run_unit(run, s) for s in services]
     directory = layout.run_dir(run, data_root)
     outputs = f"{directory}/outputs"
@@ -523,7 +522,7 @@ def execute(
                 host.sleep(poll)
                 continue
             exits = {s: host.read(exit_file(run, s)) for s in started}
-            observations = observe(shown, found, run, services, started, ran, exits)
+            observations = observe(shown, found, run, services, started, ran, exits, retries)
             if experience.get("simulator"):
                 observations[experience["simulator"]] = simulator_state(host, simulator)
             to_start = judgement.step(now, observations)

@@ -263,7 +263,7 @@ def main():
     )
     p = module.params
     env = dict(p["environment"], **p["secret_environment"])
-    exp, errors, warnings = experience.read(p["compose"], env, p["profiles"], p["name"])
+    exp, errors, warnings = experience.read(p["compose"], env, p["profiles"], p["name"], p["secret_environment"])
     run = p["run"] or testrun.run_id(p["name"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
     if not layout.RUN_ID_RE.match(run):
         errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
@@ -338,7 +338,7 @@ def main():
             poll=p["poll"],
             metrics_every=p["metrics_interval"],
             pid=os.getpid(),
-            secret_keys=set(p["secret_environment"]),
+            secret_keys=set(exp["secret_keys"]),
         )
     except (RuntimeError, DockerError) as exc:
         module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)

@@ -84,6 +84,32 @@ def test_two_runs_on_one_borrowed_instance_each_get_it_clean_one_after_the_other
     assert left_behind(host) == ""
 
 
+def test_a_secret_substituted_into_a_variable_reaches_the_container_and_nothing_written_down(host, tmp_path):
+    token = "tok-9f1c2e7d5b"  # what no file, unit, process or journal line may hold
+    pattern = "[t]ok-9f1c2e7d5b"  # matches the token, not the command line that looks for it
+    with ThreadPoolExecutor(1) as pool:
+        running = pool.submit(run, host, tmp_path, "secret", experience_secret_environment={"TOKEN": token})
+        seen = []
+        while not running.done():
+            # while the run's units exist: their files and the host's command lines
+            seen.append(sh(host, f"ps -eo args | grep '{pattern}'", check=False).stdout.strip())
+            seen.append(sh(host, f"grep -rl '{pattern}' /run/systemd/system /etc/systemd", check=False).stdout.strip())
+        result, outcome, directory = running.result()
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert outcome["verdict"]["result"] == "passed", outcome
+    assert "secret arrived whole" in (directory / f"{outcome['run']}-check.log").read_text()
+    assert [s for s in seen if s] == []
+    # nothing on the controller: artefacts, the playbook's output
+    assert token not in result.stdout + result.stderr
+    for path in directory.rglob("*"):
+        assert not path.is_file() or token.encode() not in path.read_bytes(), path
+    # nothing on the host, and not in its journal
+    files = sh(host, f"grep -rl '{pattern}' /etc /run /var/lib/isaac-sim /usr/local /root", check=False).stdout
+    assert files.strip() == ""
+    assert sh(host, f"journalctl --no-pager | grep '{pattern}'", check=False).stdout.strip() == ""
+    assert left_behind(host) == ""
+
+
 def test_a_dedicated_simulator_is_a_headless_isaac_sim_of_the_run_that_keeps_its_caches(host, tmp_path):
     fleet = {i: container_id(host, f"isaac-sim-{i}") for i in range(4)}
     result, outcome, directory = run(host, tmp_path, "dedicated", experience_simulator="dedicated")

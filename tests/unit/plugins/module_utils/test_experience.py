@@ -177,8 +177,36 @@ def test_the_simulator_s_gpu_is_its_instance_s_and_newlines_cannot_reach_a_conta
     assert exp["gpus"] == 0
     assert errors == [
         "sim: services.check.environment: NOTE holds a newline, which a run cannot pass to the container. "
-        "Fix: give the value on one line (or put the text in the image or a volume)."
+        "Fix: give the value on one line without control characters (or put the text in the image or a volume)."
     ]
+    # from the experience's environment: that is what is named; a trailing carriage return too
+    compose["services"]["check"]["environment"] = {}
+    _exp, errors, _warnings = experience.read(compose, {"TOKEN": "abc\r", "NOTE": "a\nb"}, name="sim")
+    assert errors == [
+        "experience_environment: TOKEN holds a carriage return, which a run cannot pass to the container. "
+        "Fix: give the value on one line without control characters (or put the text in the image or a volume).",
+        "experience_environment: NOTE holds a newline, which a run cannot pass to the container. "
+        "Fix: give the value on one line without control characters (or put the text in the image or a volume).",
+    ]
+
+
+def test_a_volume_driver_is_said_to_be_ignored_and_privileged_names_no_ignored_key():
+    compose = {
+        "services": {
+            "check": {
+                "image": "reg/check:1",
+                "labels": {"isaacsim.fleet/test-orchestrator": "true"},
+                "volumes": ["maps:/maps"],
+            }
+        },
+        "volumes": {"maps": {"driver": "nfs", "driver_opts": {"o": "addr=10.0.0.1"}}},
+    }
+    _exp, errors, warnings = experience.read(compose, name="v")
+    assert errors == [] and any("volume maps: driver and driver_opts are ignored" in w for w in warnings)
+    compose["services"]["check"]["privileged"] = True
+    _exp, errors, _warnings = experience.read(compose, name="v")
+    assert len(errors) == 1 and "privileged" in errors[0] and "cap_add is ignored" in errors[0]
+    assert "with cap_add" not in errors[0]
 
 
 def test_a_size_docker_cannot_read_is_refused_before_the_run():
@@ -194,3 +222,31 @@ def test_a_size_docker_cannot_read_is_refused_before_the_run():
     }
     _exp, errors, _warnings = experience.read(compose, name="size")
     assert errors == ["size: services.check.shm_size: 'lots' is not a size. Fix: e.g. 2g or 512m."]
+
+
+def test_a_secret_substituted_into_another_variable_is_masked_and_never_reaches_a_command_line():
+    from ansible_collections.isaacsim.fleet.plugins.module_utils import testrun
+
+    compose = {
+        "services": {
+            "check": {
+                "image": "reg/check:1",
+                "labels": {"isaacsim.fleet/test-orchestrator": "true"},
+                "environment": {"URL": "https://bot:${TOKEN}@git.example", "PLAIN": "${REGION}"},
+            },
+            "robot": {"image": "reg/robot:1", "environment": ["AUTH=Bearer ${TOKEN}", "MODE=fast"]},
+        }
+    }
+    env = {"TOKEN": "s3cr3t-value", "REGION": "eu"}
+    exp, errors, _warnings = experience.read(compose, env, name="leak", secret={"TOKEN": "s3cr3t-value"})
+    assert errors == []
+    assert exp["secret_keys"] == ["AUTH", "TOKEN", "URL"]
+    written = testrun.as_compose(exp, exp["secret_keys"])
+    assert "s3cr3t-value" not in written and "eu" in written
+    # in an argument it would be in the unit file and in ps: refused, with the way that works
+    compose["services"]["check"]["entrypoint"] = ["curl", "-H", "token: ${TOKEN}", "https://x"]
+    compose["services"]["check"]["healthcheck"] = {"test": ["CMD", "probe", "--key=$TOKEN"]}
+    _exp, errors, _warnings = experience.read(compose, env, name="leak", secret={"TOKEN": "s3cr3t-value"})
+    assert len(errors) == 2 and all("${TOKEN} is a secret (experience_secret_environment)" in e for e in errors)
+    assert errors[0].startswith("leak: services.check.entrypoint:") and "$$TOKEN" in errors[0]
+    assert errors[1].startswith("leak: services.check.healthcheck.test:")

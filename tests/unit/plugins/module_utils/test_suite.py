@@ -130,6 +130,11 @@ def test_the_suite_report_has_a_case_per_run():
     ]
     root = ET.fromstring(suite.junit(results))
     assert (root.get("tests"), root.get("failures"), root.get("errors")) == ("3", "1", "1")
+    # a control character in an entry's name or parameters (a pasted colour code) keeps it valid XML
+    results[0]["title"] = "a\x1b[31m#1\x00"
+    results[2]["error"] = "image\x07 missing"
+    root = ET.fromstring(suite.junit(results))
+    assert root.find("testcase").get("name") == "a[31m#1" and "image missing" in ET.tostring(root, "unicode")
     assert suite.summary_lines(results, 12.0)[-1] == "3 runs: 1 error, 1 passed, 1 timeout in 12.0 s"
 
 

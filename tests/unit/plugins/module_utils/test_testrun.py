@@ -374,6 +374,10 @@ def test_junit_leaves_out_what_xml_cannot_hold():
         "orchestrator_output": "\x1b[31mred\x1b[0m done\r\n",
     }
     assert "red" in ET.fromstring(testrun.junit(result)).find("testcase/system-out").text
+    # in the experience's name and the verdict's reason too
+    result.update(experience="pair\x1b[1m", verdict=dict(result["verdict"], result="failed", reason="exit\x00 3"))
+    case = ET.fromstring(testrun.junit(result)).find("testcase")
+    assert case.get("name") == "pair[1m" and case.find("failure").get("message") == "exit 3"
 
 
 def test_how_a_container_ended_survives_systemd_forgetting_the_unit():
@@ -388,6 +392,17 @@ def test_how_a_container_ended_survives_systemd_forgetting_the_unit():
     text = testrun.unit_text("r1", "check", read()["services"]["check"], ["x"])
     assert "ExecStopPost=-/bin/sh -c 'echo \"$$EXIT_CODE $$EXIT_STATUS\" > /run/isaac-sim/runs/r1/check.exit'\n" in text
     assert "ExecStartPre=-/bin/rm -f /run/isaac-sim/runs/r1/check.exit\n" in text
+
+
+def test_restarts_are_the_restarts_a_start_limit_allowed_not_the_one_it_refused():
+    # on-failure:2 gave three starts; systemd's NRestarts counts the fourth, refused, too
+    unit = layout.run_unit("r1", "robot")
+    shown = {unit: dict(show(unit, "failed", "failed"), NRestarts="3")}
+    seen = testrun.observe(shown, [], "r1", ["robot"], {"robot"}, set(), {"robot": "exited 1\n"}, {"robot": 2})
+    assert seen["robot"]["restarts"] == 2
+    # without a limit (restart: on-failure, always) systemd's count is the count
+    seen = testrun.observe(shown, [], "r1", ["robot"], {"robot"}, set(), {"robot": "exited 1\n"})
+    assert seen["robot"]["restarts"] == 3
 
 
 SIM = yaml.safe_load(
