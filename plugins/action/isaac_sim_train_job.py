@@ -31,13 +31,29 @@ class ActionModule(ActionBase):
                 return result
             changed = True
         timeout, poll = int(args.get("wait_timeout") or 0), max(1, int(args.get("poll_interval") or 10))
+        outage = int(args.pop("outage_timeout", None) or 600)
         query = dict(args, state="query")
-        started, progress, last = time.monotonic(), [], None
+        started, progress, last, down_since = time.monotonic(), [], None, None
         while True:
             looked = self._execute_module(module_args=query, task_vars=task_vars)
             if looked.get("failed"):
                 result.update(looked)
                 return result
+            # slurmctld away (a restart, a failover): the job goes on without it; waited out, bounded
+            if looked.get("controller_down"):
+                down_since = down_since or time.monotonic()
+                if time.monotonic() - down_since >= outage:
+                    result.update(
+                        looked,
+                        failed=True,
+                        progress=progress,
+                        msg=f"slurmctld has not answered for {outage} s ({looked.get('reason')}); job "
+                        f"{args['job_id']} may go on. Fix: bring slurmctld back, then follow the job again with "
+                        "train_job_id (or raise train_outage_timeout).",
+                    )
+                    return result
+            else:
+                down_since = None
             line = slurm.progress_line(looked)
             if line != last:
                 display.display(f"{self._task.delegate_to or task_vars.get('inventory_hostname')}: {line}")

@@ -257,16 +257,34 @@ def parse_sacct(text: str, job_id: str):
     return None
 
 
-def status_of(job_id, scontrol_text: str, sacct_text: str):
+def controller_down(scontrol_rc: int, scontrol_err: str) -> bool:
+    """Whether scontrol failed because slurmctld did not answer, not because it knows no such
+    job: anything but "Invalid job id" counts as not answering (waited out, never called lost)."""
+    return scontrol_rc != 0 and "invalid job id" not in (scontrol_err or "").lower()
+
+
+def status_of(job_id, scontrol_text: str, sacct_text: str, down: str = ""):
     """A job's state: what slurmctld says of it (scontrol), or once it has forgotten the job
     (MinJobAge after its end), what accounting says (sacct). {"id", "state", "elapsed", "nodes",
-    "reason", "exit_code", "signal", "finished"}, or None when neither knows it."""
+    "reason", "exit_code", "signal", "finished"}, or None when neither knows it (the job is lost).
+    down: why slurmctld did not answer; then the job is not lost, its state is accounting's or
+    UNKNOWN, with controller_down set, until slurmctld answers again."""
     live = parse_scontrol_job(scontrol_text)
     if live and live["id"] == str(job_id):
         return dict(live, finished=live["state"] in FINISHED)
     done = parse_sacct(sacct_text or "", job_id)
     if done and done["state"] in FINISHED:
         return dict(done, reason="", finished=True)
+    if down:
+        last = done or {
+            "id": str(job_id),
+            "state": "UNKNOWN",
+            "elapsed": "",
+            "nodes": "",
+            "exit_code": None,
+            "signal": None,
+        }
+        return dict(last, reason=f"slurmctld does not answer ({down})", finished=False, controller_down=True)
     return None
 
 
@@ -548,4 +566,6 @@ def progress_line(job: dict) -> str:
     where = job.get("nodes") or ""
     if job.get("state") == "PENDING" and job.get("reason") not in (None, "", "None"):
         where = f"waiting: {job['reason']}"
+    if job.get("controller_down"):
+        where = f"{where} - {job['reason']}; waiting for it".lstrip(" -")
     return f"job {job.get('id')} {job.get('state', '?')} {job.get('elapsed', '')} {where}".rstrip()

@@ -63,6 +63,13 @@ options:
     description: Seconds between two looks at a job that is followed.
     type: int
     default: 10
+  outage_timeout:
+    description:
+      - Seconds a followed job waits for slurmctld when it does not answer (a restart, a failover); the job is
+        never called lost while slurmctld is away, only when slurmctld, accounting and the job completion log all
+        no longer know it.
+    type: int
+    default: 600
 notes:
   - The node script's container command is written for each runtime's documented command line; only the Podman
     path runs in this collection's test cluster (Apptainer is not packaged for its Debian test hosts).
@@ -201,7 +208,10 @@ def submit(module, job, job_dir):
 
 
 def query(module, job_id):
-    _rc, live, _err = _run(module, ["scontrol", "show", "job", "-o", job_id], False)
+    rc, live, err = _run(module, ["scontrol", "show", "job", "-o", job_id], False)
+    down = ""
+    if slurm.controller_down(rc, err):
+        down = ((err or live).strip().splitlines() or [f"scontrol exited {rc}"])[-1]
     done = ""
     if not slurm.parse_scontrol_job(live):
         # slurmctld has forgotten it (MinJobAge): accounting, or the job completion log
@@ -209,9 +219,12 @@ def query(module, job_id):
         rc, done, _err = _run(module, ["sacct", "-X"] + fields, False)
         if rc != 0 or not slurm.parse_sacct(done, job_id):
             _rc, done, _err = _run(module, ["sacct", "-c"] + fields, False)
-    status = slurm.status_of(job_id, live, done)
+    status = slurm.status_of(job_id, live, done, down)
     if status is None:
-        module.fail_json(msg=f"train_job_id: Slurm knows no job {job_id}. Fix: the id sbatch printed.")
+        module.fail_json(
+            msg=f"train_job_id: Slurm knows no job {job_id} (neither slurmctld nor accounting nor the job completion "
+            "log). Fix: the id sbatch printed."
+        )
     return status
 
 
@@ -228,6 +241,7 @@ def main():
             "job_id": {"type": "str"},
             "wait_timeout": {"type": "int", "default": 0},
             "poll_interval": {"type": "int", "default": 10},
+            "outage_timeout": {"type": "int", "default": 600},
         },
         required_if=[
             ("state", "checked", ["job"]),

@@ -13,6 +13,7 @@ import re
 import shutil
 import subprocess
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 from clusterhosts import CONTROLLER, playbook, sh, squash
@@ -89,6 +90,8 @@ def test_bad_requests_fail_with_every_error_before_anything_reaches_the_cluster(
         train_gpus_per_node=3,
         train_image="isaacsim-fleet/no-such-image:1",
         train_script="scripts/missing.py",
+        train_nodes=-1,
+        train_cpus_per_node=0,
     )
     assert wrong.returncode != 0
     text = squash(wrong.stdout + wrong.stderr)
@@ -97,6 +100,8 @@ def test_bad_requests_fail_with_every_error_before_anything_reaches_the_cluster(
         "train_time: 'abc' does not parse as a Slurm time",
         "train_gpus_per_node: 3, and no node of partition gpu has more than 2",
         "train_image: 'isaacsim-fleet/no-such-image:1' is not an image of the build host's Docker",
+        "train_nodes: -1 is not a count of nodes. Fix: a whole number, 1 or more.",
+        "train_cpus_per_node: 0 is not a count of CPUs per node",
     ):
         assert expected in text, text[-3000:]
     partition = train(lab, train_partition="cpu")
@@ -109,13 +114,23 @@ def test_bad_requests_fail_with_every_error_before_anything_reaches_the_cluster(
     assert "absent" in sh(CONTROLLER, f"test -e {LAB} || echo absent")
 
 
-def test_a_training_job_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
-    done = train(
-        lab, train_cpus_per_node=2, train_args=["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"]
-    )
+def test_a_training_job_outlives_a_slurmctld_outage_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
+    args = ["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless", "--sleep=5"]
+    with ThreadPoolExecutor(1) as pool:
+        running = pool.submit(train, lab, train_cpus_per_node=2, train_poll_interval=3, train_args=args)
+        # once the job runs, slurmctld goes away for 45 s: the job ends meanwhile, its end waits on slurmd
+        deadline = time.monotonic() + 120
+        while "RUNNING" not in sh(CONTROLLER, "squeue -h -o %T") and time.monotonic() < deadline:
+            time.sleep(0.5)
+        sh(CONTROLLER, "systemctl stop slurmctld")
+        time.sleep(45)
+        sh(CONTROLLER, "systemctl start slurmctld")
+        done = running.result()
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr
     text = squash(done.stdout)
     job = submitted_id(done)
+    assert "slurmctld does not answer (slurm_load_jobs error: Unable to contact slurm controller" in text, text[-3000:]
+    assert "waiting for it" in text
     # followed: a line per change of state, then the end
     assert f"slurm-ctl: job {job} COMPLETED" in text and f"job {job} COMPLETED on slurm-node-" in text
     run = lab["code"] / "logs" / "rsl_rl" / "Isaac-Ant-v0" / f"job-{job}"
@@ -126,7 +141,7 @@ def test_a_training_job_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
     sh(CONTROLLER, f"test -s {LAB}/code/logs/rsl_rl/Isaac-Ant-v0/job-{job}/model_2.pt")
     given = rank(job, "Isaac-Ant-v0", 0, lab["code"])
     # every word as written (nothing expanded on the cluster), in Isaac Lab's directory, one GPU
-    assert given["argv"] == ["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless"]
+    assert given["argv"] == args
     assert given["cwd"] == "/workspace/isaaclab" and len(given["gpus"]) == 1
     # the CPUs asked for reach the training (srun is told them; Slurm pins the task to them)
     assert given["cpus"] == 2

@@ -448,6 +448,24 @@ def test_a_job_is_read_from_slurmctld_then_from_accounting():
     assert slurm.status_of("43", "", "") is None
 
 
+def test_a_job_is_never_lost_while_slurmctld_does_not_answer():
+    # scontrol (22.05) while slurmctld is stopped, and for a job it does not know
+    down = "slurm_load_jobs error: Unable to contact slurm controller (connect failure)"
+    assert slurm.controller_down(1, down) and not slurm.controller_down(1, "slurm_load_jobs error: Invalid job id")
+    assert not slurm.controller_down(0, "")
+    # accounting still answers (slurmdbd): its state, said to be accounting's
+    running = slurm.status_of("15", "", "15|RUNNING|0:0|00:00:40|node-1\n", down)
+    assert running["state"] == "RUNNING" and not running["finished"] and running["controller_down"]
+    assert slurm.progress_line(running) == (
+        f"job 15 RUNNING 00:00:40 node-1 - slurmctld does not answer ({down}); waiting for it"
+    )
+    # nothing answers: unknown, not lost
+    unknown = slurm.status_of("15", "", "", down)
+    assert unknown["state"] == "UNKNOWN" and unknown["controller_down"] and not unknown["finished"]
+    # a finished job in accounting is finished whether slurmctld answers or not
+    assert slurm.status_of("15", "", "15|COMPLETED|0:0|00:01:10|node-1\n", down)["finished"]
+
+
 def test_each_submission_has_its_directory_and_the_image_file_names_its_id():
     assert slurm.run_dir("train-ant", "20261124-101500-5f0c") == "train-ant-20261124-101500-5f0c"
     podman = slurm.complete({"runtime": "podman", "image_file": "/s/i.tar", "image_id": "sha256:0a45"})
