@@ -714,35 +714,47 @@ def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
     return result
 
 
+def _loan(host: Host, i: int) -> tuple:
+    """(run, pid) of instance i's loan; (None, None) when it is not lent."""
+    if not host.exists(layout.lent_marker(i)):
+        return None, None
+    words = (host.read(f"{layout.lent_marker(i)}/run") or "").split()
+    pid = int(words[1]) if len(words) > 1 and words[1].isdigit() else None
+    return (words[0] if words else "a run"), pid
+
+
 def lent_to(host: Host, i: int) -> str | None:
     """The run instance i is lent to, or None."""
-    if not host.exists(layout.lent_marker(i)):
-        return None
-    return (host.read(f"{layout.lent_marker(i)}/run") or "").strip() or "a run"
+    return _loan(host, i)[0]
 
 
-def _mark(host: Host, i: int, run: str) -> tuple:
+def _mark(host: Host, i: int, run: str, pid=None) -> tuple:
     rc, _out, err = host.run(["mkdir", layout.lent_marker(i)])
     if rc == 0:
-        host.write(f"{layout.lent_marker(i)}/run", run + "\n", 0o644)
+        host.write(f"{layout.lent_marker(i)}/run", f"{run}\n{pid or ''}\n", 0o644)
     return rc == 0, err
 
 
-def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.0) -> str | None:
-    """Lend instance i to `run`, waiting up to wait_s for the run that has it to give it back.
-    Returns None once lent, else the run that still has it. A lent instance is restarted by no
-    one but its borrower's give_back."""
+def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.0, pid=None, companions=None):
+    """Lend instance i to `run` (its runner's process `pid`), waiting up to wait_s for the run
+    that has it to give it back. Returns None once lent, else the run that still has it. A loan
+    whose runner's process is gone is ended first, as its runner would have (restart, then free).
+    A lent instance is restarted by no one but its borrower's give_back."""
     deadline = host.now() + wait_s
     while True:
-        ok, err = _mark(host, i, run)
+        ok, err = _mark(host, i, run, pid)
         if ok:
             return None
-        if not host.exists(layout.lent_marker(i)):
-            ok, err = _mark(host, i, run)  # given back in between
+        holder, holder_pid = _loan(host, i)
+        if holder is None:
+            ok, err = _mark(host, i, run, pid)  # given back in between
             if ok:
                 return None
             if not host.exists(layout.lent_marker(i)):
                 raise OSError(f"cannot lend {layout.container(i)}: {err.strip()}")
+        elif holder_pid and not host.exists(f"/proc/{holder_pid}"):
+            give_back(host, i, holder, companions)
+            continue
         if host.now() >= deadline:
             return lent_to(host, i) or "a run"
         host.sleep(interval)

@@ -313,7 +313,9 @@ def main():
     lent = simulator and simulator["instance"] is not None
     if lent:
         # another run's loan is waited out, up to this run's timeout
-        holder = lifecycle.lend(host, simulator["instance"], run, wait_s=p["timeout"])
+        holder = lifecycle.lend(
+            host, simulator["instance"], run, wait_s=p["timeout"], pid=os.getpid(), companions=companions
+        )
         if holder:
             module.fail_json(
                 msg=f"instance: isaac-sim@{simulator['instance']} stayed lent to run {holder} for this run's whole "

@@ -169,7 +169,9 @@ def main():
                 return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
         elif exp["simulator"]:
             # another suite's or run's loan is waited out, up to the run's own timeout
-            holder = lifecycle.lend(host, instance, run_id, wait_s=float(run["timeout"]))
+            holder = lifecycle.lend(
+                host, instance, run_id, wait_s=float(run["timeout"]), pid=os.getpid(), companions=companions
+            )
             if holder:
                 return dict(
                     {k: run[k] for k in KEEP},

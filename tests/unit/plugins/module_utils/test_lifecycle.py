@@ -799,3 +799,21 @@ def test_a_deploy_stops_before_an_instance_lent_to_a_run_and_leaves_it_as_it_was
     assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
     assert h.files[layout.env_file(1)][0] == OLD and h.units[1]["ActiveState"] == "active"
     assert f"systemctl restart {layout.unit(1)}" not in h.log
+
+
+def test_a_loan_whose_runner_died_is_ended_as_its_runner_would_have_before_the_next_run_gets_it():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 0, "run-a", pid=4242) is None  # /proc/4242 does not exist here
+    assert h.files[f"{layout.lent_marker(0)}/run"][0] == "run-a\n4242\n"
+    assert lifecycle.lend(h.host, 0, "run-b", pid=77) is None and lifecycle.lent_to(h.host, 0) == "run-b"
+    # restarted clean on the dead run's behalf, before run-b got it
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+    # a live runner's loan is waited for, not taken
+    live = lifecycle.Host(
+        *[getattr(h.host, k) for k in ("run", "read", "write", "remove", "mode")],
+        lambda p: p == "/proc/77" or h.host.exists(p),
+        h.host.sleep,
+        h.host.now,
+        h.host.wall,
+    )
+    assert lifecycle.lend(live, 0, "run-c", pid=78) == "run-b"
