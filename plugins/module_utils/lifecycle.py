@@ -521,6 +521,21 @@ def apply(host: Host, want: dict, check=False) -> dict:
         result.update(changed=False, deferred=True)
         return result
 
+    # a scale-down never takes an instance from the test run it is lent to: nothing changes
+    lent = [(i, lent_to(host, i)) for i in gone if lent_to(host, i) is not None]
+    if lent:
+        i, holder = lent[0]
+        result.update(
+            failed={
+                "id": i,
+                "reason": f"the scale-down would remove it, and it is lent to test run {holder}; nothing was changed. "
+                "Fix: run again once the run is over",
+                "reverted": None,
+                "left": "running",
+            },
+            changed=False,
+        )
+        return result
     if want.get("prepare"):
         want["prepare"]()
     # before any instance binds a new port; the old ones stay reserved until the end

@@ -817,3 +817,12 @@ def test_a_loan_whose_runner_died_is_ended_as_its_runner_would_have_before_the_n
         h.host.wall,
     )
     assert lifecycle.lend(live, 0, "run-c", pid=78) == "run-b"
+
+
+def test_a_scale_down_never_removes_an_instance_lent_to_a_run():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 2, "run-a")
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, remove=[2]))
+    assert result["failed"]["id"] == 2 and "lent to test run run-a" in result["failed"]["reason"]
+    assert layout.env_file(2) in h.files and h.units[2]["ActiveState"] == "active"
+    assert [line for line in h.log if line.startswith(("systemctl stop", "systemctl disable"))] == []
