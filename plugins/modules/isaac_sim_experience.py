@@ -208,11 +208,9 @@ def _simulator(module, host, exp, instance, lent_to=None):
             msg=f"{exp['name']}: service {exp['simulator']} is the simulator (image: isaac-sim), and no instance was "
             "given to borrow. Fix: set instance (experience_instance) to a ready instance of the host."
         )
-    ready = os.path.exists
-    if not lent_to and lifecycle.lent_to(host, instance) is not None:
-        # another run has it (it may be restarting on its way back): readiness is asked once lent
-        ready = lambda _path: True  # noqa: E731
-    simulator, error = testrun.borrowed(host, exp["simulator"], instance, ready)
+    # another run has it (it may be restarting on its way back): readiness is asked once lent
+    held = not lent_to and lifecycle.lent_to(host, instance) is not None
+    simulator, error = testrun.borrowed(host, exp["simulator"], instance, lambda path: held or os.path.exists(path))
     if error:
         if lent_to:
             lifecycle.unlend(host, instance, lent_to)
