@@ -423,8 +423,9 @@ def reserve(host: Host, ports, managed: str, grow: bool, check=False) -> bool:
     value, added = reserved_ports.wanted(runtime, before, ports, grow)
     text = reserved_ports.conf(value, added, managed)
     kernel = value != reserved_ports.parse(runtime)
-    if check or not (kernel or text != before):
-        return kernel or text != before
+    changed = kernel or text != before
+    if check or not changed:
+        return changed
     if text is None:
         host.remove(reserved_ports.CONF)
     elif text != before:
@@ -522,20 +523,12 @@ def apply(host: Host, want: dict, check=False) -> dict:
         return result
 
     # a scale-down never takes an instance from the test run it is lent to: nothing changes
-    lent = [(i, lent_to(host, i)) for i in gone if lent_to(host, i) is not None]
-    if lent:
-        i, holder = lent[0]
-        result.update(
-            failed={
-                "id": i,
-                "reason": f"the scale-down would remove it, and it is lent to test run {holder}; nothing was changed. "
-                "Fix: run again once the run is over",
-                "reverted": None,
-                "left": "running",
-            },
-            changed=False,
-        )
-        return result
+    for i in gone:
+        holder = lent_to(host, i)
+        if holder is not None:
+            result.update(failed=_lent_failure(i, holder, "the scale-down would remove it (nothing was changed)"))
+            result["changed"] = False
+            return result
     if want.get("prepare"):
         want["prepare"]()
     # before any instance binds a new port; the old ones stay reserved until the end
@@ -650,17 +643,8 @@ def apply(host: Host, want: dict, check=False) -> dict:
             return interrupt(host, result, why, wind_down(n))
         holder = lent_to(host, i)
         if holder is not None:  # a test run has it: its settings change after the run, not under it
-            result.update(
-                failed={
-                    "id": i,
-                    "reason": f"lent to test run {holder}, which it serves until the run ends; not changed. "
-                    "Fix: run again once the run is over",
-                    "reverted": None,
-                    "left": "running",
-                },
-                untouched=[j for j in wind_down(n) if j != i],
-                changed=True,
-            )
+            failed = _lent_failure(i, holder, "not changed")
+            result.update(failed=failed, untouched=[j for j in wind_down(n) if j != i], changed=True)
             return result
         if i in changed_ids:
             write_new(i)
@@ -727,6 +711,17 @@ def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
     )
     result.update(interrupted=why, untouched=list(left), changed=bool(done) or result.get("changed", False))
     return result
+
+
+def _lent_failure(i: int, holder: str, what: str) -> dict:
+    """The failure of a step that would touch instance i while a test run has it."""
+    return {
+        "id": i,
+        "reason": f"{what}, and it is lent to test run {holder}, which it serves until the run ends. "
+        "Fix: run again once the run is over",
+        "reverted": None,
+        "left": "running",
+    }
 
 
 def _loan(host: Host, i: int) -> tuple:
@@ -812,13 +807,7 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=N
             return interrupt(host, result, why, ids[n:])
         holder = lent_to(host, i)
         if holder is not None and holder != borrower:
-            result["failed"] = {
-                "id": i,
-                "reason": f"lent to test run {holder}, which it serves until the run ends; not restarted. "
-                "Fix: run again once the run is over",
-                "reverted": None,
-                "left": "running",
-            }
+            result["failed"] = _lent_failure(i, holder, "not restarted")
             result["untouched"] = ids[n + 1 :]
             result["changed"] = bool(result["done"])
             return result

@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 import shlex
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import releases
+from ansible_collections.isaacsim.fleet.plugins.module_utils import plan, releases
 
 RUNTIMES = ("apptainer", "podman", "docker", "enroot")
 # where the image the jobs run lives on the cluster, per runtime
@@ -128,16 +128,6 @@ _COUNTS = (
 )
 
 
-def _integer(value):
-    """A whole number, from an int or its decimal text (a bool is no count), else None."""
-    if isinstance(value, bool):
-        return None
-    if isinstance(value, int):
-        return value
-    text = str(value).strip()
-    return int(text) if text.lstrip("-").isdigit() else None
-
-
 def check_request(job: dict, partitions: dict) -> list:
     """Errors in a job's request against what the cluster's partitions have (parse_sinfo), each
     naming the variable and the fix, before anything is submitted."""
@@ -166,7 +156,7 @@ def check_request(job: dict, partitions: dict) -> list:
     counts = {}
     for key, lowest, default, what in _COUNTS:
         value = job.get(key)
-        number = default if value is None or value == "" else _integer(value)
+        number = default if value is None or value == "" else plan.as_int(value)
         if number is None or number < lowest:
             errors.append(f"train_{key}: {value!r} is not a count of {what}. Fix: a whole number, {lowest} or more.")
         counts[key] = number if isinstance(number, int) and number >= lowest else default

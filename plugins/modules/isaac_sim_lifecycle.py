@@ -184,6 +184,9 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle, network, runlock
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
 
+# the target's links: every instance enabled on this host
+_WANTS = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")
+
 
 def _want(module, host, found):
     """The wanted state of the host, from the plan; found: the companions on the host now."""
@@ -220,8 +223,7 @@ def _want(module, host, found):
     }
     gone = []
     if p["remove_others"]:
-        wants = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")
-        gone = [i for i in hostprobe.existing_instances(layout.CONFIG_DIR, wants) if i not in instances]
+        gone = [i for i in hostprobe.existing_instances(layout.CONFIG_DIR, _WANTS) if i not in instances]
     return {
         "files": files,
         "instances": instances,
@@ -404,8 +406,7 @@ def main():
             lifecycle.remove(host, p["ids"], p["purge"], p["data_root"], companions=found)
             # the last instance on it gone (cleanup, scale to 0): the network goes too, and the ports
             out["network"] = _drop_network(module, host)
-            wants = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")
-            if not hostprobe.existing_instances(layout.CONFIG_DIR, wants):
+            if not hostprobe.existing_instances(layout.CONFIG_DIR, _WANTS):
                 try:
                     out["reserved_ports"] = lifecycle.reserve(host, [], p["managed"], grow=False)
                 except OSError as exc:
