@@ -433,6 +433,21 @@ def cli(host):
     return docker
 
 
+def store_errors(unfetched_after: float, keep_days: float) -> list:
+    """What is wrong with how long a host keeps finished runs (run_store)."""
+    errors = []
+    if unfetched_after < 0:
+        errors.append(f"unfetched_after: {unfetched_after:g}. Fix: seconds, 0 or more.")
+    if keep_days < 0:
+        errors.append(f"keep_days: {keep_days:g}. Fix: days, 0 or more (0 keeps runs for ever).")
+    elif keep_days and keep_days * 86400 < max(unfetched_after, 0):
+        errors.append(
+            f"keep_days: {keep_days:g} would remove runs before their controller has had unfetched_after "
+            f"({unfetched_after:g} s) to fetch them. Fix: a longer keep_days."
+        )
+    return errors
+
+
 def owner_file(run: str) -> str:
     """Who runs a run: the runner's pid, its services and lent instance, so a run whose runner
     was killed (an async limit, a reboot of the controller's connection) is swept later."""
@@ -554,10 +569,7 @@ def execute(
     result["services"] = {}
     logs = {}
     for name in services:
-        # -a: a log with colours or progress bars is text, not "[blob data]"
-        _rc, log, _err = host.run(
-            ["journalctl", "--no-pager", "-a", "-o", "short-iso", "-u", layout.run_unit(run, name)]
-        )
+        log = journal(host, run, name)
         logs[name] = log
         host.write(f"{directory}/{run}-{name}.log", log, 0o644)
         obs = observations.get(name) or judge.observation()
@@ -588,6 +600,21 @@ def execute(
     ) + sorted(produced)
     host.remove(owner_file(run))
     return result
+
+
+def journal(host, run: str, service: str) -> str:
+    """A service's log as the journal kept it."""
+    # -a: a log with colours or progress bars is text, not "[blob data]"
+    _rc, log, _err = host.run(
+        ["journalctl", "--no-pager", "-a", "-o", "short-iso", "-u", layout.run_unit(run, service)]
+    )
+    return log
+
+
+def live_runs(host) -> set:
+    """The runs going on on the host now (each has an owner file until it ends or is swept)."""
+    _rc, out, _err = host.run(["find", f"{layout.RUN_DIR}/runs", "-maxdepth", "1", "-name", "*.json"])
+    return {p.rsplit("/", 1)[1][: -len(".json")] for p in out.splitlines() if p.strip()}
 
 
 def simulator_state(host, simulator) -> dict:
@@ -621,12 +648,13 @@ def teardown(host, run: str, created: dict, docker, keep_directory=True) -> None
         host.remove(created["directory"])
 
 
-def sweep(host, docker, alive) -> list:
-    """Tear down the runs whose runner is gone (alive(pid) is False); returns (instance, run) of
-    the instances they had borrowed, still lent: the caller gives them back through the
-    lifecycle (restarted clean, then free)."""
+def sweep(host, docker, alive) -> tuple:
+    """Tear down the runs whose runner is gone (alive(pid) is False), keeping what each got to in
+    its directory (its logs, and a result.json that says it ended without a verdict). Returns
+    ([(instance, run)] of the instances they had borrowed, still lent - the caller gives them
+    back through the lifecycle, restarted clean, then free - and [run] of the runs swept)."""
     _rc, out, _err = host.run(["find", f"{layout.RUN_DIR}/runs", "-maxdepth", "1", "-name", "*.json"])
-    lent = []
+    lent, ended = [], []
     for path in sorted(p for p in out.splitlines() if p.strip()):
         try:
             owner = json.loads(host.read(path) or "{}")
@@ -642,12 +670,28 @@ def sweep(host, docker, alive) -> list:
             "directory": owner.get("directory"),
         }
         teardown(host, run, created, docker, keep_directory=True)
+        directory = owner.get("directory")
+        if directory and host.exists(directory) and not host.exists(f"{directory}/result.json"):
+            # what the run got to, for the controller that takes it (run_store)
+            services = owner.get("services", [])
+            for name in services:
+                host.write(f"{directory}/{run}-{name}.log", journal(host, run, name), 0o644)
+            why = f"its runner (pid {owner.get('pid') or '?'}) ended before a verdict; torn down by a later run"
+            result = {
+                "run": run,
+                "directory": directory,
+                "verdict": {"result": judge.ERROR, "service": None, "reason": why, "seconds": None},
+                "services": {name: {"orchestrator": False, "started": None} for name in services},
+                "swept": True,
+            }
+            host.write(f"{directory}/result.json", json.dumps(result, indent=2) + "\n", 0o644)
         if owner.get("instance") is not None:
             lent.append((owner["instance"], run))
         if owner.get("slot") is not None:
             release_slot(host, owner["slot"])
         host.remove(path)
-    return lent
+        ended.append(run)
+    return lent, ended
 
 
 def _bytes(n) -> str:

@@ -93,6 +93,18 @@ options:
     description: Where runs keep their directories (C(DATA_ROOT/runs/RUN)).
     type: path
     default: /var/lib/isaac-sim
+  unfetched_after:
+    description:
+      - Seconds a finished run's directory waits for the controller that started it; after that (its controller
+        went away), the next run on the host takes it and brings it back with its own (RV(recovered)). A run whose
+        runner died is taken at once.
+    type: float
+    default: 600
+  keep_days:
+    description:
+      - Days a run's directory stays on the host at most, fetched or not (RV(expired)); C(0) keeps them for ever.
+    type: float
+    default: 14
   pull:
     description:
       - Pull the services' images missing on the host, before anything starts; one that cannot be pulled is an error.
@@ -159,8 +171,29 @@ directory:
   returned: always
   type: str
 artefacts:
-  description: File names in RV(directory) to bring back.
+  description: File names in RV(directory).
   returned: when the run started
+  type: list
+  elements: str
+bundle:
+  description:
+    - A gzip'd tar on the host of RV(directory) and of each directory in RV(recovered), a directory each by its run's
+      name, to bring back; remove it, and then the directories in RV(directories), once the controller has it.
+  returned: when the run started
+  type: str
+directories:
+  description: The run directories RV(bundle) holds (this run's and the recovered ones).
+  returned: when the run started
+  type: list
+  elements: str
+recovered:
+  description: Runs whose controller went away before bringing them back; their directories are in RV(bundle).
+  returned: always
+  type: list
+  elements: str
+expired:
+  description: Run directories (and bundles nobody fetched) removed because they were older than O(keep_days).
+  returned: always
   type: list
   elements: str
 ignored:
@@ -193,6 +226,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import (
     hostprobe,
     layout,
     lifecycle,
+    run_store,
     testrun,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
@@ -257,6 +291,8 @@ def main():
             "simulator_release": {"type": "str"},
             "gpus": {"type": "list", "elements": "str", "default": []},
             "data_root": {"type": "path", "default": layout.DATA_ROOT},
+            "unfetched_after": {"type": "float", "default": 600},
+            "keep_days": {"type": "float", "default": 14},
             "pull": {"type": "bool", "default": True},
             "poll": {"type": "float", "default": 0.5},
             "metrics_interval": {"type": "float", "default": 2},
@@ -271,6 +307,7 @@ def main():
         errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
     if p["timeout"] <= 0:
         errors.append(f"timeout: {p['timeout']:g}. Fix: a number of seconds above 0.")
+    errors += testrun.store_errors(p["unfetched_after"], p["keep_days"])
     for warning in warnings:
         module.warn(warning)
     base = {
@@ -278,6 +315,8 @@ def main():
         "directory": layout.run_dir(run, p["data_root"]),
         "ignored": warnings,
         "borrowed_instance": None,
+        "recovered": [],
+        "expired": [],
     }
     if errors:
         module.fail_json(msg=" ".join(errors), errors=errors, **base)
@@ -306,8 +345,16 @@ def main():
         module.exit_json(changed=True, order=exp["order"], **base)
     companions = hostprobe.existing_companions(layout.CONFIG_DIR)
     # runs whose runner was killed had these instances: back clean, then free, through the lifecycle
-    for i, gone in testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}")):
+    lent_out, ended = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
+    for i, gone in lent_out:
         lifecycle.give_back(host, i, gone, companions=companions)
+    # runs no controller brought back go with this one; what is past retention goes
+    store = os.path.join(p["data_root"], "runs")
+    base["recovered"], base["expired"] = run_store.take(
+        store, testrun.live_runs(host), time.time(), p["unfetched_after"], p["keep_days"], host.remove, ended
+    )
+    if base["expired"]:
+        module.warn(f"removed from {store}, older than keep_days ({p['keep_days']:g}): {', '.join(base['expired'])}")
     lent = simulator and simulator["instance"] is not None
     if lent:
         # another run's loan is waited out, up to this run's timeout
@@ -356,6 +403,8 @@ def main():
                 base["restart_error"] = f"isaac-sim@{simulator['instance']} did not come back: {error}"
     result.pop("orchestrator_output", None)
     base.update(result)
+    base["bundle"], packed = run_store.pack(store, [run] + base["recovered"])
+    base["directories"] = [os.path.join(store, name) for name in packed]
     module.exit_json(changed=True, **base)
 
 

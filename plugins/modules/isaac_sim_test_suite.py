@@ -48,6 +48,16 @@ options:
     description: Where runs keep their directories.
     type: path
     default: /var/lib/isaac-sim
+  unfetched_after:
+    description:
+      - Seconds a finished run's directory waits for the controller that started it; after that, the next run or
+        suite on the host takes it and brings it back with its own (RV(recovered)).
+    type: float
+    default: 600
+  keep_days:
+    description: Days a run's directory stays on the host at most, fetched or not (RV(expired)); C(0) keeps them.
+    type: float
+    default: 14
 notes:
   - Check mode reads every file and checks the images; nothing starts.
 """
@@ -73,15 +83,29 @@ results:
   elements: dict
 bundle:
   description:
-    - Every run's directory in one gzipped tar file on the host (a directory per run), to fetch at once; the
-      directories themselves are removed once in it.
+    - Every run's directory in one gzipped tar file on the host (a directory per run), with those of RV(recovered),
+      to fetch at once; remove it, and then the directories in RV(directories), once the controller has it.
   returned: when the runs ran
   type: str
+directories:
+  description: The run directories RV(bundle) holds.
+  returned: when the runs ran
+  type: list
+  elements: str
+recovered:
+  description: Earlier runs whose controller went away before bringing them back; they are in RV(bundle).
+  returned: when the runs ran
+  type: list
+  elements: str
+expired:
+  description: Run directories (and bundles nobody fetched) removed because they were older than O(keep_days).
+  returned: when the runs ran
+  type: list
+  elements: str
 """
 
 import os
 import secrets
-import tarfile
 import threading
 import time
 
@@ -92,6 +116,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils import (
     hostprobe,
     layout,
     lifecycle,
+    run_store,
     testrun,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
@@ -107,12 +132,17 @@ def main():
             "instances": {"type": "list", "elements": "int", "default": []},
             "gpus": {"type": "list", "elements": "str", "default": []},
             "data_root": {"type": "path", "default": layout.DATA_ROOT},
+            "unfetched_after": {"type": "float", "default": 600},
+            "keep_days": {"type": "float", "default": 14},
         },
         supports_check_mode=True,
     )
     p = module.params
     if p["parallel"] < 1:
         module.fail_json(msg=f"parallel: {p['parallel']}. Fix: 1 or more runs at once.")
+    store_errors = testrun.store_errors(p["unfetched_after"], p["keep_days"])
+    if store_errors:
+        module.fail_json(msg=" ".join(store_errors), errors=store_errors)
     host = lifecycle.bind(module)
     api = DockerSocket()
     hostname = os.uname().nodename
@@ -149,8 +179,16 @@ def main():
             None, None, testrun.deployed_simulator(host.read), None, p["gpus"], host_gpus
         )
     # runs whose runner was killed: torn down, their instances back clean, then free
-    for i, gone in testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}")):
+    lent_out, ended = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
+    for i, gone in lent_out:
         lifecycle.give_back(host, i, gone, companions=companions)
+    # runs no controller brought back go with this share; what is past retention goes
+    store = os.path.join(p["data_root"], "runs")
+    recovered, expired = run_store.take(
+        store, testrun.live_runs(host), time.time(), p["unfetched_after"], p["keep_days"], host.remove, ended
+    )
+    if expired:
+        module.warn(f"removed from {store}, older than keep_days ({p['keep_days']:g}): {', '.join(expired)}")
     # one give-back at a time: each restart ends ready before the next begins
     restart_lock = threading.Lock()
 
@@ -223,17 +261,18 @@ def main():
     for n, result in enumerate(results):
         if "error" in result and "run" not in result:
             results[n] = dict({k: runs[n][k] for k in KEEP}, host=hostname, error=result["error"])
-    # every run's directory in one file: one fetch per host, not one per artefact
-    bundle = os.path.join(p["data_root"], "runs", f"suite-{secrets.token_hex(4)}.tar.gz")
-    with tarfile.open(bundle, "w:gz") as tar:
-        for result in results:
-            if result.get("directory") and os.path.isdir(result["directory"]):
-                tar.add(result["directory"], arcname=result["run"])
-    # the bundle holds them now
-    for result in results:
-        if result.get("directory") and os.path.isdir(result["directory"]):
-            host.remove(result["directory"])
-    module.exit_json(changed=True, results=results, bundle=bundle)
+    # every run's directory in one file: one fetch per host, not one per artefact; the directories
+    # stay until the controller has it (one that dies first leaves them to the host's next run)
+    ran = [result["run"] for result in results if result.get("directory") and os.path.isdir(result["directory"])]
+    bundle, packed = run_store.pack(store, ran + recovered)
+    module.exit_json(
+        changed=True,
+        results=results,
+        bundle=bundle,
+        directories=[os.path.join(store, name) for name in packed],
+        recovered=recovered,
+        expired=expired,
+    )
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ host (measured from the hosts' journals), every run's artefacts on the controlle
 on the hosts, and a re-run of only the failed ones."""
 
 import json
+import time
 import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import yaml
@@ -13,6 +15,7 @@ from testbed import ROOT, RUN_LEFTOVERS
 
 FIXTURES = ROOT / "tests" / "fixtures" / "experiences"
 PARALLEL = 2
+STARTED = "39f53479d3a045ac8e11786248231fbf"  # systemd's "Started UNIT" journal message
 # title -> the verdict the reference platform's rules give it
 EXPECTED = {
     "pass#1": "passed",
@@ -136,3 +139,55 @@ def test_re_running_the_failed_ones_runs_only_those(suite):
     rerun = {t for t in after if after[t]["run"] != first[t]["run"]}
     assert rerun == {t for t, v in EXPECTED.items() if v != "passed"}
     assert {t: r["verdict"]["result"] for t, r in after.items()} == EXPECTED
+
+
+def test_two_suites_at_once_on_one_host_share_its_instances_and_a_third_on_a_busy_directory_is_refused(
+    tmp_path,
+):
+    # both suites want instances 0 and 1 of one host, two runs at a time: every run waits for
+    # the instance the other suite holds, and none is restarted under another's run
+    host = hosts()[0]
+    spec = {
+        "environment": {"IMAGE": image(host), "HOLD_S": "4"},
+        "timeout": 300,
+        "experiences": [{"file": str(FIXTURES / "sim.yml"), "repeat": 3}],
+    }
+    (tmp_path / "suite.yml").write_text(yaml.safe_dump(spec))
+    extra = {
+        "test_suite_file": str(tmp_path / "suite.yml"),
+        "test_suite_parallel_per_host": 2,
+        "test_suite_gpus": [],
+    }
+    started = {}
+    since = sh(host, "date +%s").strip()
+    with ThreadPoolExecutor(2) as pool:
+        for name in ("a", "b"):
+            started[name] = pool.submit(
+                playbook, "test_suite.yml", dict(extra, test_suite_dir=str(tmp_path / name)), host
+            )
+        # a third suite into a directory the first is writing changes nothing there
+        wait = time.monotonic() + 120
+        while not (tmp_path / "a" / ".suite-lock.json").exists() and time.monotonic() < wait:
+            time.sleep(0.5)
+        third = playbook("test_suite.yml", dict(extra, test_suite_dir=str(tmp_path / "a")), host)
+        done = {name: future.result() for name, future in started.items()}
+    text = squash(third.stdout + third.stderr)
+    assert third.returncode != 0 and "is being written by another suite" in text, text[-2000:]
+    assert "test_suite_dir" in text and "Run this host's share" not in third.stdout
+    for name, run in done.items():
+        assert run.returncode == 0, squash(run.stdout + run.stderr)[-3000:]
+        found = json.loads((tmp_path / name / "suite.json").read_text())["results"]
+        assert [r["verdict"]["result"] for r in found] == ["passed"] * 3, found
+        for r in found:
+            banner = (tmp_path / name / r["run"] / "outputs" / "banner.txt").read_text()
+            assert banner.startswith("isaac-sim-standin signal"), (name, r["run"])
+    # both began with instances 0 and 1; each run's instance was given back restarted once, and
+    # never restarted under another run (every one passed): six starts in all since they began
+    used = [r["instance"] for name in done for r in json.loads((tmp_path / name / "suite.json").read_text())["results"]]
+    assert used.count(0) >= 2 and used.count(1) >= 2, used
+    starts = sh(host, f"journalctl --no-pager -o cat --since @{since} _PID=1 MESSAGE_ID={STARTED}")
+    assert sum(line.startswith("Started isaac-sim@") for line in starts.splitlines()) == 6, starts
+    assert ".lent" not in sh(host, "ls /run/isaac-sim")
+    assert sh(host, RUN_LEFTOVERS).strip() == ""
+    assert sh(host, "ls -A /var/lib/isaac-sim/runs").split() == [".store.lock"]
+    assert not (tmp_path / "a" / ".suite-lock.json").exists()

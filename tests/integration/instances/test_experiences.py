@@ -6,10 +6,22 @@ a timeout) are the fleet scenario's suite test (tests/integration/fleet/test_sui
 runs them all in one playbook."""
 
 import json
+import signal
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 
-from testbed import ROOT, RUN_LEFTOVERS, all_ready, container_id, registry_image, run_playbook, sh
+from testbed import (
+    ROOT,
+    RUN_LEFTOVERS,
+    all_ready,
+    container_id,
+    instance_ready,
+    registry_image,
+    run_playbook,
+    sh,
+    start_playbook,
+    wait_for,
+)
 
 FIXTURES = ROOT / "tests" / "fixtures" / "experiences"
 
@@ -82,6 +94,85 @@ def test_two_runs_on_one_borrowed_instance_each_get_it_clean_one_after_the_other
     assert len({before[:12], *seen, after[:12]}) == 3, (before, seen, after)
     assert sh(host, "ls /run/isaac-sim").stdout.count(".lent") == 0
     assert left_behind(host) == ""
+
+
+def killed_mid_run(host, tmp_path, hold_s, runner_too=False) -> str:
+    """Start a run that borrows instance 1, SIGKILL its ansible-playbook once the instance is
+    lent (and the run's own process on the host too, when runner_too). Returns the run's name."""
+    vars_ = {
+        "experience_file": str(FIXTURES / "sim.yml"),
+        "experience_environment": {"IMAGE": registry_image(host, "6.0.1"), "HOLD_S": str(hold_s)},
+        "experience_instance": 1,
+        "experience_timeout": 120,
+        "experience_artefacts_dir": str(tmp_path / "never"),
+    }
+    controller = start_playbook(host, vars_, playbook="playbooks/experience.yml")
+    lent = "/run/isaac-sim/instance-1.lent/run"
+
+    def borrower():
+        return sh(host, f"cat {lent}", check=False).stdout.strip()
+
+    wait_for(borrower, timeout=120, what="instance 1 lent")
+    run = borrower().split()[0]
+    # its services are up: the run is well under way
+    wait_for(lambda: f"isaac-sim-run-{run}-check" in sh(host, "docker ps --format '{{.Names}}'").stdout, timeout=60)
+    controller.send_signal(signal.SIGKILL)
+    controller.wait()
+    if runner_too:
+        owner = json.loads(sh(host, f"cat /run/isaac-sim/runs/{run}.json").stdout)
+        sh(host, f"kill -9 {owner['pid']}")
+    return run
+
+
+def test_runs_whose_controller_or_runner_was_killed_leave_the_instance_clean_and_come_back_with_the_next(
+    host, tmp_path
+):
+    runs = "/var/lib/isaac-sim/runs"
+    # a controller killed mid-run: the run ends on the host by itself, gives instance 1 back
+    # restarted and ready, and keeps its directory for a controller
+    during = container_id(host, "isaac-sim-1")
+    ended = killed_mid_run(host, tmp_path, hold_s=8)
+    wait_for(
+        lambda: sh(host, "ls /run/isaac-sim", check=False).stdout.count(".lent") == 0,
+        timeout=180,
+        what="instance 1 given back by the run itself",
+    )
+    assert instance_ready(host, 1) and container_id(host, "isaac-sim-1") != during
+    assert json.loads(sh(host, f"cat {runs}/{ended}/result.json").stdout)["verdict"]["result"] == "passed"
+    # its runner killed too: the run is stuck, holding instance 1, until the next run on the host
+    swept = killed_mid_run(host, tmp_path, hold_s=300, runner_too=True)
+    held = container_id(host, "isaac-sim-1")
+    # a run nobody will fetch, older than the retention limit
+    sh(host, f"mkdir -p {runs}/ancient-run && echo '{{}}' > {runs}/ancient-run/result.json")
+    sh(host, f"touch -d '20 days ago' {runs}/ancient-run/result.json {runs}/ancient-run")
+
+    result, outcome, _directory = run(
+        host, tmp_path / "next", "sim", experience_instance=1, experience_unfetched_after=2, experience_keep_days=14
+    )
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert outcome is not None
+    text = " ".join((result.stdout + result.stderr).split())
+    # the next run swept the stuck one, gave instance 1 back clean before borrowing it, and
+    # brought both earlier runs' directories back with its own
+    back = {p.name: p for p in (tmp_path / "next").iterdir() if p.is_dir()}
+    assert {ended, swept} <= set(back), sorted(back)
+    first = json.loads((back[ended] / "result.json").read_text())
+    assert first["verdict"]["result"] == "passed"
+    assert "simulator says: isaac-sim-standin signal" in (back[ended] / f"{ended}-check.log").read_text()
+    second = json.loads((back[swept] / "result.json").read_text())
+    assert second["verdict"]["result"] == "error" and "ended before a verdict" in second["verdict"]["reason"]
+    assert (back[swept] / f"{swept}-check.log").exists()
+    assert "Also brought back" in text and ended in text and swept in text
+    mine = next(b for n, b in back.items() if n not in (ended, swept))
+    assert json.loads((mine / "result.json").read_text())["verdict"]["result"] == "passed"
+    # the instance it borrowed was not the one the killed run left
+    assert (mine / "outputs" / "banner.txt").read_text().split()[-1] != held[:12]
+    # retention: the old run is gone, with a warning naming it; nothing else of any run is left
+    assert "ancient-run" in text and "keep_days" in text
+    assert sh(host, f"ls -A {runs}").stdout.split() == [".store.lock"]
+    assert sh(host, "ls /run/isaac-sim").stdout.count(".lent") == 0
+    assert left_behind(host) == ""
+    all_ready(host, ids=[1])
 
 
 def test_a_secret_substituted_into_a_variable_reaches_the_container_and_nothing_written_down(host, tmp_path):

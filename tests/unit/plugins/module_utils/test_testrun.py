@@ -243,6 +243,9 @@ class ScriptedHost:
     def read(self, path):
         return self.files.get(path)
 
+    def exists(self, path):
+        return path in self.files or path in self.dirs or any(f.startswith(f"{path}/") for f in self.files)
+
     def now(self):
         return self.t
 
@@ -356,13 +359,18 @@ def test_runs_whose_runner_was_killed_are_swept_and_their_instance_comes_back():
     host.files["/run/isaac-sim/runs/r6.json"] = json.dumps(owner)
     host.files["/run/isaac-sim/runs/r7.json"] = json.dumps(dict(owner, pid=8))
     host.find = ["/run/isaac-sim/runs/r6.json", "/run/isaac-sim/runs/r7.json"]
-    lent = testrun.sweep(host, testrun.cli(host), alive=lambda pid: pid == 8)
+    host.files["/d/runs/r6/compose.yml"] = "{}"
+    lent, ended = testrun.sweep(host, testrun.cli(host), alive=lambda pid: pid == 8)
     # still lent: the caller gives it back through the lifecycle (restart, then free)
-    assert lent == [(2, "r6")] and "/run/isaac-sim/instance-2.lent" not in host.removed
+    assert lent == [(2, "r6")] and ended == ["r6"] and "/run/isaac-sim/instance-2.lent" not in host.removed
     assert ["systemctl", "stop", "isaac-sim-run-r6-robot.service", "isaac-sim-run-r6-check.service"] in host.calls
     assert ["/usr/bin/docker", "volume", "rm", "-f", "isaac-sim-run-r6-maps"] in host.calls
     assert "/run/isaac-sim/runs/r6.json" in host.removed
     assert not any("r7" in " ".join(c) for c in host.calls)  # its runner lives: untouched
+    # its directory says what became of it, for the controller that takes it later
+    swept = json.loads(host.files["/d/runs/r6/result.json"])
+    assert swept["verdict"]["result"] == "error" and "pid 7" in swept["verdict"]["reason"] and swept["swept"]
+    assert "/d/runs/r6/r6-robot.log" in host.files and "/d/runs/r6/r6-check.log" in host.files
 
 
 def test_junit_leaves_out_what_xml_cannot_hold():
@@ -485,7 +493,7 @@ def test_dedicated_simulators_take_a_slot_each_and_a_swept_run_gives_its_slot_ba
     owner = {"pid": 7, "services": ["isaac-sim", "check"], "volumes": [], "directory": "/d/runs/r8", "slot": 1}
     host.files["/run/isaac-sim/runs/r8.json"] = json.dumps(owner)
     host.find = ["/run/isaac-sim/runs/r8.json"]
-    assert testrun.sweep(host, testrun.cli(host), alive=lambda pid: False) == []
+    assert testrun.sweep(host, testrun.cli(host), alive=lambda pid: False) == ([], ["r8"])
     assert "/run/isaac-sim/simulator-1.lent" in host.removed
     # the slot's directories belong to the release's user; only what another user left is re-owned
     mkdir, chown = testrun.cache_argv("/d/simulators/1", "5.x")
