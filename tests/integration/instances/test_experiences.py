@@ -5,6 +5,7 @@ other verdicts (an orchestrator's exit 3, a crash with and without restart, a la
 a timeout) are the fleet scenario's suite test (tests/integration/fleet/test_suite.py), which
 runs them all in one playbook."""
 
+import hashlib
 import json
 import signal
 import xml.etree.ElementTree as ET
@@ -176,10 +177,15 @@ def test_runs_whose_controller_or_runner_was_killed_leave_the_instance_clean_and
 
 
 def test_a_secret_substituted_into_a_variable_reaches_the_container_and_nothing_written_down(host, tmp_path):
-    token = "tok-9f1c2e7d5b"  # what no file, unit, process or journal line may hold
+    # what no file, unit, process or journal line may hold, with what shells, systemd and
+    # Docker's env file would each take for their own
+    token = "tok-9f1c2e7d5b $HOME 'sq' \"dq\" \\ %n `id` ;|&"
     pattern = "[t]ok-9f1c2e7d5b"  # matches the token, not the command line that looks for it
+    digest = hashlib.sha256(token.encode()).hexdigest()
     with ThreadPoolExecutor(1) as pool:
-        running = pool.submit(run, host, tmp_path, "secret", experience_secret_environment={"TOKEN": token})
+        running = pool.submit(
+            run, host, tmp_path, "secret", env={"TOKEN_SHA256": digest}, experience_secret_environment={"TOKEN": token}
+        )
         seen = []
         while not running.done():
             # while the run's units exist: their files and the host's command lines
@@ -191,9 +197,9 @@ def test_a_secret_substituted_into_a_variable_reaches_the_container_and_nothing_
     assert "secret arrived whole" in (directory / f"{outcome['run']}-check.log").read_text()
     assert [s for s in seen if s] == []
     # nothing on the controller: artefacts, the playbook's output
-    assert token not in result.stdout + result.stderr
+    assert token not in result.stdout + result.stderr and "tok-9f1c2e7d5b" not in result.stdout + result.stderr
     for path in directory.rglob("*"):
-        assert not path.is_file() or token.encode() not in path.read_bytes(), path
+        assert not path.is_file() or b"tok-9f1c2e7d5b" not in path.read_bytes(), path
     # nothing on the host, and not in its journal
     files = sh(host, f"grep -rl '{pattern}' /etc /run /var/lib/isaac-sim /usr/local /root", check=False).stdout
     assert files.strip() == ""
