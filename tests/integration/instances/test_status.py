@@ -229,6 +229,46 @@ def test_the_dashboard_follows_each_host_live_without_ansible(host, tmp_path):
     all_ready(host)
 
 
+def test_an_open_dashboard_shows_a_rollout_s_new_image_without_a_reload(host, tmp_path):
+    # one renderer draws the page from the snapshot and from every live answer: what a rollout
+    # changes (image, digest) appears on a page opened before it
+    old, new = testbed.registry_image(host, "6.0.1"), testbed.registry_image(host, "6.0.2")
+    _run, out = dashboard(host, tmp_path, {"fleet_report_refresh": 1})
+    with chromium() as driver:
+        driver.get((out / "status.html").as_uri())
+
+        def images():
+            cards = driver.find_elements("css selector", ".instance-card")
+            return [c.find_element("css selector", ".f-image code").text for c in cards]
+
+        assert len(images()) == INSTANCES and all(text.startswith(old + " @") for text in images()), images()
+        wait_for(
+            lambda: driver.find_element("css selector", "section.host").get_attribute("data-live") == "ok",
+            timeout=15,
+            what="the page to read the host",
+        )
+        marker = driver.execute_script("window.sameDocument = 'yes'; return window.sameDocument")
+        try:
+            rolled = testbed.run_playbook(host, {"isaac_sim_image": new})
+            assert rolled.returncode == 0, rolled.stdout[-3000:]
+            wait_for(
+                lambda: all(text.startswith(new + " @") for text in images()),
+                timeout=30,
+                interval=0.5,
+                what="the new image on every card",
+            )
+            assert driver.execute_script("return window.sameDocument") == marker  # never reloaded
+            digests = {
+                c.find_element("css selector", ".f-image code").get_attribute("title")
+                for c in driver.find_elements("css selector", ".instance-card")
+            }
+            assert all(d.startswith("sha256:") for d in digests), digests
+            driver.save_screenshot(str(OUTPUT / "dashboard-rollout.png"))
+        finally:
+            assert testbed.run_playbook(host).returncode == 0
+    all_ready(host)
+
+
 def test_dashboard_in_headless_chromium(host, tmp_path):
     _first, out = dashboard(host, tmp_path)
     expected = {i["id"]: i for i in testbed.info(host)["instances"]}
