@@ -10,7 +10,7 @@ from pathlib import Path
 import yaml
 from ansible.errors import AnsibleError
 from ansible.plugins.action import ActionBase
-from ansible_collections.isaacsim.fleet.plugins.module_utils import varcheck
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import varcheck
 
 ROLES = Path(__file__).resolve().parents[2] / "roles"
 

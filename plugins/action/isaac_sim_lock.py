@@ -11,7 +11,7 @@ import time
 
 from ansible.plugins.action import ActionBase
 from ansible.utils.display import Display
-from ansible_collections.isaacsim.fleet.plugins.module_utils import runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 
 display = Display()
 POLL_S = 5

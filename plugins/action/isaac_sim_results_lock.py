@@ -9,7 +9,7 @@ import time
 
 from ansible.plugins.action import ActionBase
 from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import _alive, this_run
-from ansible_collections.isaacsim.fleet.plugins.module_utils import runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 
 LOCK_NAME = ".suite-lock.json"
 

@@ -8,7 +8,7 @@ import time
 
 from ansible.plugins.action import ActionBase
 from ansible.utils.display import Display
-from ansible_collections.isaacsim.fleet.plugins.module_utils import slurm
+from ansible_collections.isaacsim.fleet.plugins.module_utils.train import slurm
 
 display = Display()
 

@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.network import clashes
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.network import clashes
 
 DOCUMENTATION = r"""
 name: isaac_sim_address_clashes

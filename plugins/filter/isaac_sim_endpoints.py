@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.endpoints import summary_lines
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.endpoints import summary_lines
 
 DOCUMENTATION = r"""
 name: isaac_sim_endpoints

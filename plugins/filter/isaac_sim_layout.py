@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
 DOCUMENTATION = r"""
 name: isaac_sim_layout

@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.lifecycle import summary
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.lifecycle import summary
 
 DOCUMENTATION = r"""
 name: isaac_sim_rollout_summary

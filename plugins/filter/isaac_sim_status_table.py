@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.fleet_report import table
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import table
 
 DOCUMENTATION = r"""
 name: isaac_sim_status_table

@@ -10,7 +10,7 @@ import os
 import yaml
 from ansible.errors import AnsibleFilterError
 from ansible.utils.unsafe_proxy import wrap_var
-from ansible_collections.isaacsim.fleet.plugins.module_utils import suite
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
 
 DOCUMENTATION = r"""
 name: isaac_sim_suite_plan

@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils import suite
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
 
 DOCUMENTATION = r"""
 name: isaac_sim_suite_report

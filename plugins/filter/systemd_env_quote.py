@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.layout import quote
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.layout import quote
 
 DOCUMENTATION = r"""
 name: systemd_env_quote

@@ -60,7 +60,7 @@ import os
 import tempfile
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import daemon_json
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import daemon_json
 
 
 def main():

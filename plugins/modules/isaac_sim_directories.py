@@ -53,7 +53,7 @@ changes:
 """
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import dirs
 
 
 def main():

@@ -220,16 +220,10 @@ import secrets
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import (
-    experience,
-    gpu_usage,
-    hostprobe,
-    layout,
-    lifecycle,
-    run_store,
-    testrun,
-)
-from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import gpu_usage, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import experience, run_store, testrun
 
 
 def _simulator(module, host, exp, instance, lent_to=None):

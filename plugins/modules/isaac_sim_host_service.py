@@ -76,7 +76,7 @@ actions:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import host_service
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
 
 
 def main():

@@ -307,8 +307,8 @@ cost:
 """
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status, gpu_usage
-from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, gpu_usage
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerSocket
 
 
 def main():

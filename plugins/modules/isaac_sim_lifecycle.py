@@ -181,8 +181,10 @@ import os
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import dirs, hostprobe, layout, lifecycle, network, runlock
-from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import dirs
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, network, runlock
 
 # the target's links: every instance enabled on this host
 _WANTS = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")

@@ -77,7 +77,7 @@ note:
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 
 
 def main():

@@ -269,16 +269,10 @@ host:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import (
-    companions,
-    fleet_status,
-    hostprobe,
-    layout,
-    network,
-    plan,
-)
-from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES, default_image
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, default_image
 
 
 def main():

@@ -13,7 +13,7 @@ description:
   - Runs the given runs (experiences as M(isaacsim.fleet.isaac_sim_experience) runs them) with at most O(parallel)
     at once. A run whose file has the simulator (C(image=isaac-sim)) waits for a free instance of O(instances) and
     borrows it; a run that reserves GPUs waits for that many free ids of O(gpus).
-  - Lending is the collection's one lifecycle's (C(module_utils/lifecycle.py)) - a run borrows an instance, and
+  - Lending is the collection's one lifecycle's (C(module_utils/instance/lifecycle.py)) - a run borrows an instance, and
     after it the instance is restarted clean and ready before it is free again, one at a time; one that does not come
     back is not lent again. An instance that another suite or run holds is waited for, up to the run's timeout;
     no restart ever touches an instance lent to another run.
@@ -110,16 +110,10 @@ import threading
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import (
-    experience,
-    gpu_usage,
-    hostprobe,
-    layout,
-    lifecycle,
-    run_store,
-    testrun,
-)
-from ansible_collections.isaacsim.fleet.plugins.module_utils.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import gpu_usage, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import experience, run_store, testrun
 
 KEEP = ("title", "key", "experience", "timeout")
 

@@ -83,7 +83,7 @@ command:
 import os
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import slurm
+from ansible_collections.isaacsim.fleet.plugins.module_utils.train import slurm
 
 # the program each runtime's build runs on the build host
 _TOOL = {"apptainer": "apptainer", "enroot": "enroot", "podman": "docker", "docker": "docker"}

@@ -145,7 +145,7 @@ import secrets
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import slurm
+from ansible_collections.isaacsim.fleet.plugins.module_utils.train import slurm
 
 # what the request check names each job key after (playbooks/train.yml's variables)
 _IMAGE_VARIABLE = "train_image"

@@ -46,8 +46,9 @@ min_version:
 """
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils import driver, hostprobe
-from ansible_collections.isaacsim.fleet.plugins.module_utils.releases import RELEASES
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import driver
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES
 
 
 def main():

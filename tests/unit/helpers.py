@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 from ansible.module_utils import basic
-from ansible_collections.isaacsim.fleet.plugins.module_utils import fleet_status
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status
 
 REC = Path(__file__).resolve().parent / "recorded"
 NOW = 1795354574  # `date +%s` on the host right after the recording

@@ -1,5 +1,5 @@
 """No YAML of the collection starts, restarts, stops or removes an instance by itself:
-every such change goes through the isaac_sim_lifecycle module (plugins/module_utils/lifecycle.py)."""
+every such change goes through the isaac_sim_lifecycle module (plugins/module_utils/instance/lifecycle.py)."""
 
 from pathlib import Path
 

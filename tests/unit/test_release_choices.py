@@ -1,12 +1,12 @@
 """Every choice list of Isaac Sim releases (role argument specs, module documentation) is the
-release table's (plugins/module_utils/releases.py): adding a release there and forgetting a list
+release table's (plugins/module_utils/instance/releases.py): adding a release there and forgetting a list
 fails here, naming the list."""
 
 import ast
 from pathlib import Path
 
 import yaml
-from ansible_collections.isaacsim.fleet.plugins.module_utils import releases
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import releases
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,0 +1,128 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""A host service of the collection that is not an instance (the status endpoint): its files
+and its systemd unit, brought to the wanted state in one module call.
+
+Pure decisions here; the module (isaac_sim_host_service) reads and writes. Instances never
+come here: they change only through the lifecycle (module_utils/instance/lifecycle.py).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+UNIT_SUFFIXES = (".service", ".timer", ".socket")
+
+
+def is_unit_file(path: str) -> bool:
+    """A file systemd reads only on daemon-reload: a unit, or a drop-in (UNIT.d/NAME.conf)."""
+    parent = os.path.basename(os.path.dirname(path))
+    return path.endswith(UNIT_SUFFIXES) or (path.endswith(".conf") and parent.endswith(".d"))
+
+
+def changed_files(files: dict, read) -> list:
+    """The paths whose content or mode differ from what is wanted. read(path) -> (content, mode) or None."""
+    out = []
+    for path, want in sorted(files.items()):
+        have = read(path)
+        if have is None or have[0] != want["content"] or have[1] != int(str(want.get("mode", "0644")), 8):
+            out.append(path)
+    return out
+
+
+def directories_to_fix(directories: list, stat=os.stat) -> list:
+    """The directories ({path, uid, gid, mode}) that are missing or owned or moded otherwise."""
+    out = []
+    for d in directories:
+        try:
+            st = stat(d["path"])
+        except OSError:
+            out.append(d)
+            continue
+        if (st.st_uid, st.st_gid, st.st_mode & 0o7777) != (int(d["uid"]), int(d["gid"]), int(str(d["mode"]), 8)):
+            out.append(d)
+    return out
+
+
+def fix_directory(d: dict) -> None:
+    """Created (with parents) or re-owned; what is inside is kept as it is."""
+    os.makedirs(d["path"], mode=0o755, exist_ok=True)
+    os.chown(d["path"], int(d["uid"]), int(d["gid"]))
+    os.chmod(d["path"], int(str(d["mode"]), 8))
+
+
+def actions(state: str, show: dict, files_changed: list, removable: list, directories: bool = False) -> list:
+    """Steps, in order, for the unit as `show` describes it (ActiveState, UnitFileState, LoadState).
+
+    started: its directories made first (they may be a container's mounts), enabled and running,
+    restarted when one of its files or directories changed while it ran.
+    absent: stopped and disabled, before its files go.
+    """
+    units_changed = any(is_unit_file(p) for p in files_changed + (removable if state == "absent" else []))
+    active = show.get("ActiveState") in ("active", "activating", "reloading")
+    enabled = show.get("UnitFileState") == "enabled"
+    verbs = []
+    if state == "absent":
+        if active:
+            verbs.append("stop")
+        if enabled:
+            verbs.append("disable")
+        if removable:
+            verbs.append("remove")
+        if units_changed:
+            verbs.append("daemon-reload")
+        return verbs
+    if directories:
+        verbs.append("directories")
+    if files_changed:
+        verbs.append("write")
+    if units_changed:
+        verbs.append("daemon-reload")
+    if not enabled:
+        verbs.append("enable")
+    if not active:
+        verbs.append("start")
+    elif files_changed or directories:
+        verbs.append("restart")
+    return verbs
+
+
+def read_file(path):
+    try:
+        with open(path) as fh:
+            content = fh.read()
+        return content, os.stat(path).st_mode & 0o7777
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def write_file(path: str, content: str, mode) -> None:
+    """Atomically: a reader never sees half a file."""
+    directory = os.path.dirname(path)
+    os.makedirs(directory, mode=0o755, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".isaac-sim.")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(content)
+        os.chmod(tmp, int(str(mode), 8))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def remove(path: str) -> bool:
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path)
+        return True
+    if os.path.lexists(path):
+        os.unlink(path)
+        # a drop-in directory left empty goes too (one with other drop-ins stays)
+        parent = os.path.dirname(path)
+        if parent.endswith(".d") and not os.listdir(parent):
+            os.rmdir(parent)
+        return True
+    return False

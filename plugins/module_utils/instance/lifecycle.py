@@ -1,0 +1,895 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The one lifecycle of a host's Isaac Sim instances.
+
+Every path that changes running instances comes here: a deploy (apply), a
+day-2 start, stop, restart or remove, a scale-down, a cleanup, a rolling
+restart and an upgrade. The steps are the same everywhere:
+
+- an instance that is not serving (new, stopped, failed) is started at once,
+  all of them together;
+- a serving instance whose settings changed is changed one at a time: stop it
+  if stuck activating, reset its start counter, restart, wait until ready,
+  soak; so a host of N keeps N-1 serving;
+- on the first failure the instance goes back to its previous settings (and
+  image), the files shared by all instances too, everything after it is left
+  as it is, and the failure is reported with the instance and the reason.
+
+The host is reached through a small interface (run, read, write, remove,
+mode, exists, sleep, now, wall) that the module binds to the real host and
+the unit tests to a scripted one.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import time
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import reserved_ports
+
+_GATE_WORDS = re.compile(
+    r"not ready within|stopped before it was ready|went away before it was ready|docker run exited"
+)
+
+
+class Host:
+    """The host as the lifecycle sees it. The module fills it with real calls.
+
+    read(path) -> text or None; write(path, text, mode); remove(path) removes a
+    file or a tree; mode(path) -> int or None; now() a monotonic clock, wall()
+    epoch seconds for the journal.
+    """
+
+    def __init__(self, run, read, write, remove, mode, exists, sleep, now, wall, interrupted=None):
+        self.run, self.read, self.write, self.remove, self.mode = run, read, write, remove, mode
+        self.exists, self.sleep, self.now, self.wall = exists, sleep, now, wall
+        # why the run that asked for this is gone ("" while it is there): checked between instances
+        self.interrupted = interrupted or (lambda: "")
+
+
+def bind(module) -> Host:
+    """The real host, for a module running on it."""
+
+    def run(argv):
+        return module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:])
+
+    def read(path):
+        try:
+            with open(path) as fh:
+                return fh.read()
+        except OSError:
+            return None
+
+    def write(path, text, mode):
+        if path.startswith("/proc/sys/"):  # a kernel setting: written in place, never replaced
+            with open(path, "w") as fh:
+                fh.write(text)
+            return
+        directory = os.path.dirname(path)
+        os.makedirs(directory, mode=0o755, exist_ok=True)
+        tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+
+    def remove(path):
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path):
+            os.unlink(path)
+
+    def mode(path):
+        try:
+            return os.stat(path).st_mode & 0o777
+        except OSError:
+            return None
+
+    return Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
+
+
+# InvocationID changes with every start: a session end resets NRestarts (isaac-sim-run), so the
+# count alone could read the same before and after a restart
+PROPS = "Id,ActiveState,SubState,NRestarts,Result,UnitFileState,InvocationID"
+
+
+def show(host: Host, units, props: str = PROPS) -> dict:
+    """{unit: {property: value}} for the given units in one systemctl call ({} for a unit not shown)."""
+    units = list(units)
+    if not units:
+        return {}
+    _rc, out, _err = host.run(["systemctl", "show", "-p", props] + units)
+    found = {}
+    for block in re.split(r"\n\s*\n", out.strip()):
+        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+        if fields.get("Id"):
+            found[fields["Id"]] = fields
+    return {u: found.get(u, {}) for u in units}
+
+
+def states(host: Host, ids) -> dict:
+    """{id: {ActiveState, SubState, NRestarts, Result, UnitFileState}} in one systemctl call."""
+    ids = list(ids)
+    shown = show(host, [layout.unit(i) for i in ids])
+    return {i: shown[layout.unit(i)] for i in ids}
+
+
+def companion_units(companions: dict, ids=None) -> list:
+    """Units of the companions {id: [names]} of the instances `ids` (all by default)."""
+    return [
+        layout.companion_unit(i, name)
+        for i, names in sorted(companions.items())
+        if ids is None or i in ids
+        for name in names
+    ]
+
+
+def leftover_companions(host: Host, wanted: dict) -> list:
+    """Failed units of companions no instance has any more (a companion whose first start failed
+    and whose instance went back): systemd keeps listing them, and the host degraded, until they
+    are reset, whether or not their unit file is still there."""
+    _rc, out, _err = host.run(
+        ["systemctl", "list-units", "--failed", "--all", "--plain", "--no-legend", "isaac-sim-*@*.service"]
+    )
+    units = [line.split()[0] for line in out.splitlines() if line.strip()]
+    found = [(u, layout.COMPANION_UNIT_RE.match(u)) for u in units]
+    return [u for u, m in found if m and m.group(1) not in wanted.get(int(m.group(2)), [])]
+
+
+def serving(state: dict) -> bool:
+    return state.get("ActiveState") == "active"
+
+
+def _gate_reason(host: Host, unit: str, since: float) -> str:
+    """The readiness gate's own words about why the start failed, with the container's last
+    lines the gate quoted ("| ..."), else systemd's result."""
+    _rc, out, _err = host.run(["journalctl", "-u", unit, "--since", f"@{int(since)}", "-o", "cat", "--no-pager"])
+    lines = [line.strip() for line in out.splitlines()]
+    for n in range(len(lines) - 1, -1, -1):
+        if _GATE_WORDS.search(lines[n]) and not lines[n].startswith("|"):
+            quoted = [q[1:].strip() for q in lines[n + 1 :] if q.startswith("|") and not _GATE_WORDS.search(q)]
+            return lines[n] + (f" (last lines: {' / '.join(quoted[-3:])})" if quoted else "")
+    state = show(host, [unit])[unit]
+    return f"the unit did not start (ActiveState={state.get('ActiveState')}, Result={state.get('Result')})"
+
+
+def companions_up(host: Host, companions: dict) -> dict:
+    """{id: reason or None}: start the companions {id: [names]} of instances that are ready, all
+    together (each one's start ends at its own readiness gate); None when all of an instance's are up."""
+    units = companion_units(companions)
+    out = {i: None for i in companions}
+    if not units:
+        return out
+    since = host.wall()
+    # a deliberate start must not count against the crash-loop limit
+    host.run(["systemctl", "reset-failed"] + units)
+    host.run(["systemctl", "start"] + units)
+    shown = show(host, units)
+    for i, names in sorted(companions.items()):
+        for name in names:
+            unit = layout.companion_unit(i, name)
+            if out[i] is None and not (serving(shown[unit]) and host.exists(layout.companion_marker(i, name))):
+                out[i] = f"its companion {layout.companion_container(i, name)} did not start: " + _gate_reason(
+                    host, unit, since - 1
+                )
+    return out
+
+
+def _prepare_start(host: Host, ids, state: dict, renew=None):
+    """Stop the instances of `renew` (all by default) that are stuck activating, reset every counter."""
+    for i in ids if renew is None else [i for i in ids if i in renew]:
+        if state.get(i, {}).get("ActiveState") == "activating":
+            # a restart would cancel the pending start job and fail; stop it first
+            host.run(["systemctl", "stop", layout.unit(i)])
+    # a deliberate (re)start must not count against the crash-loop limit
+    host.run(["systemctl", "reset-failed"] + [layout.unit(i) for i in ids])
+
+
+def restart(host: Host, i: int, between=None, companions=()) -> tuple:
+    """(ok, reason, seconds): stop + start + ready, as systemd's restart with the readiness gate does it,
+    then the instance's companions (names), each up and ready.
+
+    between: called while the instance is stopped (its container gone), before it starts again.
+    """
+    _prepare_start(host, [i], states(host, [i]))
+    start, since = host.now(), host.wall()
+    if between is None:
+        # PartOf= restarts the companions that run; companions_up starts the others
+        rc, _out, _err = host.run(["systemctl", "restart", layout.unit(i)])
+    else:
+        host.run(["systemctl", "stop", layout.unit(i)])
+        between()
+        rc, _out, _err = host.run(["systemctl", "start", layout.unit(i)])
+    if rc != 0:
+        return False, _gate_reason(host, layout.unit(i), since - 1), host.now() - start
+    if not host.exists(layout.marker(i)):
+        return False, "the unit is active but the readiness gate left no ready marker", host.now() - start
+    reason = companions_up(host, {i: list(companions)})[i]
+    return reason is None, reason, host.now() - start
+
+
+def start(host: Host, ids, renew=(), companions=None) -> dict:
+    """{id: (ok, reason)}: start instances that are not serving, all at once; each ends ready or failed,
+    then the companions ({id: [names]}) of those that are ready.
+
+    An instance already activating (coming back after a Docker restart, say) is waited for, unless
+    it is in `renew` (its settings changed): then its start job, on the old settings, is stopped first.
+    """
+    ids = list(ids)
+    if not ids:
+        return {}
+    _prepare_start(host, ids, states(host, ids), renew=set(renew))
+    since = host.wall()
+    host.run(["systemctl", "start"] + [layout.unit(i) for i in ids])
+    after = states(host, ids)
+    out = {}
+    for i in ids:
+        if serving(after[i]) and host.exists(layout.marker(i)):
+            out[i] = (True, None)
+        else:
+            out[i] = (False, _gate_reason(host, layout.unit(i), since - 1))
+    ready = {i: list((companions or {}).get(i, ())) for i in ids if out[i][0]}
+    for i, reason in companions_up(host, ready).items():
+        if reason:
+            out[i] = (False, reason)
+    return out
+
+
+def soak(host: Host, i: int, seconds: float, interval: float = 1.0) -> tuple:
+    """(ok, reason): stay active and ready, with the restart count unchanged, for `seconds`."""
+    first = states(host, [i])[i]
+    base, first_start = first.get("NRestarts", "0"), first.get("InvocationID")
+    begin = host.now()
+    while True:
+        state = first if first is not None else states(host, [i])[i]
+        first = None
+        elapsed = host.now() - begin
+        if state.get("NRestarts", "0") != base or state.get("InvocationID") != first_start:
+            return (
+                False,
+                f"restarted during the soak (NRestarts {base} -> {state.get('NRestarts')}) after {elapsed:.0f} s",
+            )
+        if not serving(state) or not host.exists(layout.marker(i)):
+            return (
+                False,
+                f"lost readiness during the soak after {elapsed:.0f} s (ActiveState={state.get('ActiveState')})",
+            )
+        if elapsed >= seconds:
+            return True, None
+        host.sleep(min(interval, max(0.0, seconds - elapsed)))
+
+
+def pinned(host: Host, text: str) -> str:
+    """An env file pinned to its image id when its tag has moved to another image since it was written."""
+    env = layout.parse(text)
+    ref, image_id = env.get(layout.K_IMAGE, ""), env.get(layout.K_IMAGE_ID, "")
+    if not image_id.startswith("sha256:"):
+        return text
+    rc, out, _err = host.run(["docker", "image", "inspect", "-f", "{{.Id}}", ref])
+    if rc == 0 and out.strip() == image_id:
+        return text
+    line = f"{layout.K_IMAGE}={layout.quote(image_id)}"
+    return re.sub(rf"^{layout.K_IMAGE}=.*$", lambda _match: line, text, count=1, flags=re.M)
+
+
+def stop(host: Host, ids) -> None:
+    if ids:
+        host.run(["systemctl", "stop"] + [layout.unit(i) for i in ids])
+
+
+def remove(host: Host, ids, purge=False, data_root=layout.DATA_ROOT, companions=None) -> None:
+    """Stop, disable and forget instances and their companions ({id: [names]}); their caches, logs
+    and data stay unless purge."""
+    ids = list(ids)
+    if not ids:
+        return
+    units = companion_units(companions or {}, ids) + [layout.unit(i) for i in ids]
+    host.run(["systemctl", "disable", "--now"] + units)
+    for i in ids:
+        host.remove(layout.env_file(i))
+        for name in (companions or {}).get(i, ()):
+            host.remove(layout.companion_env_file(i, name))
+        if purge:
+            host.remove(layout.data_dir(i, data_root))
+    host.run(["systemctl", "reset-failed"] + units)
+
+
+class _Files:
+    """Writes that remember what was there, so a failure can put it back."""
+
+    def __init__(self, host: Host):
+        self.host, self.before = host, {}
+
+    def write(self, path, text, mode):
+        if path not in self.before:
+            self.before[path] = (self.host.read(path), self.host.mode(path))
+        self.host.write(path, text, mode)
+
+    def restore(self, paths):
+        for path in paths:
+            text, mode = self.before.get(path, (None, None))
+            if text is None:
+                self.host.remove(path)
+            else:
+                self.host.write(path, text, mode)
+
+
+def user_of(text) -> str:
+    """The container user an env file runs its instance as (docker's --user), "" if none."""
+    args = layout.split_args(layout.parse(text or "").get(layout.K_DOCKER_ARGS, ""))
+    return next((a.split("=", 1)[1] for a in args if a.startswith("--user=")), "")
+
+
+def ports_of(text) -> set:
+    """(address, port) for each port an env file gives its instance (protocol left out: the safe
+    side). The address is the instance's own ("" on the host's network): the same port at two
+    addresses is no clash."""
+    env = layout.parse(text or "")
+    address = env.get(layout.K_ADDRESS, "")
+    return {(address, int(v)) for k, v in env.items() if k.startswith(layout.K_PORT_PREFIX) and v.isdigit()}
+
+
+def _port_text(port) -> str:
+    """49100, or 10.0.0.5:49100 for a port at an instance's own address."""
+    if isinstance(port, tuple):
+        address, number = port
+        return f"{address}:{number}" if address else str(number)
+    return str(port)
+
+
+def port_order(old: dict, new: dict, roll: list, start: list) -> tuple:
+    """(steps, notes): the order in which to change instances so none starts on a port
+    another instance still holds.
+
+    old/new: {id: set of ports} before and after; roll: serving instances to restart one
+    at a time; start: instances not serving, to start. steps: [("start", [ids]) or
+    ("roll", id) or ("stop", [ids])]. When serving instances block each other in a
+    cycle, the blockers are stopped before the instance that needs their ports (the
+    host goes below N-1 for that step) and started after: notes say so.
+    """
+    holding = {i: set(old.get(i, ())) for i in roll}  # serving, still on their old ports
+
+    def blocked(i):
+        return {j for j, ports in holding.items() if j != i and ports & new.get(i, set())}
+
+    steps, notes = [], []
+    first = [i for i in start if not blocked(i)]
+    later = [i for i in start if i not in first]
+    if first:
+        steps.append(("start", first))
+    pending = list(roll)
+    while pending:
+        free = [i for i in pending if not blocked(i)]
+        if free:
+            i = free[0]
+        else:
+            i = min(pending, key=lambda x: (len(blocked(x)), x))
+            gone = sorted(blocked(i))
+            steps.append(("stop", gone))
+            freed = sorted(new[i] & set().union(*(holding[j] for j in gone)))
+            notes.append(
+                f"{', '.join(layout.container(j) for j in gone)} stopped before {layout.container(i)} to free "
+                f"port(s) {', '.join(_port_text(p) for p in freed)}: "
+                f"the host is below N-1 until they start again on their new ports"
+            )
+            for j in gone:
+                pending.remove(j)
+                holding.pop(j)
+                later.append(j)
+        pending.remove(i)
+        holding.pop(i)
+        steps.append(("roll", i))
+    if later:
+        steps.append(("start", sorted(later)))
+    return steps, notes
+
+
+def _enabled(state: dict) -> bool:
+    return state.get("UnitFileState") in ("enabled", "enabled-runtime", "static", "indirect")
+
+
+def _instance_files(i: int, want: dict) -> dict:
+    """{path: text, or None for a file to remove}: the env files of instance i and of its companions."""
+    files = {layout.env_file(i): want["instances"][i]}
+    wanted = (want.get("companions") or {}).get(i, {})
+    for name, text in wanted.items():
+        files[layout.companion_env_file(i, name)] = text
+    for name in (want.get("companions_found") or {}).get(i, ()):
+        if name not in wanted:
+            files[layout.companion_env_file(i, name)] = None
+    return files
+
+
+def _names(files: dict, i: int) -> list:
+    """The companions an instance's file set has (those with a text)."""
+    names = []
+    for path, text in files.items():
+        match = layout.COMPANION_ENV_RE.match(path.rsplit("/", 1)[-1])
+        if text is not None and match and int(match.group(1)) == i:
+            names.append(match.group(2))
+    return sorted(names)
+
+
+def reserve(host: Host, ports, managed: str, grow: bool, check=False) -> bool:
+    """Keep `ports` out of the host's ephemeral range (reserved_ports.py): in the kernel now, in
+    sysctl.d for the next boot. Returns whether anything changed (or would, in check mode)."""
+    runtime = host.read(reserved_ports.PROC)
+    if runtime is None:  # not Linux's /proc: nothing to keep
+        return False
+    before = host.read(reserved_ports.CONF)
+    value, added = reserved_ports.wanted(runtime, before, ports, grow)
+    text = reserved_ports.conf(value, added, managed)
+    kernel = value != reserved_ports.parse(runtime)
+    changed = kernel or text != before
+    if check or not changed:
+        return changed
+    if text is None:
+        host.remove(reserved_ports.CONF)
+    elif text != before:
+        host.write(reserved_ports.CONF, text, 0o644)
+    if kernel:
+        try:
+            host.write(reserved_ports.PROC, reserved_ports.render(value) + "\n", 0o644)
+        except OSError as exc:
+            raise OSError(
+                f"could not reserve the instances' ports ({reserved_ports.KEY}={reserved_ports.render(value)}): "
+                f"{exc}. Fix: a host that is itself a container needs a writable /proc/sys, or the value set "
+                f"where it is created (docker run --sysctl {reserved_ports.KEY}=...)"
+            ) from exc
+    return True
+
+
+def apply(host: Host, want: dict, check=False) -> dict:
+    """Bring the host to `want`, never taking more than one serving instance down at a time.
+
+    want: {"files": {path: (text, mode), or (None, None) to remove} shared by every instance
+           (units, scripts), "instances": {id: env text}, "companions": {id: {name: env text}},
+           "companions_found": {id: [names]} (on the host now), "env_mode": int, "remove": [ids],
+           "purge": bool, "data_root": str, "soak": seconds, "defer_running": bool,
+           "reserve": [ports] to keep out of the ephemeral range, or None, "managed": str}
+    An instance changes when its env file or one of its companions' does; it changes with its
+    companions, as one. With defer_running, a host where a serving instance would restart or be
+    removed is left as it is (deferred=True): the caller rolls it later, in canary batches.
+    """
+    desired = {i: _instance_files(i, want) for i in sorted(want["instances"])}
+    found = want.get("companions_found") or {}
+    gone = sorted(want.get("remove") or [])
+    state = states(host, list(desired) + gone)
+    all_files = want.get("files", {})
+    shared = {p: f for p, f in all_files.items() if f[0] is not None and (host.read(p) != f[0] or host.mode(p) != f[1])}
+    stale = [p for p, f in all_files.items() if f[0] is None and host.read(p) is not None]
+    current = {i: {path: host.read(path) for path in files} for i, files in desired.items()}
+    changed_ids = {i for i in desired if current[i] != desired[i]}
+    wanted_companions = {i: _names(files, i) for i, files in desired.items()}
+    comp_state = show(host, companion_units(wanted_companions))
+    cleared = leftover_companions(host, wanted_companions)
+    to_start = [i for i in desired if not serving(state[i])]
+    # the target only groups the instances: a new target file restarts none of them
+    restarting = [p for p in shared if p != os.path.join(layout.UNIT_DIR, layout.TARGET)]
+    to_roll = [i for i in desired if serving(state[i]) and (i in changed_ids or restarting)]
+    to_enable = [i for i in desired if not _enabled(state[i])]
+    enable_companions = [
+        (i, n)
+        for i, names in wanted_companions.items()
+        if i not in changed_ids
+        for n in names
+        if not _enabled(comp_state.get(layout.companion_unit(i, n), {}))
+    ]
+    # a companion down beside a serving instance that does not change: started, the instance left alone
+    revive = {
+        i: [n for n in names if not serving(comp_state.get(layout.companion_unit(i, n), {}))]
+        for i, names in wanted_companions.items()
+        if i not in to_start and i not in to_roll
+    }
+    revive = {i: names for i, names in revive.items() if names}
+    _rc, target_state, _err = host.run(["systemctl", "show", "-p", "UnitFileState", "--value", layout.TARGET])
+    # a target enabled before it was wanted by docker.service gets its new link from systemctl enable
+    target_enabled = target_state.strip() == "enabled" and host.exists(layout.TARGET_DOCKER_WANT)
+    main_env = {i: layout.env_file(i) for i in desired}
+    steps, notes = port_order(
+        {i: ports_of(current[i][main_env[i]]) for i in desired},
+        {i: ports_of(desired[i][main_env[i]]) for i in desired},
+        to_roll,
+        to_start,
+    )
+    plan = {
+        "files": sorted(shared) + sorted(stale),
+        "start": to_start,
+        "roll": to_roll,
+        "remove": gone,
+        "enable": to_enable
+        + ([] if target_enabled else [layout.TARGET])
+        + [layout.companion_unit(i, n) for i, n in enable_companions],
+        "companions": {i: [layout.companion_unit(i, n) for n in names] for i, names in revive.items()},
+        "cleared": cleared,
+        "order": [f"{kind} {' '.join(map(str, what)) if isinstance(what, list) else what}" for kind, what in steps],
+        "notes": notes,
+    }
+    result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
+    ports = want.get("reserve")
+    managed = want.get("managed", "")
+    reserving = ports is not None and reserve(host, ports, managed, grow=False, check=True)
+    plan["reserved_ports"] = reserving
+    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared or reserving)
+    if check or not changed:
+        result["changed"] = changed
+        return result
+    # a scale-down that stops serving instances is a change of serving instances: canary batches too
+    if want.get("defer_running") and (to_roll or any(serving(state[i]) for i in gone)):
+        result.update(changed=False, deferred=True)
+        return result
+
+    # a scale-down never takes an instance from the test run it is lent to: nothing changes
+    for i in gone:
+        holder = lent_to(host, i)
+        if holder is not None:
+            result.update(failed=_lent_failure(i, holder, "the scale-down would remove it (nothing was changed)"))
+            result["changed"] = False
+            return result
+    if want.get("prepare"):
+        want["prepare"]()
+    # before any instance binds a new port; the old ones stay reserved until the end
+    if reserving:
+        reserve(host, ports, managed, grow=True)
+    files = _Files(host)
+    # scale-down first: it frees the ports and GPUs of the instances that go
+    remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT), found)
+    result["removed"] = gone
+    if cleared:
+        host.run(["systemctl", "reset-failed"] + cleared)
+    for path, (text, mode) in shared.items():
+        files.write(path, text, mode)
+    units_changed = any(p.endswith((".service", ".target")) for p in shared)
+    if units_changed:
+        host.run(["systemctl", "daemon-reload"])
+
+    def put(i, texts, mode_of):
+        """Instance i's file set as `texts`; companions that leave are disabled and stopped
+        while their unit file is still there, companions that come are enabled."""
+        before = _names({p: host.read(p) for p in texts}, i)
+        after = _names(texts, i)
+        leaving = [layout.companion_unit(i, n) for n in before if n not in after]
+        if leaving:
+            host.run(["systemctl", "disable", "--now"] + leaving)
+            # a companion whose start failed stays listed as failed after its stop
+            host.run(["systemctl", "reset-failed"] + leaving)
+        for path, text in texts.items():
+            if text is None:
+                host.remove(path)
+            elif host.read(path) != text:
+                files.write(path, text, mode_of(path))
+        if after:
+            host.run(["systemctl", "enable"] + [layout.companion_unit(i, n) for n in after])
+
+    def write_new(i):
+        put(i, desired[i], lambda _path: want["env_mode"])
+
+    def put_back(i):
+        """Previous settings of instance i and its companions (and the shared files), pinned to the
+        previous image. Companions that came with the change leave while their unit file is there."""
+        old = {
+            path: (pinned(host, text) if path == main_env[i] and text else text) for path, text in current[i].items()
+        }
+        put(i, old, lambda path: files.before.get(path, (None, want["env_mode"]))[1] or want["env_mode"])
+        if shared:
+            files.restore(sorted(shared))
+            if units_changed:
+                host.run(["systemctl", "daemon-reload"])
+
+    stopped = []  # serving instances stopped to free ports, not started again yet
+
+    def handover(i):
+        """With a new container user (4.x root -> 5.x uid 1234), what the old one wrote is handed
+        over while the instance is down: after its last write, before the new user's first."""
+        old_env = current[i][main_env[i]]
+        if old_env is None or user_of(old_env) == user_of(desired[i][main_env[i]]) or not want.get("reown"):
+            return None
+        return lambda: want["reown"](i)
+
+    def wind_down(first):
+        """The apply ends before step `first`: instances stopped for ports come back as they were.
+        Returns the instances left as they were."""
+        if stopped:
+            start(host, stopped, companions={i: _names(current[i], i) for i in stopped})
+        later = [w for kind, w in steps[first:] if kind == "roll"]
+        return [i for i in later if i not in stopped] + stopped
+
+    def stop_here(failed, n):
+        """The failure ends the apply."""
+        result.update(failed=failed, untouched=wind_down(n + 1), changed=True)
+        return result
+
+    for n, (kind, what) in enumerate(steps):
+        if kind == "stop":
+            stop(host, what)
+            stopped.extend(what)
+            continue
+        if kind == "start":
+            # not serving: nothing to keep up, so all of them at once
+            for i in what:
+                if i in changed_ids:
+                    write_new(i)
+                if handover(i):
+                    handover(i)()
+            stopped[:] = [i for i in stopped if i not in what]
+            renew = set(changed_ids) | (set(what) if shared else set())
+            outcome = start(host, what, renew=renew, companions={i: wanted_companions[i] for i in what})
+            for i, (ok, reason) in outcome.items():
+                if ok:
+                    result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
+                    continue
+                stop(host, [i])
+                was_new = current[i][main_env[i]] is None
+                put_back(i)
+                return stop_here(
+                    {
+                        "id": i,
+                        "reason": reason,
+                        # a new instance has nothing to go back to; it is stopped
+                        "reverted": None if was_new else True,
+                        "reverted_to": None if was_new else layout.parse(current[i][main_env[i]]).get(layout.K_IMAGE),
+                        "revert_error": None,
+                        "left": "stopped",
+                    },
+                    n,
+                )
+            continue
+        i = what
+        why = host.interrupted()
+        if why:
+            return interrupt(host, result, why, wind_down(n))
+        holder = lent_to(host, i)
+        if holder is not None:  # a test run has it: its settings change after the run, not under it
+            failed = _lent_failure(i, holder, "not changed")
+            result.update(failed=failed, untouched=[j for j in wind_down(n) if j != i], changed=True)
+            return result
+        if i in changed_ids:
+            write_new(i)
+        ok, reason, restart_s = restart(host, i, handover(i), wanted_companions[i])
+        soak_start = host.now()
+        if ok:
+            ok, reason = soak(host, i, want.get("soak", 0))
+        soak_s = host.now() - soak_start
+        if ok:
+            action = "apply" if i in changed_ids else "restart"
+            result["done"].append(
+                {"id": i, "action": action, "restart_s": round(restart_s, 3), "soak_s": round(soak_s, 3)}
+            )
+            continue
+        put_back(i)
+        back, back_reason, _seconds = restart(host, i, companions=_names(current[i], i))
+        return stop_here(
+            {
+                "id": i,
+                "reason": reason,
+                "reverted": back,
+                "reverted_to": layout.parse(current[i][main_env[i]] or "").get(layout.K_IMAGE),
+                "revert_error": back_reason,
+                "restart_s": round(restart_s, 3),
+                "left": "running" if back else "failed",
+            },
+            n,
+        )
+
+    if revive:
+        for i, reason in companions_up(host, revive).items():
+            if reason:
+                result.update(
+                    failed={"id": i, "reason": reason, "reverted": None, "left": "running"},
+                    changed=True,
+                )
+                return result
+            result["done"].append({"id": i, "action": "companions", "restart_s": 0.0, "soak_s": 0.0})
+    if plan["enable"]:
+        host.run(
+            ["systemctl", "enable", layout.TARGET]
+            + [layout.unit(i) for i in to_enable]
+            + [layout.companion_unit(i, n) for i, n in enable_companions]
+        )
+    # companion templates no instance uses any more: their units are gone, so now the files
+    for path in stale:
+        host.remove(path)
+    if stale:
+        host.run(["systemctl", "daemon-reload"])
+    if reserving:
+        reserve(host, ports, managed, grow=False)
+    result["changed"] = True
+    return result
+
+
+def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
+    """Stop before the next instance: the one in hand is ready or back, the rest as they were;
+    said in the journal, where the next run and a person find it."""
+    done = [d["id"] for d in result["done"]]
+    said = ", ".join(layout.container(i) for i in done) or "none"
+    rest = ", ".join(layout.container(i) for i in left) or "none"
+    host.run(
+        ["logger", "-t", "isaac-sim-lifecycle", f"rollout interrupted: {why}; done: {said}; left as they were: {rest}"]
+    )
+    result.update(interrupted=why, untouched=list(left), changed=bool(done) or result.get("changed", False))
+    return result
+
+
+def _lent_failure(i: int, holder: str, what: str) -> dict:
+    """The failure of a step that would touch instance i while a test run has it."""
+    return {
+        "id": i,
+        "reason": f"{what}, and it is lent to test run {holder}, which it serves until the run ends. "
+        "Fix: run again once the run is over",
+        "reverted": None,
+        "left": "running",
+    }
+
+
+def _loan(host: Host, i: int) -> tuple:
+    """(run, pid) of instance i's loan; (None, None) when it is not lent."""
+    if not host.exists(layout.lent_marker(i)):
+        return None, None
+    words = (host.read(f"{layout.lent_marker(i)}/run") or "").split()
+    pid = int(words[1]) if len(words) > 1 and words[1].isdigit() else None
+    return (words[0] if words else "a run"), pid
+
+
+def lent_to(host: Host, i: int) -> str | None:
+    """The run instance i is lent to, or None."""
+    return _loan(host, i)[0]
+
+
+def _mark(host: Host, i: int, run: str, pid=None) -> tuple:
+    rc, _out, err = host.run(["mkdir", layout.lent_marker(i)])
+    if rc == 0:
+        host.write(f"{layout.lent_marker(i)}/run", f"{run}\n{pid or ''}\n", 0o644)
+    return rc == 0, err
+
+
+def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.0, pid=None, companions=None):
+    """Lend instance i to `run` (its runner's process `pid`), waiting up to wait_s for the run
+    that has it to give it back. Returns None once lent, else the run that still has it. A loan
+    whose runner's process is gone is ended first, as its runner would have (restart, then free).
+    A lent instance is restarted by no one but its borrower's give_back."""
+    deadline = host.now() + wait_s
+    while True:
+        ok, err = _mark(host, i, run, pid)
+        if ok:
+            return None
+        holder, holder_pid = _loan(host, i)
+        if holder is None:
+            ok, err = _mark(host, i, run, pid)  # given back in between
+            if ok:
+                return None
+            if not host.exists(layout.lent_marker(i)):
+                raise OSError(f"cannot lend {layout.container(i)}: {err.strip()}")
+        elif holder_pid and not host.exists(f"/proc/{holder_pid}"):
+            give_back(host, i, holder, companions)
+            continue
+        if host.now() >= deadline:
+            return lent_to(host, i) or "a run"
+        host.sleep(interval)
+
+
+def unlend(host: Host, i: int, run: str) -> None:
+    """End a loan that nothing ran on: free as it was, no restart."""
+    if lent_to(host, i) == run:
+        host.remove(layout.lent_marker(i))
+
+
+def give_back(host: Host, i: int, run: str, companions=None) -> str | None:
+    """The end of a loan, in this order: instance i restarted clean, ready, then free, so the
+    next borrower never gets what the last one left. Returns why the restart failed (the
+    instance is free all the same: a failed instance is not ready, so it is not lent again)."""
+    holder = lent_to(host, i)
+    if holder != run:
+        return f"{layout.container(i)} is lent to {holder or 'no run'}, not to {run}; left alone"
+    outcome = restart_each(host, [i], 0, companions=companions, borrower=run)
+    host.remove(layout.lent_marker(i))
+    return outcome["failed"]["reason"] if outcome["failed"] else None
+
+
+def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=None, borrower=None) -> dict:
+    """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
+    companions ({id: [names]}).
+
+    An instance that fails is restarted once more with the same settings (there is
+    nothing older to go back to) and the restart stops there. An instance lent to a run
+    other than `borrower` is not touched: the restart stops before it.
+    """
+    ids = list(ids)
+    result = {"done": [], "failed": None, "untouched": [], "changed": bool(ids)}
+    if check:
+        result["done"] = [{"id": i, "action": "restart", "restart_s": 0.0, "soak_s": 0.0} for i in ids]
+        return result
+    for n, i in enumerate(ids):
+        why = host.interrupted()
+        if why:
+            return interrupt(host, result, why, ids[n:])
+        holder = lent_to(host, i)
+        if holder is not None and holder != borrower:
+            result["failed"] = _lent_failure(i, holder, "not restarted")
+            result["untouched"] = ids[n + 1 :]
+            result["changed"] = bool(result["done"])
+            return result
+        text = host.read(layout.env_file(i))
+        if text is None:
+            result["failed"] = {
+                "id": i,
+                "reason": f"{layout.env_file(i)} is missing (not deployed here)",
+                "reverted": None,
+            }
+            result["untouched"] = ids[n + 1 :]
+            return result
+        names = (companions or {}).get(i, ())
+        ok, reason, restart_s = restart(host, i, companions=names)
+        soak_start = host.now()
+        if ok:
+            ok, reason = soak(host, i, soak_seconds)
+        if ok:
+            result["done"].append(
+                {
+                    "id": i,
+                    "action": "restart",
+                    "restart_s": round(restart_s, 3),
+                    "soak_s": round(host.now() - soak_start, 3),
+                }
+            )
+            continue
+        # the tag may have moved since the instance started: back to the image it ran
+        if pinned(host, text) != text:
+            host.write(layout.env_file(i), pinned(host, text), host.mode(layout.env_file(i)) or 0o600)
+        back, back_reason, _seconds = restart(host, i, companions=names)
+        result["failed"] = {
+            "id": i,
+            "reason": reason,
+            "reverted": back,
+            "reverted_to": layout.parse(text).get(layout.K_IMAGE),
+            "revert_error": back_reason,
+            "restart_s": round(restart_s, 3),
+        }
+        result["untouched"] = ids[n + 1 :]
+        return result
+    return result
+
+
+def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> list:
+    """Lines for a person: what was rolled, reverted and untouched, and why the rollout stopped.
+
+    outcomes: {host: isaac_sim_lifecycle result (success or failure), or {} when the host was not reached}
+    """
+    rolled, unchanged, reverted, untouched, why = [], [], [], [], None
+    for host in targets:
+        out = outcomes.get(host)
+        if not out:
+            untouched.append(f"{host}: every instance (not reached)")
+            continue
+        moved = [str(d["id"]) for d in out.get("done", []) if d.get("action") != "unchanged"]
+        if moved:
+            rolled.append(f"{host}: " + ", ".join(layout.container(i) for i in moved))
+        elif not out.get("failed"):
+            unchanged.append(host)
+        failed = out.get("failed_instance")
+        if failed:
+            if failed.get("reverted") is None:
+                state = "not started, stopped" if failed.get("left") == "stopped" else "not changed"
+            elif failed.get("reverted"):
+                state = f"back on {failed.get('reverted_to')}" + (", ready" if failed.get("left") != "stopped" else "")
+            else:
+                state = f"REVERT FAILED: {failed.get('revert_error')}"
+            reverted.append(f"{host}: {layout.container(failed['id'])} ({failed.get('reason')}) - {state}")
+            why = f"{layout.container(failed['id'])} on {host}: {failed.get('reason')}"
+        elif out.get("failed") and not out.get("done"):
+            why = why or f"{host}: {out.get('msg')}"
+        if out.get("untouched"):
+            untouched.append(f"{host}: " + ", ".join(layout.container(i) for i in out["untouched"]))
+    lines = ["rolled: " + ("; ".join(rolled) or "none")]
+    if unchanged:
+        lines.append("already current: " + ", ".join(unchanged))
+    lines.append("reverted: " + ("; ".join(reverted) or "none"))
+    lines.append("untouched: " + ("; ".join(untouched) or "none"))
+    if stopped_on or why:
+        lines.append(f"stopped: {why or stopped_on}")
+    else:
+        lines.append("completed: every host rolled")
+    return lines

@@ -1,0 +1,814 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Turn the isaac_sim role's variables into a per-instance plan, or errors.
+
+Pure functions: no I/O. The host facts (memory, GPUs, ports already held)
+come in as arguments, so every rule here is unit-tested without a host.
+Every error names the variable to change and how.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, status_server
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, network
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import (
+    ENV,
+    KIT,
+    MIN_MEMORY,
+    RELEASES,
+    STREAMING,
+    default_image,
+    healthcheck,
+    release_of_tag,
+)
+
+PORT_MIN = 1024
+PORT_MAX = 65535
+NGC_DOMAIN = "nvcr.io"
+# (name, lowest value, what it is): integers the unit and the lifecycle use
+SETTINGS = (
+    ("ready_timeout", 1, "seconds an instance may take to become ready"),
+    ("stop_timeout", 0, "seconds between SIGTERM and SIGKILL"),
+    ("restart_sec", 0, "seconds systemd waits before restarting a failed instance"),
+    ("start_limit_burst", 1, "failed starts before systemd gives up"),
+    ("health_interval", 1, "seconds between two health checks"),
+    ("health_retries", 1, "failed health checks before an instance counts as unhealthy"),
+    ("unhealthy_restart", 0, "seconds an unhealthy instance is left before its host restarts it (0: never)"),
+)
+
+# https://github.com/distribution/reference grammar, condensed
+_COMPONENT = r"[a-z0-9]+(?:(?:[._]|__|-+)[a-z0-9]+)*"
+_DOMAIN = r"(?:[a-zA-Z0-9](?:[a-zA-Z0-9-]*[a-zA-Z0-9])?(?:\.[a-zA-Z0-9](?:[a-zA-Z0-9-]*[a-zA-Z0-9])?)*(?::[0-9]+)?)"
+_TAG = r"[\w][\w.-]{0,127}"
+_DIGEST = r"[A-Za-z][A-Za-z0-9]*(?:[-_+.][A-Za-z][A-Za-z0-9]*)*:[0-9a-fA-F]{32,}"
+IMAGE_RE = re.compile(
+    rf"^(?:(?P<domain>{_DOMAIN})/)?(?P<path>{_COMPONENT}(?:/{_COMPONENT})*)"
+    rf"(?::(?P<tag>{_TAG}))?(?:@(?P<digest>{_DIGEST}))?$"
+)
+SIZE_RE = re.compile(r"^(\d+(?:\.\d+)?) ?([kmgtp])?(i?b)?$", re.IGNORECASE)
+ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_UNITS = {None: 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4, "p": 1024**5}
+
+
+class PlanError(Exception):
+    def __init__(self, errors):
+        super().__init__("\n".join(errors))
+        self.errors = errors
+
+
+def parse_size(text) -> int | None:
+    """Bytes in a Docker size ("8g", "512m", "2GiB"), or None if it does not parse."""
+    match = SIZE_RE.match(str(text).strip())
+    if not match:
+        return None
+    number, unit, _suffix = match.groups()
+    return int(float(number) * _UNITS[unit.lower() if unit else None])
+
+
+def docker_size(text) -> str:
+    """The size as Docker's flags want it, one word: "1 GB" -> "1g", "2GiB" -> "2g"."""
+    number, unit, _suffix = SIZE_RE.match(str(text).strip()).groups()
+    return f"{number}{unit.lower() if unit else ''}"
+
+
+def as_int(value):
+    """An int from an int or a string of digits (values given with -e are strings), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    text = str(value).strip()
+    return int(text) if re.fullmatch(r"-?\d+", text) else None
+
+
+def _check_numbers(cfg) -> list:
+    """Errors for port bases and GPU map entries that are not integers, before anything uses them."""
+    errors = []
+    for kind, base in (cfg.get("port_bases") or {}).items():
+        if as_int(base) is None:
+            errors.append(
+                f"isaac_sim_port_bases.{kind}: {base!r} is not a port number. Fix: give an integer, e.g. {kind}: 49100."
+            )
+    for inst, gpu in (cfg.get("gpu_map") or {}).items():
+        if as_int(inst) is None or as_int(gpu) is None:
+            errors.append(
+                f"isaac_sim_gpu_map: {inst!r}: {gpu!r} is not instance number: GPU index. "
+                "Fix: use integers, e.g. {0: 0, 1: 1}."
+            )
+    for name, lowest, what in SETTINGS:
+        value = as_int(cfg.get(name))
+        if value is None or value < lowest:
+            errors.append(
+                f"isaac_sim_{name}: {cfg.get(name)!r} is not a valid number of {what}. "
+                f"Fix: give an integer of {lowest} or more."
+            )
+    return errors
+
+
+def human(nbytes: int) -> str:
+    return f"{nbytes / 1024**3:.1f} GiB"
+
+
+def parse_image(ref: str):
+    """(repository, tag, digest) of an image reference, or None if malformed."""
+    match = IMAGE_RE.match(ref or "")
+    if not match or len(ref) > 255:
+        return None
+    repo = match.group("path")
+    if match.group("domain"):
+        repo = f"{match.group('domain')}/{repo}"
+    return repo, match.group("tag"), match.group("digest")
+
+
+def port_blocks(release: str, count: int, bases: dict, stride: int):
+    """{instance: {kind: port}}: each named port is base + i * stride."""
+    profile = RELEASES[release]["ports"]
+    merged = {kind: spec[1] for kind, spec in profile.items()}
+    merged.update({k: v for k, v in (bases or {}).items() if k in profile and as_int(v) is not None})
+    return {i: {kind: int(base) + i * stride for kind, base in merged.items()} for i in range(count)}
+
+
+def _check_ports(release, blocks, bases, stride, held, shared=True):
+    errors = []
+    profile = RELEASES[release]["ports"]
+    unknown = sorted(set(bases or {}) - set(profile))
+    if unknown:
+        errors.append(
+            f"isaac_sim_port_bases: {', '.join(unknown)} is not a port of Isaac Sim {release}, "
+            f"which has {', '.join(sorted(profile))}. Fix: use only those names."
+        )
+        return errors
+    if stride < 1:
+        errors.append(f"isaac_sim_port_stride: {stride} must be at least 1. Fix: set isaac_sim_port_stride: 1 or more.")
+        return errors
+    seen = {}
+    for i, block in blocks.items():
+        for kind, port in block.items():
+            if not PORT_MIN <= port <= PORT_MAX:
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port} is outside {PORT_MIN}-{PORT_MAX}. "
+                    f"Fix: choose a {kind} base between {PORT_MIN} and "
+                    f"{PORT_MAX} - (isaac_sim_instance_count - 1) * isaac_sim_port_stride."
+                )
+                continue
+            if port in seen:
+                j, other = seen[port]
+                fix = (
+                    f"Fix: move the port bases apart by at least isaac_sim_instance_count * isaac_sim_port_stride "
+                    f"({len(blocks) * stride}), or change isaac_sim_port_stride."
+                    if shared
+                    else "Fix: give each port kind a base of its own (each instance has every port at its address)."
+                )
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port} overlaps instance {j} {other} port. {fix}"
+                )
+            else:
+                seen[port] = (i, kind)
+    for i, block in blocks.items():
+        for kind, port in block.items():
+            proto = profile[kind][0]
+            owner = held.get((proto, port))
+            if owner is not None and not owner.get("ours"):
+                errors.append(
+                    f"isaac_sim_port_bases: instance {i} {kind} port {port}/{proto} is already held on this host by "
+                    f"{owner.get('process') or 'another process'}, which is not an Isaac Sim instance of this "
+                    f"collection. Fix: stop that process, or move the {kind} base (isaac_sim_port_bases.{kind})."
+                )
+    return errors
+
+
+def _check_companion_ports(specs, blocks, stride, held, shared=True) -> list:
+    """Errors for companion ports outside the port range, on another instance's or companion's
+    port, or held by a process that is not ours. shared: the instances share the host's network
+    (else each has its own address, and only its own ports can collide)."""
+    errors = []
+    every = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    taken_in = {
+        i: every if shared else {port: f"instance {i} {kind}" for kind, port in block.items()}
+        for i, block in blocks.items()
+    }
+    for spec in specs:
+        for port_name, (proto, base) in companions.own_ports(spec).items():
+            where = f"{companions.VAR}[{spec['name']}].ports.{port_name}"
+            for i in blocks:
+                if not companions.wanted_on(spec, i):
+                    continue
+                taken = taken_in[i]
+                port = base + i * stride
+                if not PORT_MIN <= port <= PORT_MAX:
+                    errors.append(
+                        f"{where}: instance {i}'s port {port} is outside {PORT_MIN}-{PORT_MAX}. Fix: choose a base "
+                        f"between {PORT_MIN} and {PORT_MAX} - (isaac_sim_instance_count - 1) * isaac_sim_port_stride."
+                    )
+                    continue
+                if port in taken:
+                    errors.append(
+                        f"{where}: instance {i}'s port {port} is also {taken[port]}'s port. Fix: move the base "
+                        f"{base} at least isaac_sim_instance_count * isaac_sim_port_stride ({len(blocks) * stride}) "
+                        "away from every other base."
+                    )
+                    continue
+                taken[port] = f"instance {i} companion {spec['name']} {port_name}"
+                owner = held.get((proto, port)) if shared else None
+                if owner is not None and not owner.get("ours"):
+                    errors.append(
+                        f"{where}: instance {i}'s port {port}/{proto} is already held on this host by "
+                        f"{owner.get('process') or 'another process'}. Fix: stop that process, or move the base."
+                    )
+    return errors
+
+
+# docker run options a container in another's network namespace (--network=container:) cannot take
+_NAMESPACE_OPTIONS = ("-p", "--publish", "-P", "--publish-all", "-h", "--hostname", "--dns", "--add-host",
+                      "--network", "--net", "--ip", "--mac-address", "--expose")  # fmt: skip
+
+
+def _namespace_conflicts(specs) -> list:
+    """Errors for companion docker_args that Docker refuses beside --network=container:."""
+    errors = []
+    for spec in specs:
+        for arg in spec.get("docker_args") or [] if isinstance(spec, dict) else []:
+            option = str(arg).split("=", 1)[0]
+            if option in _NAMESPACE_OPTIONS:
+                errors.append(
+                    f"{companions.VAR}[{spec.get('name')}].docker_args: {option} cannot be given to a companion of "
+                    "an instance with its own address (isaac_sim_network_mode: macvlan): it shares the instance's "
+                    "network, address and name. Fix: remove it; the companion is reached at the instance's address."
+                )
+    return errors
+
+
+def _taken(blocks, comp_specs, stride) -> dict:
+    """{port: whose} for every port of the instances' blocks and their companions."""
+    taken = {port: f"instance {i} {kind}" for i, block in blocks.items() for kind, port in block.items()}
+    for spec in comp_specs:
+        for port_name, (_proto, base) in companions.own_ports(spec).items():
+            taken.update({base + i * stride: f"instance {i} companion {spec['name']} {port_name}" for i in blocks})
+    return taken
+
+
+def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
+    """(the host's status endpoint as the role installs it, errors). Off: {"enabled": False}."""
+    want = cfg.get("status_server") or {}
+    if not want.get("enabled"):
+        return {"enabled": False}, []
+    errors = []
+    port = as_int(want.get("port"))
+    if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
+        errors.append(
+            f"isaac_sim_status_server_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
+            "Fix: choose one, e.g. 8290."
+        )
+    elif port in taken and " companion " in taken[port]:
+        # the companion is what moved onto the endpoint's port: name its setting
+        _inst, i, _word, name, port_name = taken[port].split(" ", 4)
+        errors.append(
+            f"{companions.VAR}[{name}].ports.{port_name}: {port} (instance {i}'s) is the status endpoint's port "
+            f"(isaac_sim_status_server_port). Fix: give the companion another port, or move the status endpoint."
+        )
+    elif port in taken:
+        errors.append(
+            f"isaac_sim_status_server_port: {port} is also {taken[port]}'s port. Fix: choose a port outside every "
+            "instance's block."
+        )
+    elif ("tcp", port) in held and not held[("tcp", port)].get("ours"):
+        errors.append(
+            f"isaac_sim_status_server_port: {port}/tcp is already held on this host by "
+            f"{held[('tcp', port)].get('process') or 'another process'}. Fix: stop it, or choose another port."
+        )
+    # every address by default: the public address may be a name, or a NAT address the host does
+    # not have; who may read is the allow list's business
+    address = str(want.get("address") or "0.0.0.0")
+    try:
+        bound = ipaddress.ip_address(address)
+    except ValueError:
+        errors.append(
+            f"isaac_sim_status_server_address: {address!r} is not an IP address. Fix: give one of this host's "
+            "addresses, or leave it empty to listen on every address."
+        )
+        bound = None
+    networks, net_errors = status_server.parse_networks(want.get("allow"))
+    errors += net_errors
+    if not networks and not net_errors:
+        errors.append(
+            "isaac_sim_status_server_allow: empty, so nobody could read the status. Fix: list the networks the "
+            "dashboard is opened from, e.g. [10.20.0.0/16], or set isaac_sim_status_server_enabled: false."
+        )
+    # a URL a browser can open: the host's public address when listening on every address
+    shown = cfg.get("public_address") if bound is not None and bound.is_unspecified else address
+    host = f"[{shown}]" if ":" in str(shown) else shown
+    return {
+        "enabled": True,
+        "address": address,
+        "port": port,
+        "allow": [str(n) for n in networks],
+        "origins": [str(o) for o in want.get("origins") or []],
+        "url": f"http://{host}:{port}/status",
+    }, errors
+
+
+# where a shared cache must never go: it is chowned to the container user
+_SYSTEM_DIRS = {
+    "/",
+    "/bin",
+    "/boot",
+    "/dev",
+    "/etc",
+    "/home",
+    "/lib",
+    "/lib64",
+    "/opt",
+    "/proc",
+    "/root",
+    "/run",
+    "/sbin",
+    "/srv",
+    "/sys",
+    "/tmp",
+    "/usr",
+    "/var",
+    "/var/lib",
+    "/var/cache",
+}
+
+
+def _hub_cache(cfg, release, taken, held) -> tuple[dict, list]:
+    """(NVIDIA's Hub Workstation Cache for this host, errors). Off: {"enabled": False}."""
+    want = cfg.get("hub_cache") or {}
+    if not want.get("enabled"):
+        return {"enabled": False}, []
+    errors = []
+    if "cache/hub" not in RELEASES[release]["mounts"]:
+        errors.append(
+            f"isaac_sim_hub_cache_enabled: Isaac Sim {release} has no Hub client to use it (6.x has). "
+            "Fix: set isaac_sim_hub_cache_enabled: false, or deploy 6.x."
+        )
+    image = str(want.get("image") or "")
+    if parse_image(image) is None:
+        errors.append(
+            f"isaac_sim_hub_cache_image: {image!r} is not a valid image reference. "
+            "Fix: use NVIDIA's, nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0, or your registry's copy."
+        )
+    directory = str(want.get("dir") or f"{cfg['data_root']}/hub-cache")
+    root = cfg["data_root"].rstrip("/")
+    if (
+        not directory.startswith("/")
+        or re.search(r"\s|:", directory)
+        or os.path.normpath(directory) != directory
+        or directory in _SYSTEM_DIRS
+        or directory == root
+        or re.match(re.escape(root) + r"/instance-\d+(/|$)", directory)
+    ):
+        errors.append(
+            f"isaac_sim_hub_cache_dir: {directory!r} must be a directory of its own: an absolute, normalised path "
+            "without spaces or colons, not a system directory, the data root or an instance's directory (it is "
+            "handed to user 1234). Fix: use e.g. /var/lib/isaac-sim/hub-cache."
+        )
+    if cfg.get("network_mode") == network.MACVLAN:
+        errors.append(
+            "isaac_sim_hub_cache_enabled: the instances have addresses of their own (isaac_sim_network_mode: "
+            "macvlan), and macvlan keeps a host and its own containers apart, so they could not reach the host's "
+            "Hub cache. Fix: set isaac_sim_hub_cache_enabled: false, or isaac_sim_network_mode: host."
+        )
+    port = layout.HUB_PORT
+    if port in taken:
+        errors.append(
+            f"isaac_sim_hub_cache_enabled: the Hub cache listens on {port}, which is also {taken[port]}'s port. "
+            "Fix: move that base (isaac_sim_port_bases)."
+        )
+    elif ("tcp", port) in held and not held[("tcp", port)].get("ours"):
+        errors.append(
+            f"isaac_sim_hub_cache_enabled: {port}/tcp, the Hub cache's port, is already held on this host by "
+            f"{held[('tcp', port)].get('process') or 'another process'} (a Hub cache started by hand?). "
+            "Fix: stop it; the collection runs the host's one Hub cache."
+        )
+    hub = {"enabled": True, "image": image, "dir": directory, "port": port}
+    # rendered here, so the role writes exactly what the layout defines
+    hub["unit"] = layout.render_hub_unit(hub, "Ansible managed (isaacsim.fleet)")
+    hub["dropin"] = layout.render_hub_dropin("Ansible managed (isaacsim.fleet)")
+    return hub, errors
+
+
+def instance_profiles(release, count, default, per_instance) -> tuple[dict, list]:
+    """({instance: profile}, errors): isaac_sim_profile for every instance, but where
+    isaac_sim_instance_profiles names another."""
+    known = RELEASES[release]["profiles"]
+    errors = []
+
+    def usable(name, what):
+        if name in known:
+            return True
+        others = [r for r, spec in RELEASES.items() if name in spec["profiles"]]
+        also = f" (a profile of Isaac Sim {', '.join(others)} only)" if others else ""
+        errors.append(
+            f"{what}: {name!r} is not a profile of Isaac Sim {release}{also}. Fix: choose one of {', '.join(known)}."
+        )
+        return False
+
+    usable(default, "isaac_sim_profile")
+    chosen = {i: default for i in range(count)}
+    for key, name in (per_instance or {}).items():
+        inst = as_int(key)
+        if not isinstance(inst, int):
+            errors.append(
+                f"isaac_sim_instance_profiles: {key!r} is not an instance number. Fix: map instance numbers to "
+                f"profiles, e.g. {{3: headless}}."
+            )
+        elif not 0 <= inst < count:
+            errors.append(
+                f"isaac_sim_instance_profiles: instance {inst} does not exist (instances are 0..{count - 1}). "
+                f"Fix: remove it from isaac_sim_instance_profiles."
+            )
+        elif usable(name, f"isaac_sim_instance_profiles[{inst}]"):
+            chosen[inst] = name
+    return chosen, errors
+
+
+def assign_gpus(count, gpu_count, gpu_map, exclusive):
+    """({instance: gpu index}, errors). Round-robin unless the map says otherwise."""
+    errors = []
+    gpu_map = {as_int(k): as_int(v) for k, v in (gpu_map or {}).items()}
+    if gpu_count < 1:
+        return {}, [
+            "isaac_sim_gpu_enabled: true, but this host shows no NVIDIA GPU (nvidia-smi lists none). "
+            "Fix: install the driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
+        ]
+    if exclusive and count > gpu_count:
+        errors.append(
+            f"isaac_sim_instance_count: {count} instances with isaac_sim_gpu_exclusive: true need {count} GPUs, "
+            f"this host has {gpu_count}. Fix: lower isaac_sim_instance_count to {gpu_count} or set "
+            f"isaac_sim_gpu_exclusive: false to share GPUs."
+        )
+    for inst, gpu in sorted(gpu_map.items()):
+        if inst >= count or inst < 0:
+            errors.append(
+                f"isaac_sim_gpu_map: instance {inst} does not exist (instances are 0..{count - 1}). "
+                f"Fix: remove it from isaac_sim_gpu_map."
+            )
+        if not 0 <= gpu < gpu_count:
+            errors.append(
+                f"isaac_sim_gpu_map: instance {inst} is mapped to GPU {gpu}, this host has GPUs 0..{gpu_count - 1}. "
+                f"Fix: map it to an existing GPU."
+            )
+    assignment = {i: gpu_map.get(i, i % gpu_count) for i in range(count)}
+    if exclusive and not errors:
+        used = {}
+        for inst, gpu in assignment.items():
+            if gpu in used:
+                errors.append(
+                    f"isaac_sim_gpu_map: instances {used[gpu]} and {inst} share GPU {gpu} but "
+                    f"isaac_sim_gpu_exclusive is true. Fix: give each instance its own GPU."
+                )
+            used[gpu] = inst
+    return assignment, errors
+
+
+def build(cfg: dict, host: dict) -> dict:
+    """The plan for one host. cfg: the role's variables; host: probed facts.
+
+    Raises PlanError with every problem found, so a user fixes them in one go.
+    """
+    release = cfg["release"]
+    if release not in RELEASES:
+        raise PlanError(
+            [
+                f"isaac_sim_release: {release!r} is not a release this collection knows. "
+                f"Fix: choose one of {', '.join(RELEASES)}."
+            ]
+        )
+    errors = _check_numbers(cfg)
+    if errors:
+        raise PlanError(errors)
+    profile = RELEASES[release]
+    count = cfg["instance_count"]
+
+    if count < 0:
+        errors.append(
+            f"isaac_sim_instance_count: {count} is below 0. Fix: give the number of instances this host runs "
+            "(0 stops and removes them all)."
+        )
+    if count == 0 and as_int(host.get("serving")) and not cfg.get("scale_to_zero"):
+        errors.append(
+            f"isaac_sim_instance_count: 0 stops and removes every instance of this host, and "
+            f"{as_int(host.get('serving'))} serve now. Fix: set isaac_sim_scale_to_zero: true "
+            "(-e isaac_sim_scale_to_zero=true) to take them all down, or give the number to keep."
+        )
+    if count > cfg["max_instances"]:
+        errors.append(
+            f"isaac_sim_instance_count: {count} is above isaac_sim_max_instances ({cfg['max_instances']}). "
+            f"Fix: lower isaac_sim_instance_count, or raise isaac_sim_max_instances if this host can carry them."
+        )
+    if not cfg.get("accept_eula"):
+        errors.append(
+            "isaac_sim_accept_eula: Isaac Sim does not start until its license is accepted. "
+            "Fix: read the NVIDIA Isaac Sim license and set isaac_sim_accept_eula: true."
+        )
+
+    # empty means NVIDIA's image of the chosen release
+    image = cfg.get("image") or default_image(release)
+    parsed = parse_image(image)
+    if parsed is None:
+        errors.append(
+            f"isaac_sim_image: {image!r} is not a valid image reference. "
+            f"Fix: use REGISTRY/REPOSITORY:TAG or REPOSITORY@sha256:DIGEST, e.g. nvcr.io/nvidia/isaac-sim:5.1.0."
+        )
+    else:
+        tag_release = release_of_tag(parsed[1]) if parsed[1] else None
+        if tag_release and tag_release != release:
+            errors.append(
+                f"isaac_sim_image: tag {parsed[1]} is an Isaac Sim {tag_release} image but isaac_sim_release is "
+                f"{release}. Fix: set isaac_sim_release: {tag_release!r}, or pick a {release} image."
+            )
+        needs_key = parsed[0].split("/")[0] == NGC_DOMAIN and cfg.get("image_pull", "missing") != "never"
+        if needs_key and not cfg.get("registry_login") and not host.get("image_present"):
+            errors.append(
+                f"isaac_sim_registry_password: empty, but {image} is on NGC ({NGC_DOMAIN}), which refuses pulls "
+                "without an API key, and the image is not on this host. Fix: set isaac_sim_registry_password to "
+                "your NGC API key (from a vault), or load the image on the host and set isaac_sim_image_pull: never."
+            )
+
+    memory = parse_size(cfg["memory_limit"])
+    shm = parse_size(cfg["shm_size"])
+    if memory is None:
+        errors.append(
+            f"isaac_sim_memory_limit: {cfg['memory_limit']!r} is not a size. "
+            "Fix: write it as Docker does, e.g. 8g or 16384m."
+        )
+    if shm is None:
+        errors.append(
+            f"isaac_sim_shm_size: {cfg['shm_size']!r} is not a size. Fix: write it as Docker does, e.g. 2g or 512m."
+        )
+    if memory is not None and memory < 6 * 1024**2:
+        errors.append("isaac_sim_memory_limit: Docker needs at least 6m. Fix: raise isaac_sim_memory_limit.")
+    if memory is not None and host.get("memory_bytes") and memory * count > host["memory_bytes"]:
+        errors.append(
+            f"isaac_sim_memory_limit: {count} instances x {cfg['memory_limit']} = {human(memory * count)} is more than "
+            f"this host's {human(host['memory_bytes'])} of memory. Fix: lower isaac_sim_memory_limit or "
+            f"isaac_sim_instance_count."
+        )
+    if memory is not None and shm is not None and shm > memory:
+        errors.append(
+            f"isaac_sim_shm_size: {cfg['shm_size']} is above isaac_sim_memory_limit {cfg['memory_limit']}, and shared "
+            f"memory counts against that limit. Fix: lower isaac_sim_shm_size."
+        )
+
+    data_root = cfg["data_root"]
+    if not data_root.startswith("/") or re.search(r"\s|:", data_root):
+        errors.append(
+            f"isaac_sim_data_root: {data_root!r} must be an absolute path without spaces or colons. "
+            f"Fix: use e.g. /var/lib/isaac-sim."
+        )
+
+    for name in list(cfg.get("env") or {}) + list(cfg.get("secret_env_names") or []):
+        if not ENV_NAME_RE.match(name) or name.startswith(layout.RESERVED_PREFIX):
+            errors.append(
+                f"isaac_sim_env / isaac_sim_secret_env: {name!r} is not a usable variable name "
+                f"(letters, digits, _; the {layout.RESERVED_PREFIX} prefix is the collection's own). Fix: rename it."
+            )
+
+    net, addresses, net_errors = network.plan(cfg, host, list(range(max(count, 0))))
+    errors += net_errors
+    # own addresses: every instance keeps the release's ports, and nothing on the host can hold them
+    shared = net["mode"] == network.HOST
+    bases = cfg.get("port_bases") or {}
+    stride = cfg.get("port_stride", 1) if shared else 0
+    blocks = port_blocks(release, max(count, 0), {k: v for k, v in bases.items() if k in profile["ports"]}, stride)
+    # a port can be held twice (our viewer on the host's address, another process on 0.0.0.0):
+    # the foreign holder is the one that counts
+    held = {}
+    for p in host.get("ports_held", []):
+        key = (p["proto"], p["port"])
+        if key not in held or held[key].get("ours"):
+            held[key] = p
+    if shared:
+        errors += _check_ports(release, blocks, bases, stride, held)
+    else:  # one block stands for all: the same ports at other addresses
+        errors += _check_ports(release, {0: blocks[0]} if blocks else {}, bases, 1, {}, shared=False)
+
+    gpus = {}
+    if cfg.get("gpu_enabled") and host.get("nvidia_smi") is False:
+        errors.append(
+            "isaac_sim_gpu_enabled: true, but this host has no nvidia-smi (no NVIDIA driver installed). "
+            "Fix: install the NVIDIA driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
+        )
+    elif cfg.get("gpu_enabled"):
+        gpus, gpu_errors = assign_gpus(count, host.get("gpu_count", 0), cfg.get("gpu_map"), cfg.get("gpu_exclusive"))
+        errors += gpu_errors
+    elif cfg.get("gpu_map"):
+        errors.append(
+            "isaac_sim_gpu_map: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove the map."
+        )
+
+    profiles, profile_errors = instance_profiles(
+        release, max(count, 0), cfg.get("profile") or STREAMING, cfg.get("instance_profiles")
+    )
+    errors += profile_errors
+
+    comp_specs = cfg.get("companions") or []
+    viewer_image = cfg.get("web_viewer_image") or ""
+    viewed = [i for i, name in profiles.items() if name == STREAMING]
+    if viewer_image and "web_viewer" in profile["ports"] and (viewed or not profiles):
+        if parse_image(viewer_image) is None:
+            errors.append(
+                f"isaac_sim_web_viewer_image: {viewer_image!r} is not a valid image reference. "
+                "Fix: give the reference playbooks/web_viewer_image.yml built, "
+                "e.g. registry.lab:5000/isaac-sim/web-viewer:2.1.5."
+            )
+        if any(isinstance(c, dict) and c.get("name") == companions.VIEWER for c in comp_specs):
+            errors.append(
+                f"isaac_sim_companions: the name {companions.VIEWER} is the built-in web viewer's "
+                "(isaac_sim_web_viewer_image). Fix: rename that companion."
+            )
+        # a viewer needs a stream to show: the streaming instances only
+        every = len(viewed) == len(profiles)
+        viewer = companions.web_viewer(viewer_image, as_int(cfg["health_interval"]), None if every else viewed)
+        comp_specs = [viewer] + list(comp_specs)
+    # {kind: True when the instance itself listens there} (web_viewer is kept for a companion)
+    release_ports = {kind: spec[2] is not None for kind, spec in profile["ports"].items()}
+    errors += companions.check(
+        comp_specs, release_ports, max(as_int(cfg["max_instances"]) or 0, 1), cfg.get("gpu_enabled")
+    )
+    if not shared:
+        errors += _namespace_conflicts(comp_specs)
+    if not errors:
+        errors += _check_companion_ports(comp_specs, blocks, stride, held, shared)
+    # the host's own services (status endpoint, Hub) share its network with the instances, or not
+    taken = _taken(blocks, comp_specs, stride) if shared else {}
+    hub, hub_errors = _hub_cache(cfg, release, taken, held)
+    errors += hub_errors
+    if hub["enabled"]:
+        taken[layout.HUB_PORT] = "the Hub cache"
+    status, status_errors = _status_endpoint(cfg, taken, held)
+    errors += status_errors
+
+    if errors:
+        raise PlanError(errors)
+
+    sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
+    sized["hub_dir"] = hub.get("dir")
+    warnings = _needs(release, profile, memory, gpus, host)
+    instances = [
+        _instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i), addresses.get(i)) for i in range(count)
+    ]
+    for inst in instances:
+        inst["companions"] = []
+        for spec in comp_specs:
+            if not companions.wanted_on(spec, inst["id"]):
+                continue
+            planned, comp_errors = companions.for_instance(
+                spec,
+                inst["id"],
+                inst["ports"],
+                inst["gpu"],
+                stride,
+                inst["address"] or cfg.get("public_address") or "",
+                (profile["uid"], profile["gid"]),
+                data_root,
+                release_ports,
+                # with an address of its own, an instance's companions share its network namespace
+                "host" if shared else f"container:{inst['name']}",
+            )
+            errors += comp_errors
+            # on its instance's address: no host port of its own to check at start
+            planned["address"] = inst["address"]
+            inst["companions"].append(planned)
+            inst["dirs"] += planned["dirs"]
+    # one unit template per companion, even one no instance of this host has yet
+    companion_units = [companions.timeouts(spec, errors) for spec in comp_specs]
+    if errors:
+        raise PlanError(sorted(set(errors), key=errors.index))
+    return {
+        "release": release,
+        "image": image,
+        "instances": instances,
+        "ids": list(range(count)),
+        "ready_pattern": cfg.get("ready_pattern") or profile["ready_pattern"],
+        "uid": profile["uid"],
+        "gid": profile["gid"],
+        "public_address": cfg.get("public_address") or "",
+        "memory_limit": sized["memory_limit"],
+        "shm_size": sized["shm_size"],
+        "settings": {name: as_int(cfg[name]) for name, _lowest, _what in SETTINGS},
+        "layout": layout.as_dict(data_root),
+        # one unit template per companion name, with the timeouts it is started and stopped with
+        "companion_units": companion_units,
+        "status_server": status,
+        "hub_cache": hub,
+        "network": net,
+        # on the host's network, no outgoing connection may take one of them (reserved_ports.py)
+        "reserved_ports": sorted(taken),
+        "warnings": warnings,
+    }
+
+
+def _needs(release, profile, memory, gpus, host) -> list:
+    """What a real instance may lack with these settings: said, not refused (hosts differ)."""
+    warnings = []
+    if memory is not None and memory < MIN_MEMORY and release != "2023.1":
+        warnings.append(
+            f"isaac_sim_memory_limit: {human(memory)} per instance is below the {human(MIN_MEMORY)} NVIDIA names as "
+            f"Isaac Sim's minimum; a real instance may be killed for memory while it loads or compiles shaders. "
+            f"Fix: raise isaac_sim_memory_limit (fewer instances per host if the sum does not fit)."
+        )
+    need = profile.get("min_vram_mib")
+    per_gpu = {}
+    for inst, gpu in gpus.items():
+        per_gpu.setdefault(gpu, []).append(inst)
+    for gpu in host.get("gpus") or []:
+        sharing = per_gpu.get(gpu["index"], [])
+        total = gpu.get("memory_total_mib")
+        if need and total and len(sharing) * need > total:
+            warnings.append(
+                f"isaac_sim_instance_count / isaac_sim_gpu_map: GPU {gpu['index']} ({gpu.get('name')}, {total} MiB) "
+                f"carries instances {', '.join(map(str, sharing))}, {len(sharing)} x the {need} MiB of VRAM NVIDIA "
+                f"names as Isaac Sim {release}'s minimum; they may run out of GPU memory. Fix: at most "
+                f"{max(total // need, 1)} instance(s) on it (isaac_sim_gpu_map), or fewer instances."
+            )
+    return warnings
+
+
+def _instance(cfg, profile, mode, i, ports, gpu, address=None):
+    """One instance of release profile `profile`, run as `mode` (isaac_sim_profile); with an
+    address, on the macvlan network at that address, else on the host's network."""
+    launch = profile["profiles"][mode]
+    root = layout.data_dir(i, cfg["data_root"])
+    docker = [f"--network={layout.NETWORK}", f"--ip={address}"] if address else ["--network=host"]
+    docker += [
+        "--pull=never",
+        f"--memory={cfg['memory_limit']}",
+        f"--memory-swap={cfg['memory_limit']}",
+        f"--shm-size={cfg['shm_size']}",
+        f"--user={profile['uid']}:{profile['gid']}",
+        f"--entrypoint={launch['entrypoint']}",
+        f"--label={layout.LABEL_INSTANCE}={i}",
+    ]
+    docker += [f"--security-opt={opt}" for opt in profile.get("security_opts", [])]
+    env_names = ["ACCEPT_EULA"]
+    container_env = {"ACCEPT_EULA": "Y"}
+    # NVIDIA's convention: PRIVACY_CONSENT=Y opts in; not setting it opts out
+    if cfg.get("privacy_consent"):
+        env_names.append("PRIVACY_CONSENT")
+        container_env["PRIVACY_CONSENT"] = "Y"
+    # only the settings of what this profile opens: a port set but never opened would be reported
+    app = list(launch["args"])
+    for kind, port in ports.items():
+        if kind not in launch["opens"]:
+            continue
+        how, setting = profile["ports"][kind][2], profile["ports"][kind][3]
+        if how == KIT:
+            app.append(f"--/{setting.lstrip('/')}={port}")
+        elif how == ENV:
+            container_env[setting] = str(port)
+            env_names.append(setting)
+    public = address or cfg.get("public_address")
+    if public and launch["opens"]:
+        how, setting = profile["public_address"]
+        if how == KIT:
+            app.append(f"--/{setting.lstrip('/')}={public}")
+        else:
+            container_env[setting] = public
+            env_names.append(setting)
+    for name, value in (cfg.get("env") or {}).items():
+        container_env[name] = str(value)
+        env_names.append(name)
+    env_names += list(cfg.get("secret_env_names") or [])
+    docker += [f"--env={name}" for name in env_names]
+    dirs = []
+    for sub, target in profile["mounts"].items():
+        # the host's one Hub cache, shared with the Hub service (NVIDIA: the same directory in both)
+        source = cfg["hub_dir"] if sub == "cache/hub" and cfg.get("hub_dir") else f"{root}/{sub}"
+        dirs.append(source)
+        docker.append(f"--volume={source}:{target}:rw")
+    probe = launch["health_port"]
+    docker += [
+        f"--health-cmd={healthcheck(cfg['release'], ports.get(probe), public or '')}",
+        f"--health-interval={as_int(cfg['health_interval'])}s",
+        "--health-timeout=10s",
+        f"--health-retries={as_int(cfg['health_retries'])}",
+        f"--health-start-period={as_int(cfg['ready_timeout'])}s",
+    ]
+    if gpu is not None:
+        docker += ["--runtime=nvidia", f"--gpus=device={gpu}"]
+    docker += list(cfg.get("docker_args") or [])
+    app += [str(a) for a in cfg.get("app_args") or []]
+    return {
+        "id": i,
+        "name": layout.container(i),
+        "ports": ports,
+        "protocols": {kind: profile["ports"][kind][0] for kind in ports},
+        "address": address,
+        "profile": mode,
+        # the ports Isaac Sim itself opens in this profile (web_viewer is kept for a companion)
+        "listens": [kind for kind in ports if kind in launch["opens"]],
+        "gpu": gpu,
+        "root": root,
+        "dirs": dirs,
+        "docker_args": docker,
+        "app_args": app,
+        "container_env": container_env,
+        "secret_env_names": list(cfg.get("secret_env_names") or []),
+    }

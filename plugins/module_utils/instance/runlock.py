@@ -1,0 +1,164 @@
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+"""One run at a time per host: every playbook that changes instances holds the host's lock from
+before it plans until it ends, so two deploys never interleave their settings on one host.
+
+The lock is a JSON file under /run/lock (a reboot ends every run, and takes the file with it;
+cleanup.yml, which empties /run/isaac-sim, leaves it to the run that holds it). Its
+read-decide-write is one critical section under flock(2) on a guard file, so two runs that
+find it free, or stale, at the same moment never both take it. The holder is a playbook run:
+the controller's host name, the ansible-playbook process and its start time.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import time
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
+LOCK = "/run/lock/isaac-sim.json"
+GUARD = "/run/lock/.isaac-sim.guard"
+# what the last rollout step on this host did, for the run that comes after an interrupted one
+RECORD = "/run/lock/isaac-sim.rollout.json"
+# a lifecycle call's controller renews the lock every few seconds while it waits (the action
+# plugin isaac_sim_lifecycle); silent this long, the controller is taken for gone
+HEARTBEAT_LIMIT_S = 30
+HOLDER_KEYS = ("id", "user", "controller", "pid", "started", "play")
+
+
+def holder_text(holder: dict, now: float) -> str:
+    """Who holds the lock and since when, in a person's words."""
+    since = float(holder.get("since") or 0)
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(since))
+    minutes = max(0, int(now - since)) // 60
+    play = f", play {holder['play']!r}" if holder.get("play") else ""
+    return (
+        f"{holder.get('user') or '?'} on {holder.get('controller') or '?'} "
+        f"(ansible-playbook pid {holder.get('pid') or '?'}{play}) since {stamp} ({minutes} min ago)"
+    )
+
+
+def decide(current: dict | None, me: dict, now: float, stale_after: int, break_lock=False, dead=""):
+    """('take', note) when this run may hold the lock; ('held', who) while another run holds it.
+
+    dead: the id of a holder the controller found gone (its ansible-playbook process ended)."""
+    if current is None:
+        return "take", ""
+    if not isinstance(current, dict) or not current.get("id"):
+        return "take", "the lock file was unreadable; it was replaced"
+    if current["id"] == me["id"]:
+        return "take", ""
+    who = holder_text(current, now)
+    if dead and current["id"] == dead:
+        return "take", f"took the lock left by {who}: that run has ended (its process is gone)"
+    if break_lock:
+        return "take", f"took the lock from {who} (isaac_sim_lock_break)"
+    renewed = float(current.get("renewed") or current.get("since") or 0)
+    if stale_after and now - renewed >= stale_after:
+        return "take", (
+            f"took the lock from {who}: not renewed for {int(now - renewed)} s (isaac_sim_lock_stale_after)"
+        )
+    return "held", who
+
+
+def _write(path: str, data: dict, mode=None) -> None:
+    """The whole file or none of it: readers never see half a holder."""
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as out:
+        json.dump(data, out, sort_keys=True)
+    if mode is not None:
+        os.chmod(tmp, mode)
+    os.replace(tmp, path)
+
+
+def read(path: str = LOCK):
+    """The lock's holder, None when free, {} when the file cannot be read as a holder."""
+    try:
+        with open(path) as fh:
+            text = fh.read()
+    except FileNotFoundError:
+        return None
+    try:
+        data = json.loads(text)
+    except ValueError:
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def acquire(
+    me: dict, now: float, stale_after: int, break_lock=False, dead="", path=LOCK, guard=GUARD, record_path=RECORD
+):
+    """Take or renew the lock for `me`. Returns (acquired, holder, note); holder is the run that
+    holds it after the call."""
+    os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
+    with open(guard, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        current = read(path)
+        verdict, said = decide(current, me, now, stale_after, break_lock, dead)
+        if verdict == "held":
+            return False, current, said
+        if said and current:
+            said += recorded_text(read(record_path), current["id"])
+        keep = current if current and current.get("id") == me["id"] else {}
+        holder = {k: me.get(k) for k in HOLDER_KEYS}
+        holder.update(since=keep.get("since", now), renewed=now)
+        _write(path, holder, 0o644)
+        return True, holder, said
+
+
+def renew(me: dict, now: float, path: str = LOCK, guard: str = GUARD) -> bool:
+    """The controller's heartbeat: renews the lock when `me` holds it, never takes it."""
+    if not os.path.exists(path):
+        return False
+    with open(guard, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        current = read(path)
+        if not current or current.get("id") != me["id"]:
+            return False
+        current["renewed"] = now
+        _write(path, current, 0o644)
+        return True
+
+
+def gone(run_id: str, now: float, limit: float = HEARTBEAT_LIMIT_S, path: str = LOCK) -> str:
+    """Why the run `run_id`, which held the lock, is taken for gone; "" while it renews it."""
+    current = read(path)
+    if not current:
+        return "the host's lock was given back or removed"
+    if current.get("id") != run_id:
+        return f"the host's lock was taken by {holder_text(current, now)}"
+    age = now - float(current.get("renewed") or 0)
+    if age > limit:
+        return f"its controller stopped renewing its hold on the host {int(age)} s ago (interrupted, or gone)"
+    return ""
+
+
+def record(entry: dict, path: str = RECORD) -> None:
+    """Keep what a rollout step did (run, at, done, untouched, interrupted) for the next run."""
+    os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
+    _write(path, entry)
+
+
+def recorded_text(entry, run_id: str) -> str:
+    """What run `run_id` left on the host, from its record, for the note of the run that takes over."""
+    if not isinstance(entry, dict) or entry.get("run") != run_id or not entry.get("interrupted"):
+        return ""
+    done = ", ".join(layout.container(i) for i in entry.get("done", [])) or "none"
+    left = ", ".join(layout.container(i) for i in entry.get("untouched", [])) or "none"
+    return f"; its rollout here was interrupted ({entry['interrupted']}): done {done}; left as they were {left}"
+
+
+def release(me: dict, path: str = LOCK, guard: str = GUARD) -> bool:
+    """Give the lock back when `me` holds it; a lock another run took over is left to it."""
+    if not os.path.exists(path):
+        return False
+    with open(guard, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        current = read(path)
+        if not current or current.get("id") != me["id"]:
+            return False
+        os.unlink(path)
+        return True

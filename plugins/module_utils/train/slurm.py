@@ -1,0 +1,561 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Training jobs on a Slurm cluster, as text and argument lists: the batch script sbatch takes,
+the script each node runs, the container runtime's command, and what sinfo, scontrol and sacct
+say. Pure: the module and the role run these; the unit tests read what they generate.
+
+A job is one batch script that starts one task per node (srun); each task copies the shared
+Isaac Sim caches to the node's local disk, runs the training in the job's container runtime
+(one process, or torchrun with one process per GPU), and the first node copies the caches back
+whatever the training's exit. The job's exit status is the training's.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan, releases
+
+RUNTIMES = ("apptainer", "podman", "docker", "enroot")
+# where the image the jobs run lives on the cluster, per runtime
+IMAGE_SUFFIX = {"apptainer": ".sif", "podman": ".tar", "docker": ".tar", "enroot": ".sqsh"}
+WORKDIR = "/workspace/isaaclab"
+RENDEZVOUS_PORT = 29500
+# enroot's command script for a job: the code directory, then the training (not the entrypoint)
+ENROOT_RC = f'cd {WORKDIR} && exec "$@"'
+# job states (squeue(1), JOB STATE CODES) after which a job does not run again
+FINISHED = {
+    "BOOT_FAIL",
+    "CANCELLED",
+    "COMPLETED",
+    "DEADLINE",
+    "FAILED",
+    "NODE_FAIL",
+    "OUT_OF_MEMORY",
+    "PREEMPTED",
+    "REVOKED",
+    "SPECIAL_EXIT",
+    "TIMEOUT",
+}
+SACCT_FIELDS = "JobID,State,ExitCode,Elapsed,NodeList"
+SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
+
+# a node's variable inside a generated word; every other character of a word is taken as written
+_VAR_OPEN, _VAR_CLOSE = "\ue000", "\ue001"
+# NAME, or NAME[@] for each element of an array as its own word
+_VAR = re.compile(f"{_VAR_OPEN}([A-Za-z_][A-Za-z0-9_]*(?:\\[@\\])?){_VAR_CLOSE}")
+_ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?$")
+_GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
+_SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def node(name: str) -> str:
+    """A variable of the node ($SLURM_JOB_ID, ...) in a word of a generated script: it expands
+    there; the words a user gives (arguments, paths) never do."""
+    return f"{_VAR_OPEN}{name}{_VAR_CLOSE}"
+
+
+def shown(word: str) -> str:
+    """A generated word as a person reads it ($NAME for the node's variables)."""
+    return _VAR.sub(r"$\1", word)
+
+
+def parse_time(text):
+    """Seconds of a Slurm time limit (minutes, minutes:seconds, hours:minutes:seconds, days-hours,
+    days-hours:minutes, days-hours:minutes:seconds); 0 for infinite/unlimited; None when it does not parse."""
+    text = str(text).strip().lower()
+    if text in ("infinite", "unlimited"):
+        return 0
+    match = _TIME.match(text)
+    if not match:
+        return None
+    days, first, second, third = match.groups()
+    if days is not None:
+        # days-hours[:minutes[:seconds]]
+        hours, minutes, seconds = int(first), int(second or 0), int(third or 0)
+        total = int(days) * 86400 + hours * 3600 + minutes * 60 + seconds
+    elif third is not None:
+        total = int(first) * 3600 + int(second) * 60 + int(third)
+    elif second is not None:
+        total = int(first) * 60 + int(second)
+    else:
+        total = int(first) * 60
+    return total
+
+
+def memory_mib(text):
+    """MiB of a Slurm memory size (a number is MiB; K, M, G, T suffixes), or None."""
+    match = _SIZE.match(str(text).strip())
+    if not match:
+        return None
+    value, unit = int(match.group(1)), match.group(2).upper()
+    return {"K": value // 1024, "": value, "M": value, "G": value * 1024, "T": value * 1024 * 1024}[unit]
+
+
+def parse_sinfo(text: str) -> dict:
+    """{partition: {"default", "nodes", "cpus", "memory_mib", "gpus", "max_time"}} from
+    `sinfo -h -e -o SINFO_FORMAT` (one line per partition and node configuration); gpus and the
+    others are the most one node of the partition has, max_time in seconds (0: none)."""
+    out = {}
+    for line in text.splitlines():
+        fields = line.strip().split("|")
+        if len(fields) != 6:
+            continue
+        name, nodes, cpus, memory, gres, limit = fields
+        default = name.endswith("*")
+        name = name.rstrip("*")
+        gpus = max((int(n) for n in _GRES_GPU.findall(gres)), default=0)
+        part = out.setdefault(
+            name, {"default": default, "nodes": 0, "cpus": 0, "memory_mib": 0, "gpus": 0, "max_time": None}
+        )
+        part["nodes"] += int(nodes) if nodes.isdigit() else 0
+        part["cpus"] = max(part["cpus"], int(cpus.rstrip("+")) if cpus.rstrip("+").isdigit() else 0)
+        part["memory_mib"] = max(part["memory_mib"], int(memory.rstrip("+")) if memory.rstrip("+").isdigit() else 0)
+        part["gpus"] = max(part["gpus"], gpus)
+        part["max_time"] = parse_time(limit)
+    return out
+
+
+# (job key, lowest, default when not given, what it counts): checked before anything is
+# copied or submitted (sbatch would take --nodes=-1 for one node, or refuse in its own words)
+_COUNTS = (
+    ("nodes", 1, 1, "nodes"),
+    ("gpus_per_node", 0, 0, "GPUs per node"),
+    ("cpus_per_node", 1, 1, "CPUs per node"),
+)
+
+
+def check_request(job: dict, partitions: dict) -> list:
+    """Errors in a job's request against what the cluster's partitions have (parse_sinfo), each
+    naming the variable and the fix, before anything is submitted."""
+    errors = []
+    name = job.get("partition") or next((p for p, v in partitions.items() if v["default"]), None)
+    if not partitions:
+        return ["train_partition: the cluster reports no partition (sinfo). Fix: check that slurmctld answers."]
+    if name not in partitions:
+        errors.append(
+            f"train_partition: {job.get('partition')!r} is not a partition of the cluster. Fix: one of "
+            f"{', '.join(sorted(partitions))}."
+        )
+        return errors
+    part = partitions[name]
+    seconds = parse_time(job.get("time", ""))
+    if seconds is None:
+        errors.append(
+            f"train_time: {job.get('time')!r} does not parse as a Slurm time. Fix: minutes, HH:MM:SS or "
+            "D-HH:MM:SS (e.g. 23:00:00)."
+        )
+    elif part["max_time"] and (seconds == 0 or seconds > part["max_time"]):
+        errors.append(
+            f"train_time: {job.get('time')} is longer than partition {name} allows "
+            f"({_clock(part['max_time'])}). Fix: ask for less time."
+        )
+    counts = {}
+    for key, lowest, default, what in _COUNTS:
+        value = job.get(key)
+        number = default if value is None or value == "" else plan.as_int(value)
+        if number is None or number < lowest:
+            errors.append(f"train_{key}: {value!r} is not a count of {what}. Fix: a whole number, {lowest} or more.")
+        counts[key] = number if isinstance(number, int) and number >= lowest else default
+    gpus, nodes = counts["gpus_per_node"], counts["nodes"]
+    if gpus > part["gpus"]:
+        errors.append(
+            f"train_gpus_per_node: {gpus}, and no node of partition {name} has more than {part['gpus']}. "
+            "Fix: ask for fewer per node (and more nodes), or use a partition with bigger nodes."
+        )
+    if nodes > part["nodes"]:
+        errors.append(f"train_nodes: {nodes}, and partition {name} has {part['nodes']}. Fix: ask for fewer nodes.")
+    cpus = counts["cpus_per_node"]
+    if part["cpus"] and cpus > part["cpus"]:
+        errors.append(
+            f"train_cpus_per_node: {cpus}, and no node of partition {name} has more than {part['cpus']}. "
+            "Fix: ask for fewer."
+        )
+    memory = job.get("memory")
+    if memory:
+        mib = memory_mib(memory)
+        if mib is None or mib < 1:
+            errors.append(f"train_memory: {memory!r} is not a size. Fix: e.g. 64G or 32000 (MiB).")
+        elif part["memory_mib"] and mib > part["memory_mib"]:
+            errors.append(
+                f"train_memory: {memory}, and no node of partition {name} has more than {part['memory_mib']} MiB. "
+                "Fix: ask for less."
+            )
+    bad = [n for n in job.get("env_names") or [] if not _ENV_NAME.match(str(n))]
+    if bad:
+        errors.append(f"train_env: {', '.join(map(repr, bad))}. Fix: names of variables (letters, digits, underscore).")
+    if not _NAME.match(str(job.get("name") or "")):
+        errors.append(
+            f"train_job_name: {job.get('name')!r}. Fix: letters, digits, dot, dash and underscore, 64 at most."
+        )
+    return errors
+
+
+def _clock(seconds: int) -> str:
+    days, rest = divmod(int(seconds), 86400)
+    text = f"{rest // 3600:02d}:{rest % 3600 // 60:02d}:{rest % 60:02d}"
+    return f"{days}-{text}" if days else text
+
+
+def parse_scontrol_job(text: str):
+    """{"id", "state", "elapsed", "nodes", "reason", "exit_code", "signal"} from
+    `scontrol show job -o ID` (one line of key=value words), or None. slurmctld knows a job from
+    its submission until MinJobAge after its end, wherever scontrol runs."""
+    first = (text or "").strip().splitlines()[:1]
+    fields = dict(w.split("=", 1) for w in (first[0].split() if first else []) if "=" in w)
+    if "JobId" not in fields or "JobState" not in fields:
+        return None
+    code = exit_of(fields.get("ExitCode", "")) or (None, None)
+    nodes = fields.get("NodeList", "")
+    return {
+        "id": fields["JobId"],
+        "state": fields["JobState"],
+        "elapsed": fields.get("RunTime", ""),
+        "nodes": "" if nodes == "(null)" else nodes,
+        "reason": fields.get("Reason", ""),
+        "exit_code": code[0],
+        "signal": code[1],
+    }
+
+
+def exit_of(text: str):
+    """(exit code, signal) of Slurm's "code:signal" ExitCode, or None."""
+    match = re.match(r"^(\d+):(\d+)$", (text or "").strip())
+    return (int(match.group(1)), int(match.group(2))) if match else None
+
+
+def parse_sacct(text: str, job_id: str):
+    """The job's own line of `sacct -n -P -o SACCT_FIELDS -j ID` (or `sacct -c`, which reads the
+    job completion log): {"id", "state", "exit_code", "signal", "elapsed", "nodes"}, or None."""
+    for line in text.splitlines():
+        fields = line.strip().split("|")
+        if len(fields) != 5 or fields[0] != str(job_id):
+            continue
+        code = exit_of(fields[2]) or (None, None)
+        return {
+            # "CANCELLED by 0": the state's first word
+            "state": fields[1].split()[0] if fields[1] else "",
+            "id": fields[0],
+            "exit_code": code[0],
+            "signal": code[1],
+            "elapsed": fields[3],
+            "nodes": fields[4],
+        }
+    return None
+
+
+def controller_down(scontrol_rc: int, scontrol_err: str) -> bool:
+    """Whether scontrol failed because slurmctld did not answer, not because it knows no such
+    job: anything but "Invalid job id" counts as not answering (waited out, never called lost)."""
+    return scontrol_rc != 0 and "invalid job id" not in (scontrol_err or "").lower()
+
+
+def status_of(job_id, scontrol_text: str, sacct_text: str, down: str = ""):
+    """A job's state: what slurmctld says of it (scontrol), or once it has forgotten the job
+    (MinJobAge after its end), what accounting says (sacct). {"id", "state", "elapsed", "nodes",
+    "reason", "exit_code", "signal", "finished"}, or None when neither knows it (the job is lost).
+    down: why slurmctld did not answer; then the job is not lost, its state is accounting's or
+    UNKNOWN, with controller_down set, until slurmctld answers again."""
+    live = parse_scontrol_job(scontrol_text)
+    if live and live["id"] == str(job_id):
+        return dict(live, finished=live["state"] in FINISHED)
+    done = parse_sacct(sacct_text or "", job_id)
+    if done and done["state"] in FINISHED:
+        return dict(done, reason="", finished=True)
+    if down:
+        last = done or {
+            "id": str(job_id),
+            "state": "UNKNOWN",
+            "elapsed": "",
+            "nodes": "",
+            "exit_code": None,
+            "signal": None,
+        }
+        return dict(last, reason=f"slurmctld does not answer ({down})", finished=False, controller_down=True)
+    return None
+
+
+def run_dir(name: str, stamp: str) -> str:
+    """The directory of one submission (its scripts and the snapshot of the code it runs)."""
+    return f"{name}-{stamp}"
+
+
+def _hex(image_id) -> str:
+    """An image id without its algorithm ("sha256:0a45..." -> "0a45..."), as Podman names it."""
+    return str(image_id or "").rsplit(":", maxsplit=1)[-1]
+
+
+def image_file(source: str, runtime: str, image_id: str) -> str:
+    """The file name of a job image on the cluster: the team's image name and its id, so that a
+    new image never replaces the file a queued job is about to run."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + f"-{_hex(image_id)[:12]}" + IMAGE_SUFFIX[runtime]
+
+
+def complete(job: dict) -> dict:
+    """The job as the scripts take it, from what the playbook gives: the image from image_file
+    (its path on the cluster) and image_id (podman and docker nodes run it by id, loaded from
+    the file), the cache mounts of the release when none are given."""
+    job = dict(job)
+    if job.get("runtime") in ("podman", "docker"):
+        job["image"] = _hex(job.get("image_id"))
+        job["image_archive"] = job.get("image_file")
+    else:
+        job["image"] = job.get("image_file")
+    if not job.get("mounts"):
+        job["mounts"] = releases.RELEASES[job.get("release") or "6.x"]["mounts"]
+    return job
+
+
+def cache_binds(cache: str, mounts: dict) -> list:
+    """(host path, container path) of each cache directory of the job's node-local copy."""
+    return [(f"{cache}/{sub}", target) for sub, target in sorted(mounts.items())]
+
+
+def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool, rc=None) -> list:
+    """The command that runs `command` in the job's image on a node (words of the node script;
+    node() marks the node's variables in them). env_names: variables passed from the node's
+    environment. The image's own entrypoint is not run, as `apptainer exec` does not run it.
+
+    GPUs: Apptainer's --nv and enroot's hook bring the node's GPUs, and the job's device cgroup
+    (Slurm's ConstrainDevices) lets only the job's open; Podman and Docker are given the job's
+    GPUs by their numbers on the node (JOB_GPUS, from Slurm's SLURM_STEP_GPUS).
+
+    Apptainer takes the environment's variables from APPTAINERENV_<NAME> (the node script
+    exports them; values never appear on a command line), enroot from --env NAME; rc: enroot's
+    command script, in place of the image's entrypoint."""
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
+    if runtime == "apptainer":
+        # a clean environment and private /tmp and $HOME, a writable layer that goes with the job
+        argv = ["apptainer", "exec", "--containall", "--writable-tmpfs", f"--pwd={WORKDIR}"]
+        argv += ["--nv"] if gpus else []
+        argv += [f"--bind={src}:{dst}:rw" for src, dst in binds]
+        return argv + [image] + list(command)
+    if runtime == "enroot":
+        argv = ["enroot", "start", "--rw"] + ([f"--rc={rc}"] if rc else [])
+        argv += [f"--mount={src}:{dst}" for src, dst in binds]
+        argv += [f"--env={name}" for name in env_names]
+        return argv + [image] + list(command)
+    argv = [runtime, "run", "--rm", "--network=host", "--ipc=host", "--entrypoint=", f"--workdir={WORKDIR}"]
+    argv += [f"--name={container_name()}"]
+    if runtime == "podman":
+        # the container stays in the job's cgroup, so Slurm's CPU, memory and device limits hold
+        # and a cancelled job's processes end with it (Docker's daemon starts containers outside it)
+        argv += ["--cgroups=disabled"]
+    if gpus:
+        # CDI names for Podman (nvidia-ctk cdi generate), the toolkit's --gpus for Docker
+        argv += [node("GPU_DEVICES[@]")] if runtime == "podman" else [f'--gpus="device={node("JOB_GPUS")}"']
+    argv += [f"--volume={src}:{dst}:rw" for src, dst in binds]
+    argv += [f"--env={name}" for name in env_names]
+    return argv + [image] + list(command)
+
+
+def container_name() -> str:
+    """The name of a job's container on a node (Podman and Docker), one per job and node."""
+    return f"train-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}"
+
+
+def training_command(job: dict) -> list:
+    """The training inside the container: python on the script with its arguments, or torchrun
+    with one process per GPU of each node when the job has more than one GPU in all."""
+    python = shlex.split(job.get("python") or "/isaac-sim/python.sh")
+    gpus, nodes = int(job.get("gpus_per_node") or 0), int(job.get("nodes") or 1)
+    args = [str(a) for a in job.get("args") or []]
+    if gpus * nodes <= 1:
+        return python + [job["script"]] + args
+    return (
+        python
+        + ["-m", "torch.distributed.run", f"--nnodes={node('SLURM_NNODES')}", f"--nproc_per_node={gpus}"]
+        + [f"--node_rank={node('SLURM_NODEID')}", f"--rdzv_id={node('SLURM_JOB_ID')}", "--rdzv_backend=c10d"]
+        + [f"--rdzv_endpoint={node('MASTER_ADDR')}:{node('MASTER_PORT')}", job["script"]]
+        + args
+    )
+
+
+def _word(word: str) -> str:
+    """A word of a generated shell script: the node's variables (node()) expand, nothing else does."""
+    out, at = [], 0
+    for match in _VAR.finditer(str(word)):
+        if match.start() > at:
+            out.append(shlex.quote(str(word)[at : match.start()]))
+        out.append(f'"${{{match.group(1)}}}"')
+        at = match.end()
+    if at < len(str(word)) or not out:
+        out.append(shlex.quote(str(word)[at:]))
+    return "".join(out)
+
+
+def line(argv) -> str:
+    return " ".join(_word(w) for w in argv)
+
+
+def batch_script(job: dict, node_script: str, managed: str = "Ansible managed (isaacsim.fleet)") -> str:
+    """What sbatch runs: the resources asked for, then one task per node running node_script."""
+    directives = [
+        f"--job-name={job['name']}",
+        f"--nodes={int(job.get('nodes') or 1)}",
+        "--ntasks-per-node=1",
+        f"--cpus-per-task={int(job.get('cpus_per_node') or 1)}",
+        f"--time={job['time']}",
+        f"--output={job['log_dir']}/slurm-%j.out",
+    ]
+    if job.get("partition"):
+        directives.append(f"--partition={job['partition']}")
+    if job.get("account"):
+        directives.append(f"--account={job['account']}")
+    if int(job.get("gpus_per_node") or 0):
+        directives.append(f"--gpus-per-node={int(job['gpus_per_node'])}")
+    if job.get("memory"):
+        directives.append(f"--mem={job['memory']}")
+    directives += [str(d) for d in job.get("sbatch_options") or []]
+    text = ["#!/bin/bash"] + [f"#SBATCH {d}" for d in directives]
+    text += [f"# {managed}", "set -eo pipefail"]
+    # site modules (a proxy, a newer Apptainer) before anything runs
+    text += [f"module load {shlex.quote(str(m))}" for m in job.get("modules") or []]
+    text += [
+        # the first node's address as slurm.conf gives it (NodeAddr, its name where none is set)
+        'MASTER_NODE="$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)"',
+        'MASTER_ADDR="$(scontrol show node "$MASTER_NODE" | sed -n \'s/.*NodeAddr=\\([^ ]*\\).*/\\1/p\')"',
+        'MASTER_ADDR="${MASTER_ADDR:-$MASTER_NODE}"',
+        # a port per job: two jobs whose first node is the same host do not meet
+        f"MASTER_PORT=$(({RENDEZVOUS_PORT} + SLURM_JOB_ID % 1000))",
+        "export MASTER_ADDR MASTER_PORT",
+        # one task per node; the job fails as soon as one node's training does
+        # srun takes the job's CPUs per task only when told (Slurm 22.05 and later)
+        "exec srun --kill-on-bad-exit=1 --ntasks-per-node=1 "
+        f'--cpus-per-task="$SLURM_CPUS_PER_TASK" bash {shlex.quote(node_script)}',
+    ]
+    return "\n".join(text) + "\n"
+
+
+def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") -> str:
+    """What each node runs: the caches in, the training, the caches back (first node), its exit.
+
+    job: name, runtime, image (the SIF or squashfs file, or for podman and docker the image's
+    id, with image_archive the file each node loads it from), code_dir (the code this job runs,
+    on the shared file system), logs_dir (where its logs/ go, shared by the jobs), cache_dir (the
+    shared caches), local_cache (the node's directory for them; a directory per job is made in
+    it), mounts ({cache subdirectory: path in the container}), python, script, args,
+    gpus_per_node, nodes, env_names."""
+    runtime = job["runtime"]
+    # the node's own disk (Slurm's per-job $TMPDIR by default); only this job's directory in it
+    base = _word(job["local_cache"]) if job.get("local_cache") else '"${TMPDIR:-/tmp}"'
+    binds = cache_binds(node("LOCAL_CACHE"), job["mounts"]) + [(job["code_dir"], WORKDIR)]
+    if job.get("logs_dir"):
+        binds.append((job["logs_dir"], f"{WORKDIR}/logs"))
+    env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR", "MASTER_PORT"})
+    env_names += ["SLURM_JOB_ID", "SLURM_NNODES", "SLURM_NODEID"]
+    # enroot runs a container made from the job's squashfs image on each node (a name per node:
+    # its containers may live in a shared $HOME), with a command script in place of the entrypoint
+    image = f"isaaclab-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}" if runtime == "enroot" else job["image"]
+    rc = f"{node('LOCAL_CACHE')}/.enroot-rc" if runtime == "enroot" else None
+    gpus = bool(int(job.get("gpus_per_node") or 0))
+    run = runtime_argv(runtime, image, binds, env_names, training_command(job), gpus, rc=rc)
+    dirs = " ".join(_word(f"{node('LOCAL_CACHE')}/{sub}") for sub in sorted(job["mounts"]))
+    text = [
+        "#!/bin/bash",
+        f"# {managed}",
+        "set -o pipefail",
+        f"SHARED_CACHE={_word(job['cache_dir'])}",
+        f'LOCAL_CACHE={base}/isaac-sim-cache-"$SLURM_JOB_ID"',
+        # Isaac Sim reads and writes its caches a lot: the node's disk, not the shared file system
+        f'mkdir -p {dirs} && rsync -a "$SHARED_CACHE/" "$LOCAL_CACHE/" 2>/dev/null || true',
+        "copy_back() {",
+    ]
+    if runtime in ("podman", "docker"):
+        # a cancelled job's container goes with it (Docker's would run on under its daemon)
+        text.append(f"  {runtime} rm -f {_word(container_name())} >/dev/null 2>&1 || true")
+    text += [
+        # rsync writes each file beside its place and renames it: a copy cut short, or another
+        # job reading meanwhile, never meets a torn file
+        '  if [ "$SLURM_NODEID" = 0 ]; then rsync -a "$LOCAL_CACHE/" "$SHARED_CACHE/" || true; fi',
+        '  rm -rf "$LOCAL_CACHE"',
+        "}",
+        "trap copy_back EXIT",
+        # the job's GPUs by their numbers on the node (CUDA_VISIBLE_DEVICES counts from 0 in
+        # the job's device cgroup)
+        'JOB_GPUS="${SLURM_STEP_GPUS:-${SLURM_JOB_GPUS:-}}"',
+    ]
+    if runtime == "podman" and gpus:
+        text += [
+            "GPU_DEVICES=()",
+            'for gpu in ${JOB_GPUS//,/ }; do GPU_DEVICES+=("--device=nvidia.com/gpu=$gpu"); done',
+        ]
+    if runtime == "apptainer":
+        # into the container by Apptainer's own prefix (--containall passes nothing else)
+        text += [f'export APPTAINERENV_{name}="${{{name}:-}}"' for name in env_names]
+    if runtime in ("podman", "docker") and job.get("image_archive"):
+        # the image comes to each node once, from the archive on the shared path; run by its id
+        text.append(
+            f"{runtime} image inspect {_word(job['image'])} >/dev/null 2>&1 || "
+            f"{runtime} load -q -i {_word(job['image_archive'])} >/dev/null"
+        )
+    if runtime == "enroot":
+        text += [
+            "printf '%s\\n' " + shlex.quote(ENROOT_RC) + ' > "$LOCAL_CACHE/.enroot-rc"',
+            f"enroot create --force --name {_word(image)} {_word(job['image'])} >/dev/null",
+        ]
+    # the training runs in the background so that a cancel (scancel's SIGTERM) is handled at
+    # once: the container is stopped (Podman's conmon would die with the step and leave it
+    # running), then the caches go back, within Slurm's KillWait (30 s by default); bash defers
+    # a trap while a foreground command runs
+    if runtime in ("podman", "docker"):
+        stop = f"  {runtime} stop -t 10 {_word(container_name())} >/dev/null 2>&1 || true"
+    else:
+        stop = '  kill -TERM "$TRAINING" 2>/dev/null || true'
+    text += [
+        f"{line(run)} &",
+        "TRAINING=$!",
+        "on_signal() {",
+        stop,
+        '  wait "$TRAINING"',
+        "  exit 143",
+        "}",
+        "trap on_signal TERM INT",
+        'wait "$TRAINING"',
+        "status=$?",
+    ]
+    if runtime == "enroot":
+        text.append(f"enroot remove --force {_word(image)} >/dev/null 2>&1 || true")
+    text += ['echo "isaacsim.fleet: training on node $SLURM_NODEID exited with $status"', "exit $status"]
+    return "\n".join(text) + "\n"
+
+
+def build_argv(runtime: str, source_image: str, out: str, archive=None, fakeroot=True) -> list:
+    """The command that turns the team's Docker image into what the runtime runs, on the build host.
+
+    apptainer: a SIF from the local Docker daemon's image (docker-daemon://, as the guide builds
+    it, which needs a tag: :latest where none is given), or from a `docker save` archive;
+    --fakeroot lets a user without root build (user namespaces and /etc/subuid). enroot: a
+    squashfs image from the daemon. podman and docker: a `docker save` archive of the team's
+    image that each node loads once (Podman loads Docker's archives)."""
+    if runtime == "apptainer":
+        tagged = "@" in source_image or ":" in source_image.rsplit("/", 1)[-1]
+        daemon = f"docker-daemon://{source_image}" + ("" if tagged else ":latest")
+        source = f"docker-archive:{archive}" if archive else daemon
+        return ["apptainer", "build", "--force"] + (["--fakeroot"] if fakeroot else []) + [out, source]
+    if runtime == "enroot":
+        return ["enroot", "import", "--output", out, f"dockerd://{source_image}"]
+    if runtime in ("podman", "docker"):
+        return ["docker", "save", "--output", out, source_image]
+    raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
+
+
+def submitted_id(text: str):
+    """The job id of `sbatch --parsable` ("123" or "123;cluster"), or None."""
+    first = (text or "").strip().splitlines()[:1]
+    job = first[0].split(";", 1)[0] if first else ""
+    return job if job.isdigit() else None
+
+
+def progress_line(job: dict) -> str:
+    """One line of a job's progress for a person: state, elapsed, nodes (or why it waits)."""
+    where = job.get("nodes") or ""
+    if job.get("state") == "PENDING" and job.get("reason") not in (None, "", "None"):
+        where = f"waiting: {job['reason']}"
+    if job.get("controller_down"):
+        where = f"{where} - {job['reason']}; waiting for it".lstrip(" -")
+    return f"job {job.get('id')} {job.get('state', '?')} {job.get('elapsed', '')} {where}".rstrip()

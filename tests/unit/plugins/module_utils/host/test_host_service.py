@@ -1,0 +1,91 @@
+"""Host services that are not instances (module_utils/host/host_service.py): files and unit in one call."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
+
+UNIT = "/etc/systemd/system/isaac-sim-status.service"
+SCRIPT = "/usr/local/libexec/isaac-sim/isaac-sim-status-server"
+RUNNING = {"ActiveState": "active", "UnitFileState": "enabled", "LoadState": "loaded"}
+NEW = {"ActiveState": "inactive", "UnitFileState": "", "LoadState": "not-found"}
+
+
+@pytest.mark.parametrize(
+    "show, changed, expected",
+    [
+        # a fresh host: written, loaded, enabled, started
+        (NEW, [UNIT, SCRIPT], ["write", "daemon-reload", "enable", "start"]),
+        # nothing to do on a re-run
+        (RUNNING, [], []),
+        # a changed script restarts the running service, no reload needed
+        (RUNNING, [SCRIPT], ["write", "restart"]),
+        (RUNNING, [UNIT], ["write", "daemon-reload", "restart"]),
+        # stopped by hand: started again, files unchanged
+        (dict(RUNNING, ActiveState="failed"), [], ["start"]),
+        # a drop-in is read on daemon-reload only, as a unit is
+        (RUNNING, ["/etc/systemd/system/isaac-sim@.service.d/hub.conf"], ["write", "daemon-reload", "restart"]),
+    ],
+)
+def test_started(show, changed, expected):
+    assert host_service.actions("started", show, changed, []) == expected
+
+
+@pytest.mark.parametrize(
+    "show, expected",
+    [
+        (NEW, ["directories", "enable", "start"]),
+        (RUNNING, ["directories", "restart"]),
+        # caught activating: restarted, with its mount there this time
+        (dict(RUNNING, ActiveState="activating"), ["directories", "restart"]),
+    ],
+)
+def test_directories_come_first_and_a_running_service_restarts_on_them(show, expected):
+    assert host_service.actions("started", show, [], [], directories=True) == expected
+
+
+def test_absent_stops_and_disables_before_removing():
+    assert host_service.actions("absent", RUNNING, [], [UNIT, SCRIPT]) == ["stop", "disable", "remove", "daemon-reload"]
+    assert host_service.actions("absent", NEW, [], []) == []
+
+
+def test_changed_files_compare_content_and_mode(tmp_path):
+    same, other, mode, missing = (str(tmp_path / n) for n in ("same", "other", "mode", "missing"))
+    for path in (same, other, mode):
+        host_service.write_file(path, "x\n", "0644")
+    files = {
+        same: {"content": "x\n", "mode": "0644"},
+        other: {"content": "y\n", "mode": "0644"},
+        mode: {"content": "x\n", "mode": "0755"},
+        missing: {"content": "x\n", "mode": "0644"},
+    }
+    assert host_service.changed_files(files, host_service.read_file) == sorted([other, mode, missing])
+    host_service.write_file(mode, "x\n", "0755")
+    assert os.stat(mode).st_mode & 0o777 == 0o755
+    assert host_service.remove(str(tmp_path)) and not os.path.exists(same)
+
+
+def test_directories_are_created_or_reowned_and_kept(tmp_path):
+    uid, gid = os.getuid(), os.getgid()
+    hub = tmp_path / "hub-cache"
+    wanted = [{"path": str(hub), "uid": uid, "gid": gid, "mode": "0750"}]
+    assert host_service.directories_to_fix(wanted) == wanted
+    host_service.fix_directory(wanted[0])
+    (hub / "kept").write_text("cache")
+    assert host_service.directories_to_fix(wanted) == []
+    os.chmod(hub, 0o777)
+    assert host_service.directories_to_fix(wanted) == wanted
+    host_service.fix_directory(wanted[0])
+    assert (hub / "kept").read_text() == "cache" and os.stat(hub).st_mode & 0o777 == 0o750
+
+
+def test_removing_the_last_drop_in_removes_its_directory_and_no_other(tmp_path):
+    ours, theirs = tmp_path / "isaac-sim@.service.d", tmp_path / "docker.service.d"
+    for d in (ours, theirs):
+        d.mkdir()
+        (d / "hub.conf").write_text("[Unit]\n")
+    (theirs / "site.conf").write_text("[Unit]\n")
+    assert host_service.remove(str(ours / "hub.conf")) and not ours.exists()
+    assert host_service.remove(str(theirs / "hub.conf")) and (theirs / "site.conf").exists()

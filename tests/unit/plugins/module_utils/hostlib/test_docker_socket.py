@@ -1,0 +1,81 @@
+"""The Docker Engine API client (module_utils/hostlib/docker_socket.py) against a socket that answers like dockerd."""
+
+from __future__ import annotations
+
+import http.server
+import json
+import socketserver
+import threading
+from urllib.parse import parse_qs, urlparse
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import recorded
+
+
+class _Server(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
+    daemon_threads = True
+
+
+class _Dockerd(http.server.BaseHTTPRequestHandler):
+    asked = []
+
+    def address_string(self):  # a unix socket has no client address
+        return "unix"
+
+    def do_GET(self):  # noqa: N802 - http.server's naming
+        self.asked.append(self.path)
+        url = urlparse(self.path)
+        if url.path == "/v1.41/containers/json":
+            status, body = 200, recorded("docker-containers.json")
+        elif url.path == "/v1.41/images/json":
+            status, body = 200, recorded("docker-images.json")
+        else:
+            status, body = 404, '{"message": "page not found"}'
+        data = body.encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture()
+def dockerd(tmp_path):
+    path = str(tmp_path / "docker.sock")
+    _Dockerd.asked = []
+    server = _Server(path, _Dockerd)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield path
+    server.shutdown()
+    server.server_close()
+
+
+def test_containers_are_listed_in_one_call_with_a_name_filter(dockerd):
+    docker = DockerSocket(f"unix://{dockerd}")
+    names = [c["Names"][0] for c in docker.containers("isaac-sim-")]
+    assert "/isaac-sim-0" in names
+    assert docker.calls == 1
+    query = parse_qs(urlparse(_Dockerd.asked[0]).query)
+    assert query["all"] == ["1"] and json.loads(query["filters"][0]) == {"name": ["isaac-sim-"]}
+
+
+def test_images_and_the_call_count(dockerd):
+    docker = DockerSocket(dockerd)
+    assert docker.images() and docker.calls == 1
+
+
+def test_an_error_answer_names_the_status(dockerd):
+    with pytest.raises(DockerError, match="Docker answered 404 to GET /nothing"):
+        DockerSocket(dockerd).get("/nothing")
+
+
+def test_no_daemon_says_where_it_looked(tmp_path):
+    docker = DockerSocket(str(tmp_path / "absent.sock"))
+    with pytest.raises(DockerError, match="cannot reach the Docker daemon at .*absent.sock"):
+        docker.containers("isaac-sim-")
+    assert docker.calls == 1

@@ -1,0 +1,90 @@
+"""The fleet report, its table and the Prometheus text (module_utils/hostlib/fleet_report.py), over recorded results."""
+
+from __future__ import annotations
+
+import re
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_report
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import host_result
+
+
+def test_report_counts_the_fleet_and_marks_unreachable_hosts():
+    report = fleet_report.build(
+        {"a": host_result(), "b": {"unreachable": True, "msg": "Failed to connect\nmore detail"}}, ["a", "b", "c"]
+    )
+    s = report["summary"]
+    assert (s["hosts"], s["reachable"], s["instances"], s["ready"], s["stray"]) == (3, 1, 5, 3, 1)
+    b, c = report["hosts"][1], report["hosts"][2]
+    assert not b["reachable"] and b["error"] == "Failed to connect" and "more detail" in b["error_detail"]
+    assert not c["reachable"] and "no answer" in c["error"]
+
+
+def test_table_has_one_aligned_line_per_instance():
+    lines = fleet_report.table(fleet_report.build({"gpu-node-1": host_result()}, ["gpu-node-1"]))
+    assert lines[0].split() == ["HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL"]
+    rows = [line.split() for line in lines[1:-1]]
+    assert [r[1] for r in rows] == ["0", "1", "2", "3", "9"]
+    assert rows[0][2:4] == ["ready", "yes"] and rows[0][-1] == "172.17.0.2:49100"
+    assert rows[3][2:4] == ["stopped", "no"]
+    assert rows[4][2:4] == ["stray-container", "(stray)"]
+    # columns line up: URL starts at the same offset on every line
+    assert len({line.index("172.17.0.2") for line in lines[1:4]}) == 1
+    assert lines[-1].startswith("1 hosts (1 answered), 5 instances: 4 running, 3 ready")
+
+
+def test_durations():
+    assert [fleet_report.duration(v) for v in (None, 5, 65, 3600 + 300, 2 * 86400 + 7200)] == [
+        "-",
+        "5s",
+        "1m05s",
+        "1h05m",
+        "2d2h",
+    ]
+
+
+def test_prometheus_text_is_well_formed():
+    text = fleet_report.prometheus(host_result())
+    sample = re.compile(r'^[a-z_]+\{isaac_sim_instance="[^"]+"(,[a-z_]+="[^"]*")*\} -?\d+$')
+    for line in text.splitlines():
+        assert line.startswith("# HELP ") or line.startswith("# TYPE ") or sample.match(line), line
+    assert 'isaac_sim_up{isaac_sim_instance="0"} 1' in text
+    assert 'isaac_sim_up{isaac_sim_instance="3"} 0' in text
+    assert 'isaac_sim_ready{isaac_sim_instance="3"} 0' in text
+    assert 'isaac_sim_up{isaac_sim_instance="9",stray="true"} 1' in text
+    assert "instance=" not in text.replace("isaac_sim_instance=", "")
+    # no GPU read: no GPU memory samples rather than zeros
+    assert "isaac_sim_gpu_memory_used_bytes{" not in text
+
+
+def test_prometheus_label_values_are_escaped():
+    result = host_result()
+    result["instances"][0]["image"] = 'reg/x:"quoted"\\'
+    assert 'image="reg/x:\\"quoted\\"\\\\"' in fleet_report.prometheus(result)
+
+
+def test_table_lists_each_companion_under_its_instance():
+    result = host_result()
+    result["instances"][1]["companions"] = [
+        {
+            "name": "viewer",
+            "state": "ready",
+            "ready": True,
+            "configured": True,
+            "uptime_s": 65,
+            "restarts": 1,
+            "ports": [{"proto": "tcp", "port": 8211}],
+        },
+    ]
+    lines = fleet_report.table(fleet_report.build({"gpu-node-1": result}, ["gpu-node-1"]))
+    rows = [line.split() for line in lines[1:-1]]
+    assert [r[1] for r in rows] == ["0", "1", "1/viewer", "2", "3", "9"]
+    assert rows[2] == ["gpu-node-1", "1/viewer", "ready", "yes", "1m05s", "1", "-", "8211/tcp"]
+
+
+def test_the_table_and_metrics_keep_the_last_days_ends_that_nrestarts_forgets():
+    inst = {"restarts": 0, "last_day": {"session_ends": 10, "crashes": 3, "unhealthy_restarts": 0, "docker_away": 1}}
+    assert fleet_report.restarts_text(inst) == "0 (24h: 3 crashed, 10 sessions ended)"
+    assert fleet_report.restarts_text({"restarts": 2, "last_day": None}) == "2"
+    text = fleet_report.prometheus({"instances": [dict(inst, id=3, name="isaac-sim-3")]})
+    assert 'isaac_sim_crashes_last_day{isaac_sim_instance="3"} 3' in text
+    assert 'isaac_sim_session_ends_last_day{isaac_sim_instance="3"} 10' in text

@@ -1,0 +1,130 @@
+"""The host's read-only status endpoint (module_utils/hostlib/status_server.py), served for real on 127.0.0.1."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import socket
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import status_server
+
+
+@contextlib.contextmanager
+def serving(read, allow=("127.0.0.0/8",), ttl=60.0):
+    networks, errors = status_server.parse_networks(allow)
+    assert errors == []
+    cache = status_server.Cache(read, ttl)
+    srv = status_server.server("127.0.0.1", 0, cache, networks)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{srv.server_address[1]}", cache
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def call(url, method="GET", origin=None):
+    request = urllib.request.Request(url, method=method, headers={"Origin": origin} if origin else {})
+    try:
+        with urllib.request.urlopen(request, timeout=5) as response:
+            return response.status, dict(response.headers), response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+def test_status_is_json_readable_by_the_dashboard_only_and_read_once_per_period():
+    with serving(lambda: {"host": "gpu-1", "instances": [{"id": 0, "state": "ready"}]}) as (url, cache):
+        code, headers, body = call(url + "/status")
+        assert code == 200 and headers["Content-Type"] == "application/json"
+        assert json.loads(body) == {"host": "gpu-1", "instances": [{"id": 0, "state": "ready"}]}
+        assert headers["Cache-Control"] == "no-store" and "Access-Control-Allow-Origin" not in headers
+        # a browser lets a page read it only when the answer names the page's origin: the dashboard
+        # opened as a file ("null"), not a web site the operator happens to visit
+        assert call(url + "/status", origin="null")[1]["Access-Control-Allow-Origin"] == "null"
+        assert "Access-Control-Allow-Origin" not in call(url + "/status", origin="https://evil.example")[1]
+        for _n in range(5):
+            assert call(url + "/status")[0] == 200
+        assert cache.reads == 1
+
+
+def test_the_period_bounds_the_reads():
+    now = [0.0]
+    reads = iter(range(100))
+    cache = status_server.Cache(lambda: {"n": next(reads)}, ttl=2, clock=lambda: now[0])
+    assert json.loads(cache.get()) == {"n": 0}
+    now[0] = 1.9
+    assert json.loads(cache.get()) == {"n": 0}
+    now[0] = 2.0
+    assert json.loads(cache.get()) == {"n": 1}
+
+
+def test_read_only_one_path_and_only_the_networks_allowed():
+    with serving(lambda: {}) as (url, _cache):
+        assert call(url + "/")[0] == 404
+        code, headers, _body = call(url + "/status", method="POST")
+        assert code == 405 and headers["Allow"] == "GET, HEAD"
+        assert call(url + "/status", method="DELETE")[0] == 405
+    with serving(lambda: {"secret": "no"}, allow=("10.20.0.0/16",)) as (url, cache):
+        code, _headers, body = call(url + "/status")
+        assert code == 403 and b"isaac_sim_status_server_allow" in body
+        assert cache.reads == 0
+
+
+def test_a_refused_or_silent_client_holds_no_thread():
+    with serving(lambda: {}, allow=("10.20.0.0/16",)) as (url, _cache):
+        port = int(url.rsplit(":", 1)[1])
+        before = threading.active_count()
+        idle = [socket.create_connection(("127.0.0.1", port)) for _n in range(5)]
+        try:
+            # answered and closed at once, without reading a request
+            assert idle[0].recv(64).startswith(b"HTTP/1.0 403")
+            time.sleep(0.2)
+            assert threading.active_count() == before
+        finally:
+            for conn in idle:
+                conn.close()
+
+
+def test_a_failed_read_is_503_and_the_server_keeps_serving():
+    answers = iter([RuntimeError("docker.sock: permission denied"), {"ok": True}])
+
+    def read():
+        answer = next(answers)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+    with serving(read, ttl=0) as (url, _cache):
+        code, _headers, body = call(url + "/status")
+        assert code == 503 and b"permission denied" in body
+        assert call(url + "/status")[:1] == (200,)
+
+
+@pytest.mark.parametrize(
+    "address, allow, expected",
+    [
+        ("10.1.2.3", ["10.0.0.0/8"], True),
+        ("192.0.2.7", ["10.0.0.0/8"], False),
+        ("::ffff:10.1.2.3", ["10.0.0.0/8"], True),
+        ("fd00::5", list(status_server.DEFAULT_ALLOW), True),
+        ("203.0.113.9", list(status_server.DEFAULT_ALLOW), False),
+        ("not-an-ip", ["0.0.0.0/0"], False),
+    ],
+)
+def test_allowed(address, allow, expected):
+    networks, _errors = status_server.parse_networks(allow)
+    assert status_server.allowed(address, networks) is expected
+
+
+def test_a_network_that_does_not_parse_is_named():
+    networks, errors = status_server.parse_networks(["10.0.0.0/8", "lab-net"])
+    assert len(networks) == 1
+    assert errors == [
+        "isaac_sim_status_server_allow: 'lab-net' is not a network. Fix: write it as CIDR, "
+        "e.g. 10.20.0.0/16, or a single address."
+    ]

@@ -1,0 +1,829 @@
+"""The instance lifecycle against a scripted host.
+
+The scripted host answers systemctl, journalctl and docker the way a real one
+does for the cases that matter: an image that becomes ready, one that never
+does (the gate's message in the journal), one that crashes during the soak,
+an instance stuck activating. The real thing runs in the molecule scenarios.
+"""
+
+import os
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle, reserved_ports
+
+UNIT_FILE = "/etc/systemd/system/isaac-sim@.service"
+GATE = "/usr/local/libexec/isaac-sim/isaac-sim-ready"
+
+
+def env(image, image_id, extra=""):
+    return f"{layout.K_IMAGE}={layout.quote(image)}\n{layout.K_IMAGE_ID}={layout.quote(image_id)}\n{extra}"
+
+
+OLD = env("reg/isaac-sim:5.0.0", "sha256:old")
+NEW = env("reg/isaac-sim:5.1.0", "sha256:new")
+NEVER = env("reg/isaac-sim:never-ready", "sha256:never")
+CRASHY = env("reg/isaac-sim:crashy", "sha256:crashy")
+
+
+class ScriptedHost:
+    def __init__(self, n=4, running=True, tags=None):
+        self.files = {}
+        self.units = {}
+        for i in range(n):
+            if running:
+                self.files[layout.env_file(i)] = (OLD, 0o644)
+            self.units[i] = {
+                "ActiveState": "active" if running else "inactive",
+                "SubState": "running" if running else "dead",
+                "NRestarts": 0,
+                "Result": "success",
+                "UnitFileState": "enabled" if running else "disabled",
+            }
+        if running:
+            self.files[UNIT_FILE] = ("unit v1\n", 0o644)
+            self.files[GATE] = ("gate v1\n", 0o755)
+        self.target = "enabled" if running else "disabled"
+        self.docker_want = running
+        self.markers = {i for i in range(n) if running}
+        # companions: {(id, name): unit state}; ready markers {(id, name)}
+        self.comps = {}
+        self.comp_markers = set()
+        self.tags = tags or {"reg/isaac-sim:5.0.0": "sha256:old"}
+        self.clock = 1000.0
+        self.log = []
+        self.journal = {}
+        self.dirs = set()  # made with mkdir (a lent instance's marker)
+        self.host = lifecycle.Host(
+            self.run,
+            lambda p: self.files.get(p, (None, None))[0],
+            self.write,
+            self.remove,
+            lambda p: self.files.get(p, (None, None))[1],
+            lambda p: any(p == layout.marker(i) for i in self.markers)
+            or any(p == layout.companion_marker(i, n) for i, n in self.comp_markers)
+            or (p == layout.TARGET_DOCKER_WANT and self.docker_want)
+            or p in self.dirs,
+            self.sleep,
+            lambda: self.clock,
+            lambda: 1795000000 + self.clock,
+        )
+
+    def write(self, path, text, mode):
+        self.files[path] = (text, mode)
+
+    def remove(self, path):
+        self.log.append(f"rm {path}")
+        self.dirs.discard(path)
+        for p in [p for p in self.files if p == path or p.startswith(path + "/")]:
+            del self.files[p]
+
+    def image(self, i):
+        return layout.parse(self.files.get(layout.env_file(i), ("", 0))[0]).get(layout.K_IMAGE, "")
+
+    def sleep(self, s):
+        self.clock += s
+        for i, u in self.units.items():
+            # the crashy image dies 3 s after its start and systemd restarts it
+            crashy = self.image(i).endswith("crashy")
+            if crashy and u.get("since") and self.clock - u["since"] > 3 and u["NRestarts"] == u.get("base", 0):
+                u["NRestarts"] += 1
+
+    def _start(self, i):
+        u = self.units[i]
+        self.markers.discard(i)
+        if "never-ready" in self.image(i):
+            self.clock += 20
+            # Restart=always: the failed start is tried again after RestartSec
+            u.update(ActiveState="activating", SubState="auto-restart", Result="exit-code")
+            gate = f"isaac-sim-{i} was not ready within 20 s"
+            # the gate quotes the journal's last lines, its own message among them
+            self.journal.setdefault(i, []).extend([gate, "  | loading scene", "  | " + gate])
+            return False
+        self.clock += 5
+        u.update(ActiveState="active", SubState="running", Result="success", since=self.clock, base=u["NRestarts"])
+        self.markers.add(i)
+        return True
+
+    def comp(self, i, name):
+        return self.comps.setdefault(
+            (i, name), {"ActiveState": "inactive", "SubState": "dead", "NRestarts": 0, "UnitFileState": "disabled"}
+        )
+
+    def _start_comp(self, i, name):
+        """A companion starts when its instance serves and its image is not a broken one."""
+        c = self.comp(i, name)
+        text = self.files.get(layout.companion_env_file(i, name), ("", 0))[0] or ""
+        if self.units.get(i, {}).get("ActiveState") == "active" and "broken" not in text and text:
+            c.update(ActiveState="active", SubState="running")
+            self.comp_markers.add((i, name))
+            return True
+        c.update(ActiveState="failed", SubState="failed")
+        self.comp_markers.discard((i, name))
+        self.journal.setdefault(layout.companion_unit(i, name), []).append(
+            f"{layout.companion_container(i, name)} stopped before it was ready"
+        )
+        return False
+
+    def _stop_comps(self, i):
+        """BindsTo=: an instance that stops takes its companions down."""
+        for (j, name), c in self.comps.items():
+            if j == i and c["ActiveState"] == "active":
+                c.update(ActiveState="inactive", SubState="dead")
+                self.comp_markers.discard((j, name))
+
+    def run(self, argv):
+        self.log.append(" ".join(argv))
+        if argv[0] == "mkdir":
+            if argv[1] in self.dirs:
+                return 1, "", f"mkdir: cannot create directory '{argv[1]}': File exists"
+            self.dirs.add(argv[1])
+            return 0, "", ""
+        ids = [layout.instance_id(layout.UNIT_RE, a) for a in argv if layout.instance_id(layout.UNIT_RE, a) is not None]
+        comps = [
+            (int(m.group(2)), m.group(1)) for m in (layout.COMPANION_UNIT_RE.match(a) for a in argv) if m is not None
+        ]
+        if comps and argv[:2] == ["systemctl", "show"]:
+            blocks = [
+                f"Id={layout.companion_unit(i, n)}\n" + "".join(f"{k}={v}\n" for k, v in self.comp(i, n).items())
+                for i, n in comps
+            ]
+            return 0, "\n".join(blocks), ""
+        if comps and argv[:2] == ["systemctl", "start"]:
+            started = [self._start_comp(i, n) for i, n in comps]  # every one, as systemd does
+            ok = all(started)
+            return (0, "", "") if ok else (1, "", "Job failed")
+        if comps and argv[:2] == ["systemctl", "enable"]:
+            for i, n in comps:
+                self.comp(i, n)["UnitFileState"] = "enabled"
+        if comps and argv[:3] == ["systemctl", "disable", "--now"]:
+            for i, n in comps:
+                self.comp(i, n).update(ActiveState="inactive", SubState="dead", UnitFileState="disabled")
+                self.comp_markers.discard((i, n))
+        if argv[:3] == ["systemctl", "list-units", "--failed"]:
+            failed = [layout.companion_unit(i, n) for (i, n), c in self.comps.items() if c["ActiveState"] == "failed"]
+            return 0, "".join(f"{u} loaded failed failed Isaac Sim companion\n" for u in failed), ""
+        if comps and argv[:2] == ["systemctl", "reset-failed"]:
+            for i, n in comps:
+                if self.comp(i, n)["ActiveState"] == "failed":
+                    self.comp(i, n).update(ActiveState="inactive", SubState="dead")
+        if argv[0] == "journalctl" and layout.COMPANION_UNIT_RE.match(argv[2]):
+            return 0, "\n".join(self.journal.get(argv[2], [])), ""
+        if argv[:2] == ["systemctl", "show"] and layout.TARGET in argv:
+            return 0, self.target + "\n", ""
+        if argv[:2] == ["systemctl", "show"]:
+            blocks = []
+            for i in ids:
+                u = self.units.setdefault(
+                    i,
+                    {
+                        "ActiveState": "inactive",
+                        "SubState": "dead",
+                        "NRestarts": 0,
+                        "Result": "success",
+                        "UnitFileState": "disabled",
+                    },
+                )
+                blocks.append(f"Id={layout.unit(i)}\n" + "".join(f"{k}={v}\n" for k, v in u.items() if k[0].isupper()))
+            return 0, "\n".join(blocks), ""
+        if argv[:2] in (["systemctl", "restart"], ["systemctl", "start"]):
+            if argv[1] == "restart":
+                for i in ids:
+                    self._stop_comps(i)
+            started = [self._start(i) for i in ids]  # every one, not up to the first failure
+            ok = all(started)
+            return (0, "", "") if ok else (1, "", "Job for isaac-sim@.service failed")
+        if argv[:2] == ["systemctl", "stop"] or argv[:3] == ["systemctl", "disable", "--now"]:
+            for i in ids:
+                self._stop_comps(i)
+                self.units[i].update(ActiveState="inactive", SubState="dead")
+                self.markers.discard(i)
+                if argv[1] == "disable":
+                    self.units[i]["UnitFileState"] = "disabled"
+            return 0, "", ""
+        if argv[:2] == ["systemctl", "enable"]:
+            for i in ids:
+                self.units[i]["UnitFileState"] = "enabled"
+            self.target = "enabled"
+            self.docker_want = True
+            return 0, "", ""
+        if argv[0] == "journalctl":
+            return 0, "\n".join(self.journal.get(ids[0], [])), ""
+        if argv[:3] == ["docker", "image", "inspect"]:
+            tag = argv[-1]
+            return (0, self.tags[tag] + "\n", "") if tag in self.tags else (1, "", "No such image")
+        return 0, "", ""
+
+    def commands(self, verb):
+        return [line for line in self.log if line.startswith(f"systemctl {verb}")]
+
+
+# what the lifecycle reads before it changes anything
+READS = ("systemctl show", "systemctl list-units")
+
+
+def want(instances, files=None, **over):
+    w = {
+        "files": files if files is not None else {UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755)},
+        "instances": instances,
+        "env_mode": 0o644,
+        "remove": [],
+        "soak": 0,
+    }
+    w.update(over)
+    return w
+
+
+def test_a_fresh_host_starts_every_instance_at_once_and_enables_them():
+    h = ScriptedHost(4, running=False)
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(4)}))
+    assert result["failed"] is None and result["changed"]
+    assert h.commands("start") == ["systemctl start " + " ".join(layout.unit(i) for i in range(4))]
+    assert h.commands("restart") == []
+    assert [d["action"] for d in result["done"]] == ["start"] * 4
+    assert h.files[layout.env_file(3)] == (NEW, 0o644) and h.files[GATE] == ("gate v1\n", 0o755)
+    assert all(u["UnitFileState"] == "enabled" for u in h.units.values()) and h.target == "enabled"
+
+
+def test_a_target_enabled_before_docker_wanted_it_is_enabled_again_and_nothing_restarts():
+    # hosts deployed before the target's WantedBy=docker.service: only systemctl enable links it
+    h = ScriptedHost(3)
+    h.docker_want = False
+    target = os.path.join(layout.UNIT_DIR, layout.TARGET)
+    h.files[target] = ("old target\n", 0o644)
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(3)}, files={target: ("new target\n", 0o644)}))
+    assert result["failed"] is None and result["changed"]
+    assert result["plan"]["enable"] == [layout.TARGET] and h.docker_want
+    assert h.files[target] == ("new target\n", 0o644) and "systemctl daemon-reload" in h.log
+    assert h.commands("restart") == [] and h.commands("start") == []
+
+
+def test_the_target_is_started_by_docker_and_stops_with_it():
+    text = layout.render_target("managed")
+    assert "Requires=docker.service" in text and "WantedBy=multi-user.target docker.service" in text
+
+
+def test_nothing_to_do_changes_nothing():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(4)}))
+    assert not result["changed"] and result["done"] == []
+    assert [line for line in h.log if not line.startswith(READS)] == []
+
+
+def test_a_changed_image_rolls_one_instance_at_a_time_with_a_soak_each():
+    h = ScriptedHost(3)
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}, soak=10))
+    assert result["failed"] is None
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(i)}" for i in range(3)]
+    assert all(d["action"] == "apply" and d["restart_s"] == 5 and d["soak_s"] >= 10 for d in result["done"])
+    # each restart comes after the previous instance's soak: its counter is reset just before it
+    assert h.log.index(f"systemctl reset-failed {layout.unit(1)}") > h.log.index(f"systemctl restart {layout.unit(0)}")
+
+
+def test_a_never_ready_image_goes_back_and_leaves_the_others_untouched():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({i: NEVER for i in range(4)}))
+    failed = result["failed"]
+    assert failed["id"] == 0 and failed["reason"].startswith("isaac-sim-0 was not ready within 20 s")
+    assert failed["reason"].endswith("(last lines: loading scene)")
+    assert failed["reverted"] is True and failed["reverted_to"] == "reg/isaac-sim:5.0.0" and failed["left"] == "running"
+    assert result["untouched"] == [1, 2, 3]
+    assert all(h.files[layout.env_file(i)][0] == OLD for i in range(4))
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"] * 2
+    # the failed start left it activating (auto-restart): stopped before it is restarted on the old image
+    assert f"systemctl stop {layout.unit(0)}" in h.log
+    assert h.units[0]["ActiveState"] == "active"
+
+
+def test_going_back_pins_the_previous_image_id_when_its_tag_moved():
+    h = ScriptedHost(2, tags={"reg/isaac-sim:5.0.0": "sha256:moved"})
+    lifecycle.apply(h.host, want({0: NEVER, 1: NEVER}))
+    assert layout.parse(h.files[layout.env_file(0)][0])[layout.K_IMAGE] == "sha256:old"
+
+
+def test_a_changed_shared_file_rolls_every_serving_instance_and_goes_back_with_it():
+    h = ScriptedHost(3)
+    ok = lifecycle.apply(h.host, want({i: OLD for i in range(3)}, files={UNIT_FILE: ("unit v2\n", 0o644)}))
+    assert [d["action"] for d in ok["done"]] == ["restart"] * 3
+    assert h.log.count("systemctl daemon-reload") == 1
+    h = ScriptedHost(3)
+    bad = lifecycle.apply(h.host, want({0: NEVER, 1: OLD, 2: OLD}, files={UNIT_FILE: ("unit v2\n", 0o644)}))
+    assert bad["failed"]["id"] == 0 and bad["untouched"] == [1, 2]
+    assert h.files[UNIT_FILE] == ("unit v1\n", 0o644)
+    assert h.log.count("systemctl daemon-reload") == 2
+
+
+def test_defer_running_changes_nothing_on_a_host_that_would_restart():
+    h = ScriptedHost(2)
+    result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, defer_running=True))
+    assert result["deferred"] and not result["changed"] and result["plan"]["roll"] == [0, 1]
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if not x.startswith(READS)] == []
+    fresh = ScriptedHost(2, running=False)
+    assert not lifecycle.apply(fresh.host, want({0: NEW, 1: NEW}, defer_running=True))["deferred"]
+
+
+def test_defer_running_leaves_a_scale_down_of_serving_instances_to_the_batches():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({}, remove=[0, 1, 2, 3], defer_running=True))
+    assert result["deferred"] and not result["changed"] and h.commands("disable") == []
+    assert all(u["ActiveState"] == "active" for u in h.units.values())
+    # instances that no longer serve go at once
+    h.units[3].update(ActiveState="failed", SubState="failed")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD, 2: OLD}, remove=[3], defer_running=True))
+    assert not result["deferred"] and result["removed"] == [3]
+
+
+def test_a_rollout_whose_controller_went_away_stops_after_the_instance_in_hand():
+    h = ScriptedHost(4)
+    # the controller is gone once the first instance is done
+    h.host.interrupted = lambda: "its controller stopped" if h.commands("restart") else ""
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(4)}))
+    assert result["interrupted"] == "its controller stopped" and result["failed"] is None
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [1, 2, 3]
+    assert all(h.units[i]["ActiveState"] == "active" for i in range(4))
+    said = [line for line in h.log if line.startswith("logger -t isaac-sim-lifecycle")]
+    assert said == [
+        "logger -t isaac-sim-lifecycle rollout interrupted: its controller stopped; done: isaac-sim-0; "
+        "left as they were: isaac-sim-1, isaac-sim-2, isaac-sim-3"
+    ]
+
+
+def test_a_rolling_restart_whose_controller_went_away_stops_too():
+    h = ScriptedHost(3)
+    h.host.interrupted = lambda: "gone" if len(h.commands("restart")) == 2 else ""
+    result = lifecycle.restart_each(h.host, [0, 1, 2], 0)
+    assert [d["id"] for d in result["done"]] == [0, 1] and result["untouched"] == [2]
+    assert result["interrupted"] == "gone"
+
+
+def test_a_new_instance_that_does_not_start_is_stopped_and_forgotten():
+    h = ScriptedHost(2)
+    h.units[2] = dict(h.units[0], ActiveState="inactive", UnitFileState="disabled")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD, 2: NEVER}))
+    assert (
+        result["failed"]["id"] == 2 and result["failed"]["reverted"] is None and result["failed"]["left"] == "stopped"
+    )
+    assert layout.env_file(2) not in h.files and h.units[2]["ActiveState"] == "inactive"
+    assert h.commands("restart") == []
+
+
+def test_scale_down_goes_first_and_keeps_data_unless_purge():
+    h = ScriptedHost(4)
+    result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, remove=[2, 3]))
+    assert result["failed"] is None
+    assert h.log.index("systemctl disable --now isaac-sim@2.service isaac-sim@3.service") < h.log.index(
+        "systemctl restart isaac-sim@0.service"
+    )
+    assert layout.env_file(2) not in h.files and "rm /var/lib/isaac-sim/instance-2" not in h.log
+    h = ScriptedHost(4)
+    lifecycle.apply(h.host, want({0: OLD, 1: OLD}, remove=[2, 3], purge=True))
+    assert "rm /var/lib/isaac-sim/instance-3" in h.log
+
+
+def test_an_instance_stuck_activating_on_old_settings_is_stopped_then_started():
+    h = ScriptedHost(2)
+    h.units[1].update(ActiveState="activating", SubState="start-post")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: NEW}))
+    assert result["plan"]["start"] == [1] and result["failed"] is None
+    assert h.log.index("systemctl stop isaac-sim@1.service") < h.log.index("systemctl start isaac-sim@1.service")
+
+
+def test_an_instance_coming_back_on_its_settings_is_waited_for_not_stopped():
+    h = ScriptedHost(2)
+    # as after a Docker restart: the unit is starting again on the settings it has
+    h.units[1].update(ActiveState="activating", SubState="start-post")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD}))
+    assert result["plan"]["start"] == [1] and result["failed"] is None
+    assert "systemctl stop isaac-sim@1.service" not in h.log and "systemctl start isaac-sim@1.service" in h.log
+
+
+def test_check_mode_reports_and_changes_nothing():
+    h = ScriptedHost(2)
+    result = lifecycle.apply(h.host, want({0: NEW, 1: OLD}, remove=[3]), check=True)
+    assert result["changed"] and result["plan"]["roll"] == [0] and result["plan"]["remove"] == [3]
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if not x.startswith(READS)] == []
+
+
+def test_rolling_restart_soaks_and_stops_at_a_crash():
+    h = ScriptedHost(3)
+    h.files[layout.env_file(1)] = (CRASHY, 0o644)
+    result = lifecycle.restart_each(h.host, [0, 1, 2], soak_seconds=10)
+    assert [d["id"] for d in result["done"]] == [0]
+    assert "restarted during the soak" in result["failed"]["reason"] and result["untouched"] == [2]
+
+
+def test_summary_names_what_was_rolled_reverted_and_untouched():
+    outcomes = {
+        "a": {"done": [{"id": 0, "action": "apply"}], "failed_instance": None},
+        "b": {
+            "failed": True,
+            "done": [],
+            "failed_instance": {
+                "id": 0,
+                "reason": "not ready",
+                "reverted": True,
+                "reverted_to": "img:1",
+                "left": "running",
+            },
+            "untouched": [1, 2],
+        },
+        "c": {},
+    }
+    lines = lifecycle.summary(outcomes, ["a", "b", "c"])
+    assert lines[0] == "rolled: a: isaac-sim-0"
+    assert "b: isaac-sim-0 (not ready) - back on img:1, ready" in lines[1]
+    assert "b: isaac-sim-1, isaac-sim-2" in lines[2] and "c: every instance (not reached)" in lines[2]
+    assert lines[-1] == "stopped: isaac-sim-0 on b: not ready"
+
+
+def ports_env(image, signal, stream):
+    return env(image, "sha256:x", f"{layout.K_PORT_PREFIX}SIGNAL={signal}\n{layout.K_PORT_PREFIX}STREAM={stream}\n")
+
+
+def test_a_port_layout_change_rolls_in_an_order_where_no_instance_starts_on_a_held_port():
+    # stride 1 -> 2 with stream next to signal: new instance 1 wants ports old 2 and 3 still hold
+    old = {i: {49100 + i, 47998 + i} for i in range(4)}
+    new = {i: {49100 + 2 * i, 49101 + 2 * i} for i in range(4)}
+    steps, notes = lifecycle.port_order(old, new, [0, 1, 2, 3], [])
+    assert steps == [("roll", 2), ("roll", 3), ("roll", 1), ("roll", 0)] and notes == []
+    h = ScriptedHost(4)
+    for i in range(4):
+        h.files[layout.env_file(i)] = (ports_env("reg/isaac-sim:5.0.0", 49100 + i, 47998 + i), 0o644)
+    result = lifecycle.apply(
+        h.host, want({i: ports_env("reg/isaac-sim:5.0.0", 49100 + 2 * i, 49101 + 2 * i) for i in range(4)})
+    )
+    assert [d["id"] for d in result["done"]] == [2, 3, 1, 0] and result["failed"] is None
+    assert result["plan"]["order"] == ["roll 2", "roll 3", "roll 1", "roll 0"]
+
+
+def test_instances_that_swap_ports_are_stopped_first_and_the_plan_says_so():
+    old = {0: {49100}, 1: {49101}}
+    new = {0: {49101}, 1: {49100}}
+    steps, notes = lifecycle.port_order(old, new, [0, 1], [])
+    assert steps == [("stop", [1]), ("roll", 0), ("start", [1])]
+    assert notes == [
+        "isaac-sim-1 stopped before isaac-sim-0 to free port(s) 49101: the host is below N-1 until they "
+        "start again on their new ports"
+    ]
+
+
+def test_a_new_instance_whose_ports_are_still_held_starts_after_the_roll():
+    old = {0: {49100}, 1: set()}
+    new = {0: {49200}, 1: {49100}}
+    steps, _rest = lifecycle.port_order(old, new, [0], [1])
+    assert steps == [("roll", 0), ("start", [1])]
+
+
+def user_env(image, user):
+    return env(image, "sha256:x", f"{layout.K_DOCKER_ARGS}={layout.quote(layout.join_args(['--user=' + user]))}\n")
+
+
+def test_a_new_container_user_gets_the_caches_while_the_instance_is_down():
+    h = ScriptedHost(2)
+    for i in range(2):
+        h.files[layout.env_file(i)] = (user_env("reg/isaac-sim:4.5.0", "0:0"), 0o644)
+    handed = []
+
+    def reown(i):
+        handed.append(i)
+        h.log.append(f"reown {i}")
+
+    new = {i: user_env("reg/isaac-sim:5.1.0", "1234:1234") for i in range(2)}
+    result = lifecycle.apply(h.host, want(new, reown=reown))
+    assert result["failed"] is None and handed == [0, 1]
+    # stopped, handed over, started: never while the old user can still write
+    first = h.log.index("reown 0")
+    assert h.log[first - 1] == "systemctl stop isaac-sim@0.service"
+    assert h.log[first + 1] == "systemctl start isaac-sim@0.service"
+    # the same user keeps the plain restart
+    same = ScriptedHost(1)
+    lifecycle.apply(same.host, want({0: NEW}, reown=reown))
+    assert handed == [0, 1] and same.commands("restart") == ["systemctl restart isaac-sim@0.service"]
+
+
+# --- companions: an instance and its companions change as one ---
+
+VIEWER_UNIT = "/etc/systemd/system/isaac-sim-viewer@.service"
+VIEWER = f"{layout.K_IMAGE}={layout.quote('reg/viewer:1')}\n"
+VIEWER_2 = f"{layout.K_IMAGE}={layout.quote('reg/viewer:2')}\n"
+BROKEN = f"{layout.K_IMAGE}={layout.quote('reg/viewer:broken')}\n"
+
+
+def with_viewer(n=2, running=True):
+    """A host whose instances each run the viewer companion."""
+    h = ScriptedHost(n, running=running)
+    if running:
+        h.files[VIEWER_UNIT] = ("viewer unit v1\n", 0o644)
+        for i in range(n):
+            h.files[layout.companion_env_file(i, "viewer")] = (VIEWER, 0o644)
+            h.comps[(i, "viewer")] = {
+                "ActiveState": "active",
+                "SubState": "running",
+                "NRestarts": 0,
+                "UnitFileState": "enabled",
+            }
+            h.comp_markers.add((i, "viewer"))
+    return h
+
+
+def viewer_want(instances, comps, found=None, files=None, **over):
+    shared = files or {
+        UNIT_FILE: ("unit v1\n", 0o644),
+        GATE: ("gate v1\n", 0o755),
+        VIEWER_UNIT: ("viewer unit v1\n", 0o644),
+    }
+    return want(instances, files=shared, companions=comps, companions_found=found or {}, **over)
+
+
+def test_a_fresh_instance_starts_first_then_its_companions_all_together_enabled():
+    h = with_viewer(2, running=False)
+    result = lifecycle.apply(h.host, viewer_want({0: NEW, 1: NEW}, {0: {"viewer": VIEWER}, 1: {"viewer": VIEWER}}))
+    assert result["failed"] is None
+    starts = h.commands("start")
+    assert starts == [
+        "systemctl start isaac-sim@0.service isaac-sim@1.service",
+        "systemctl start isaac-sim-viewer@0.service isaac-sim-viewer@1.service",
+    ]
+    # enabled before the start: the instance's unit wants it (WantedBy=), so a reboot brings it back
+    assert h.log.index("systemctl enable isaac-sim-viewer@0.service") < h.log.index(starts[0])
+    assert all(c["ActiveState"] == "active" and c["UnitFileState"] == "enabled" for c in h.comps.values())
+
+
+def test_a_changed_companion_rolls_its_instance_and_nothing_is_done_when_all_is_current():
+    h = with_viewer(2)
+    same = lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD, 1: OLD}, {0: {"viewer": VIEWER}, 1: {"viewer": VIEWER}}, {0: ["viewer"], 1: ["viewer"]}),
+    )
+    assert not same["changed"]
+    result = lifecycle.apply(
+        h.host,
+        viewer_want(
+            {0: OLD, 1: OLD}, {0: {"viewer": VIEWER_2}, 1: {"viewer": VIEWER_2}}, {0: ["viewer"], 1: ["viewer"]}
+        ),
+    )
+    assert result["failed"] is None and result["plan"]["roll"] == [0, 1]
+    assert h.commands("restart") == ["systemctl restart isaac-sim@0.service", "systemctl restart isaac-sim@1.service"]
+    assert h.files[layout.companion_env_file(1, "viewer")][0] == VIEWER_2
+    assert h.comps[(1, "viewer")]["ActiveState"] == "active"
+
+
+def test_a_companion_that_does_not_start_reverts_its_instance_and_stops_the_roll():
+    h = with_viewer(3)
+    result = lifecycle.apply(
+        h.host,
+        viewer_want(
+            {i: NEW for i in range(3)},
+            {i: {"viewer": BROKEN} for i in range(3)},
+            {i: ["viewer"] for i in range(3)},
+        ),
+    )
+    failed = result["failed"]
+    assert failed["id"] == 0 and "companion isaac-sim-0-viewer did not start" in failed["reason"]
+    assert "stopped before it was ready" in failed["reason"]
+    assert failed["reverted"] is True and failed["left"] == "running" and result["untouched"] == [1, 2]
+    # the instance and its companion are back on their previous files, running
+    assert h.files[layout.env_file(0)][0] == OLD and h.files[layout.companion_env_file(0, "viewer")][0] == VIEWER
+    assert h.comps[(0, "viewer")]["ActiveState"] == "active" and h.units[0]["ActiveState"] == "active"
+    assert h.files[layout.env_file(1)][0] == OLD
+
+
+def test_a_companion_taken_away_is_stopped_and_disabled_before_its_file_and_template_go():
+    h = with_viewer(2)
+    result = lifecycle.apply(
+        h.host,
+        want(
+            {0: OLD, 1: OLD},
+            files={UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755), VIEWER_UNIT: (None, None)},
+            companions={},
+            companions_found={0: ["viewer"], 1: ["viewer"]},
+        ),
+    )
+    assert result["failed"] is None and result["plan"]["roll"] == [0, 1]
+    disable = h.log.index("systemctl disable --now isaac-sim-viewer@0.service")
+    assert disable < h.log.index(f"rm {layout.companion_env_file(0, 'viewer')}")
+    assert layout.companion_env_file(1, "viewer") not in h.files
+    # the template goes last, once no instance has the companion
+    assert VIEWER_UNIT not in h.files
+    assert h.log.index(f"rm {VIEWER_UNIT}") > h.log.index("systemctl restart isaac-sim@1.service")
+    assert all(c["ActiveState"] == "inactive" and c["UnitFileState"] == "disabled" for c in h.comps.values())
+
+
+def test_a_companion_down_beside_a_serving_instance_is_started_without_restarting_the_instance():
+    h = with_viewer(2)
+    h.comps[(1, "viewer")].update(ActiveState="failed", SubState="failed")
+    h.comp_markers.discard((1, "viewer"))
+    result = lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD, 1: OLD}, {0: {"viewer": VIEWER}, 1: {"viewer": VIEWER}}, {0: ["viewer"], 1: ["viewer"]}),
+    )
+    assert result["failed"] is None and result["changed"]
+    assert result["plan"]["companions"] == {1: ["isaac-sim-viewer@1.service"]}
+    assert h.commands("restart") == [] and h.commands("start") == ["systemctl start isaac-sim-viewer@1.service"]
+    assert h.comps[(1, "viewer")]["ActiveState"] == "active"
+
+
+def test_scale_down_takes_the_companions_with_their_instance():
+    h = with_viewer(3)
+    lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD}, {0: {"viewer": VIEWER}}, {i: ["viewer"] for i in range(3)}, remove=[1, 2]),
+    )
+    assert (
+        "systemctl disable --now isaac-sim-viewer@1.service isaac-sim-viewer@2.service isaac-sim@1.service "
+        "isaac-sim@2.service" in h.log
+    )
+    assert layout.companion_env_file(2, "viewer") not in h.files and layout.companion_env_file(0, "viewer") in h.files
+    assert VIEWER_UNIT in h.files
+
+
+def test_a_rolling_restart_brings_each_instance_back_with_its_companions():
+    h = with_viewer(2)
+    result = lifecycle.restart_each(h.host, [0, 1], 0, companions={0: ["viewer"], 1: ["viewer"]})
+    assert result["failed"] is None
+    assert h.log.index("systemctl start isaac-sim-viewer@0.service") < h.log.index(
+        "systemctl restart isaac-sim@1.service"
+    )
+    assert all(c["ActiveState"] == "active" for c in h.comps.values())
+
+
+def test_a_new_companion_that_fails_leaves_before_its_new_template_is_taken_back():
+    h = ScriptedHost(2)
+    result = lifecycle.apply(
+        h.host,
+        viewer_want({0: OLD, 1: OLD}, {0: {"viewer": BROKEN}, 1: {"viewer": BROKEN}}),
+    )
+    assert result["failed"]["id"] == 0 and result["untouched"] == [1]
+    assert h.log.index("systemctl disable --now isaac-sim-viewer@0.service") < h.log.index(f"rm {VIEWER_UNIT}")
+    assert VIEWER_UNIT not in h.files and layout.companion_env_file(0, "viewer") not in h.files
+    assert h.units[0]["ActiveState"] == "active"
+    # its failed start is not left listed (host degraded, a stray in status)
+    assert "systemctl reset-failed isaac-sim-viewer@0.service" in h.log
+    assert h.comp(0, "viewer")["ActiveState"] != "failed"
+
+
+def test_a_failed_companion_left_by_an_earlier_run_is_cleared_and_a_wanted_one_is_not():
+    h = ScriptedHost(2)
+    h.comp(0, "bridge").update(ActiveState="failed", SubState="failed")
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD}))
+    assert result["changed"] and result["plan"]["cleared"] == ["isaac-sim-bridge@0.service"]
+    assert h.comp(0, "bridge")["ActiveState"] == "inactive" and h.commands("restart") == []
+    # a companion the plan has is the lifecycle's to start again, never merely cleared
+    h = ScriptedHost(2)
+    h.comp(1, "viewer").update(ActiveState="failed", SubState="failed")
+    assert lifecycle.leftover_companions(h.host, {1: ["viewer"]}) == []
+
+
+def test_moving_to_own_addresses_keeps_the_port_numbers_and_blocks_nobody():
+    text = env("reg/isaac-sim:5.1.0", "sha256:x", f"{layout.K_PORT_PREFIX}SIGNAL=49100\n{layout.K_ADDRESS}=10.0.0.51\n")
+    assert lifecycle.ports_of(text) == {("10.0.0.51", 49100)}
+    old = {i: {("", 49100 + i)} for i in range(4)}
+    new = {i: {(f"10.0.0.{50 + i}", 49100)} for i in range(4)}
+    steps, notes = lifecycle.port_order(old, new, [0, 1, 2, 3], [])
+    assert steps == [("roll", 0), ("roll", 1), ("roll", 2), ("roll", 3)] and notes == []
+    # two instances that swap addresses: the same port at the same address is held
+    steps, notes = lifecycle.port_order(
+        {0: {("10.0.0.50", 49100)}, 1: {("10.0.0.51", 49100)}},
+        {0: {("10.0.0.51", 49100)}, 1: {("10.0.0.50", 49100)}},
+        [0, 1],
+        [],
+    )
+    assert steps[0] == ("stop", [1]) and "port(s) 10.0.0.51:49100" in notes[0]
+
+
+def test_new_ports_are_reserved_before_an_instance_binds_one_and_the_old_ones_leave_at_the_end():
+    h = ScriptedHost(2)
+    h.files[reserved_ports.PROC] = ("9000 49100-49101\n".replace(" ", ","), 0o644)
+    h.files[reserved_ports.CONF] = (reserved_ports.conf({9000, 49100, 49101}, {49100, 49101}, "m"), 0o644)
+    seen = []
+    start = h._start
+
+    def spy(i):
+        seen.append(h.files[reserved_ports.PROC][0])
+        return start(i)
+
+    h._start = spy
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(2)}, reserve=[49104, 49105], managed="m"))
+    assert result["failed"] is None and result["plan"]["reserved_ports"]
+    # while the instances roll, both layouts are reserved
+    assert seen and all(s == "9000,49100-49101,49104-49105\n" for s in seen)
+    assert h.files[reserved_ports.PROC][0] == "9000,49104-49105\n"
+    assert reserved_ports.ours(h.files[reserved_ports.CONF][0]) == {49104, 49105}
+    again = lifecycle.apply(h.host, want({i: NEW for i in range(2)}, reserve=[49104, 49105], managed="m"))
+    assert not again["changed"] and not again["plan"]["reserved_ports"]
+
+
+def test_reserved_ports_alone_are_a_change_that_check_mode_reports_without_writing():
+    h = ScriptedHost(2)
+    h.files[reserved_ports.PROC] = ("\n", 0o644)
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, reserve=[49100, 49101]), check=True)
+    assert result["changed"] and result["plan"]["reserved_ports"]
+    assert h.files[reserved_ports.PROC][0] == "\n" and reserved_ports.CONF not in h.files
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, reserve=[49100, 49101]))
+    assert result["changed"] and h.commands("restart") == [] and h.commands("start") == []
+    assert h.files[reserved_ports.PROC][0] == "49100-49101\n"
+
+
+def test_a_read_only_kernel_setting_is_an_error_that_says_the_fix():
+    h = ScriptedHost(1)
+    h.files[reserved_ports.PROC] = ("\n", 0o644)
+    real = h.host.write
+
+    def write(path, text, mode):
+        if path == reserved_ports.PROC:
+            raise OSError(30, "Read-only file system")
+        real(path, text, mode)
+
+    h.host.write = write
+    try:
+        lifecycle.reserve(h.host, [49100], "m", grow=False)
+    except OSError as exc:
+        assert "docker run --sysctl net.ipv4.ip_local_reserved_ports" in str(exc)
+    else:
+        raise AssertionError("no error")
+
+
+def test_a_loan_ends_restarted_and_ready_before_the_instance_is_free():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 1, "run-a") is None and lifecycle.lent_to(h.host, 1) == "run-a"
+    order = []
+    start = h._start
+
+    def spy(i):
+        order.append(("start", i, lifecycle.lent_to(h.host, i)))
+        return start(i)
+
+    h._start = spy
+    assert lifecycle.give_back(h.host, 1, "run-a") is None
+    # restarted while still lent: no one could borrow it half-way
+    assert order == [("start", 1, "run-a")] and lifecycle.lent_to(h.host, 1) is None
+    assert h.log.index(f"systemctl restart {layout.unit(1)}") < h.log.index(f"rm {layout.lent_marker(1)}")
+
+
+def test_a_claim_that_fails_restarts_nothing_and_a_waiting_run_gets_the_instance_once_it_is_back():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 0, "run-a") is None
+    # run-b waits 30 s; run-a ends 10 s into the wait
+    slept = []
+
+    def sleep(s):
+        slept.append(s)
+        h.clock += s
+        if len(slept) == 10:
+            assert lifecycle.give_back(h.host, 0, "run-a") is None
+
+    h.host.sleep = sleep
+    assert lifecycle.lend(h.host, 0, "run-b", wait_s=30) is None and lifecycle.lent_to(h.host, 0) == "run-b"
+    # a third run gives up at its bound, and restarts nothing
+    restarts = len(h.commands("restart"))
+    assert lifecycle.lend(h.host, 0, "run-c", wait_s=5) == "run-b"
+    assert len(h.commands("restart")) == restarts and lifecycle.lent_to(h.host, 0) == "run-b"
+    # a give-back by a run that does not hold it touches nothing
+    assert "lent to run-b, not to run-c" in lifecycle.give_back(h.host, 0, "run-c")
+    assert len(h.commands("restart")) == restarts
+
+
+def test_no_restart_touches_an_instance_lent_to_a_run():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 1, "run-a")
+    result = lifecycle.restart_each(h.host, [0, 1, 2], 0)
+    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
+    assert "lent to test run run-a" in result["failed"]["reason"]
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+
+
+def test_a_deploy_stops_before_an_instance_lent_to_a_run_and_leaves_it_as_it_was():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 1, "run-a")
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}))
+    assert result["failed"]["id"] == 1 and "lent to test run run-a" in result["failed"]["reason"]
+    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
+    assert h.files[layout.env_file(1)][0] == OLD and h.units[1]["ActiveState"] == "active"
+    assert f"systemctl restart {layout.unit(1)}" not in h.log
+
+
+def test_a_loan_whose_runner_died_is_ended_as_its_runner_would_have_before_the_next_run_gets_it():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 0, "run-a", pid=4242) is None  # /proc/4242 does not exist here
+    assert h.files[f"{layout.lent_marker(0)}/run"][0] == "run-a\n4242\n"
+    assert lifecycle.lend(h.host, 0, "run-b", pid=77) is None and lifecycle.lent_to(h.host, 0) == "run-b"
+    # restarted clean on the dead run's behalf, before run-b got it
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+    # a live runner's loan is waited for, not taken
+    live = lifecycle.Host(
+        *[getattr(h.host, k) for k in ("run", "read", "write", "remove", "mode")],
+        lambda p: p == "/proc/77" or h.host.exists(p),
+        h.host.sleep,
+        h.host.now,
+        h.host.wall,
+    )
+    assert lifecycle.lend(live, 0, "run-c", pid=78) == "run-b"
+
+
+def test_a_scale_down_never_removes_an_instance_lent_to_a_run():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 2, "run-a")
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, remove=[2]))
+    assert result["failed"]["id"] == 2 and "lent to test run run-a" in result["failed"]["reason"]
+    assert layout.env_file(2) in h.files and h.units[2]["ActiveState"] == "active"
+    assert [line for line in h.log if line.startswith(("systemctl stop", "systemctl disable"))] == []

@@ -1,0 +1,131 @@
+"""The host's run lock against real files: two runs never both hold it, a run renews its own,
+an ended or stale run's lock is taken over and says from whom."""
+
+import json
+import multiprocessing
+import os
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
+
+ALICE = {"id": "ctl-1:100:5", "user": "alice", "controller": "ctl-1", "pid": 100, "started": "5", "play": "Deploy"}
+BOB = {"id": "ctl-2:200:7", "user": "bob", "controller": "ctl-2", "pid": 200, "started": "7", "play": "Deploy"}
+NOW = 1795000000.0
+
+
+def paths(tmp_path):
+    return {"path": str(tmp_path / "run" / "lock.json"), "guard": str(tmp_path / "run" / ".guard")}
+
+
+def recorded(tmp_path):
+    return str(tmp_path / "run" / "rollout.json")
+
+
+def test_a_free_host_is_taken_and_another_run_is_refused_naming_who_and_since_when(tmp_path):
+    where = paths(tmp_path)
+    assert runlock.acquire(ALICE, NOW, 3600, **where)[0]
+    acquired, holder, who = runlock.acquire(BOB, NOW + 125, 3600, **where)
+    assert not acquired and holder["id"] == ALICE["id"]
+    assert who.startswith("alice on ctl-1 (ansible-playbook pid 100, play 'Deploy') since ")
+    assert who.endswith("(2 min ago)")
+
+
+def test_a_run_renews_its_own_lock_and_keeps_its_start(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    acquired, holder, note = runlock.acquire(ALICE, NOW + 3000, 3600, **where)
+    assert acquired and note == "" and holder["since"] == NOW and holder["renewed"] == NOW + 3000
+    # renewed: still held an hour after it was first taken
+    assert not runlock.acquire(BOB, NOW + 3700, 3600, **where)[0]
+
+
+def test_a_lock_not_renewed_for_stale_after_is_taken_over(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    acquired, holder, note = runlock.acquire(BOB, NOW + 3600, 3600, **where)
+    assert acquired and holder["id"] == BOB["id"]
+    assert note.startswith("took the lock from alice on ctl-1") and "not renewed for 3600 s" in note
+
+
+def test_an_ended_run_or_an_operator_breaking_it_takes_it_at_once(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    # the controller found another holder dead: no takeover
+    assert not runlock.acquire(BOB, NOW + 1, 3600, dead="ctl-9:1:1", **where)[0]
+    acquired, _holder, note = runlock.acquire(BOB, NOW + 1, 3600, dead=ALICE["id"], **where)
+    assert acquired and "that run has ended" in note
+    acquired, _holder, note = runlock.acquire(ALICE, NOW + 2, 0, break_lock=True, **where)
+    assert acquired and "isaac_sim_lock_break" in note and "bob on ctl-2" in note
+
+
+def test_release_frees_only_the_holders_lock(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    assert not runlock.release(BOB, **where)
+    assert os.path.exists(where["path"])
+    assert runlock.release(ALICE, **where)
+    assert runlock.read(where["path"]) is None and not runlock.release(ALICE, **where)
+
+
+def test_an_unreadable_lock_file_is_replaced(tmp_path):
+    where = paths(tmp_path)
+    os.makedirs(os.path.dirname(where["path"]))
+    with open(where["path"], "w") as fh:
+        fh.write("{half")
+    acquired, holder, note = runlock.acquire(BOB, NOW, 3600, **where)
+    assert acquired and holder["user"] == "bob" and "unreadable" in note
+    with open(where["path"]) as fh:
+        assert json.load(fh)["id"] == BOB["id"]
+
+
+def _race(where, n, start, out):
+    me = {"id": f"ctl:{n}:1", "user": f"u{n}", "controller": "ctl", "pid": n, "started": "1", "play": ""}
+    start.wait()
+    out.put(runlock.acquire(me, NOW, 3600, **where)[0])
+
+
+def test_runs_that_find_the_host_free_at_the_same_moment_never_both_take_it(tmp_path):
+    where = paths(tmp_path)
+    ctx = multiprocessing.get_context("fork")
+    start, out = ctx.Event(), ctx.Queue()
+    procs = [ctx.Process(target=_race, args=(where, n, start, out)) for n in range(8)]
+    for p in procs:
+        p.start()
+    start.set()
+    for p in procs:
+        p.join(10)
+    assert sorted(out.get(timeout=5) for _proc in procs) == [False] * 7 + [True]
+
+
+def test_the_heartbeat_renews_only_the_holders_lock_and_a_silent_holder_is_gone(tmp_path):
+    where = paths(tmp_path)
+    assert not runlock.renew(ALICE, NOW, **where)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    assert not runlock.renew(BOB, NOW + 10, **where)
+    assert runlock.renew(ALICE, NOW + 40, **where) and runlock.read(where["path"])["since"] == NOW
+    assert runlock.gone(ALICE["id"], NOW + 80, 45, where["path"]) == ""
+    assert runlock.HEARTBEAT_LIMIT_S == 30
+    assert "stopped renewing its hold on the host 46 s ago" in runlock.gone(ALICE["id"], NOW + 86, 45, where["path"])
+    runlock.acquire(BOB, NOW + 90, 3600, break_lock=True, **where)
+    assert runlock.gone(ALICE["id"], NOW + 91, 45, where["path"]).startswith("the host's lock was taken by bob")
+    os.unlink(where["path"])
+    assert "given back" in runlock.gone(ALICE["id"], NOW + 92, 45, where["path"])
+
+
+def test_the_run_that_takes_over_an_interrupted_runs_lock_is_told_what_it_left(tmp_path):
+    where = paths(tmp_path)
+    runlock.acquire(ALICE, NOW, 3600, **where)
+    entry = {
+        "run": ALICE["id"],
+        "at": NOW + 5,
+        "interrupted": "its controller stopped",
+        "done": [0],
+        "untouched": [2, 3],
+    }
+    runlock.record(entry, recorded(tmp_path))
+    acquired, _holder, note = runlock.acquire(
+        BOB, NOW + 60, 3600, dead=ALICE["id"], record_path=recorded(tmp_path), **where
+    )
+    assert acquired and "that run has ended" in note
+    assert "interrupted (its controller stopped): done isaac-sim-0; left as they were isaac-sim-2, isaac-sim-3" in note
+    # a record of another run says nothing
+    assert runlock.recorded_text(entry, BOB["id"]) == ""
