@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 import shlex
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
 
 ORCHESTRATOR_LABELS = ("isaacsim.fleet/test-orchestrator", "resim.ai/isTestOrchestrator")
 # a service with this image is the simulator: the run borrows an Isaac Sim instance of the fleet
@@ -470,7 +470,7 @@ def read(compose, env=None, profiles=(), name="experience", secret=None) -> tupl
             conditions[dep] = condition
         resources = _gpus(spec.get("deploy"), f"{where}.deploy", errors, warnings)
         for key, size in (("shm_size", spec.get("shm_size")), ("deploy.resources.limits.memory", resources["memory"])):
-            if size is not None and plan.parse_size(size) is None:
+            if size is not None and parse.parse_size(size) is None:
                 errors.append(f"{where}.{key}: {size!r} is not a size. Fix: e.g. 2g or 512m.")
         mounts, tmpfs = _volumes(spec.get("volumes"), declared, f"{where}.volumes", errors)
         tmpfs += [str(t) for t in ([spec["tmpfs"]] if isinstance(spec.get("tmpfs"), str) else spec.get("tmpfs") or [])]

@@ -22,9 +22,9 @@ import math
 import re
 import signal
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import xml_safe
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse, xml_safe
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, plan, releases
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, releases
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import judge
 
 DOCKER = "/usr/bin/docker"
@@ -102,9 +102,9 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
     if svc.get("user"):
         argv.append(f"--user={svc['user']}")
     if svc.get("shm_size"):
-        argv.append(f"--shm-size={plan.docker_size(svc['shm_size'])}")
+        argv.append(f"--shm-size={parse.docker_size(svc['shm_size'])}")
     if svc.get("memory"):
-        argv.append(f"--memory={plan.docker_size(svc['memory'])}")
+        argv.append(f"--memory={parse.docker_size(svc['memory'])}")
     if svc.get("cpus"):
         argv.append(f"--cpus={svc['cpus']}")
     if svc.get("init"):
@@ -801,12 +801,12 @@ def dedicated_settings(image, release, deployed: dict, instance, gpus_given, hos
             "simulator_image: not given, and no Isaac Sim instance is deployed on this host to take it from. "
             "Fix: set simulator_image (experience_simulator_image) to the Isaac Sim image to run."
         )
-    elif plan.parse_image(image) is None:
+    elif parse.parse_image(image) is None:
         errors.append(
             f"simulator_image: {image!r} is not an image reference. Fix: e.g. {releases.default_image('6.x')}."
         )
     elif not release:
-        release = releases.release_of_tag(plan.parse_image(image)[1] or "")
+        release = releases.release_of_tag(parse.parse_image(image)[1] or "")
         if not release:
             errors.append(
                 f"simulator_release: not given, and the tag of {image} names no release. Fix: set simulator_release "

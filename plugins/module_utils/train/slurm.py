@@ -15,7 +15,8 @@ from __future__ import annotations
 import re
 import shlex
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan, releases
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import releases
 
 RUNTIMES = ("apptainer", "podman", "docker", "enroot")
 # where the image the jobs run lives on the cluster, per runtime
@@ -156,7 +157,7 @@ def check_request(job: dict, partitions: dict) -> list:
     counts = {}
     for key, lowest, default, what in _COUNTS:
         value = job.get(key)
-        number = default if value is None or value == "" else plan.as_int(value)
+        number = default if value is None or value == "" else parse.as_int(value)
         if number is None or number < lowest:
             errors.append(f"train_{key}: {value!r} is not a count of {what}. Fix: a whole number, {lowest} or more.")
         counts[key] = number if isinstance(number, int) and number >= lowest else default
