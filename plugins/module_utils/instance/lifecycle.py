@@ -443,6 +443,22 @@ def reserve(host: Host, ports, managed: str, grow: bool, check=False) -> bool:
     return True
 
 
+def linger(host: Host, ports, limit_s: float = reserved_ports.LINGER_LIMIT_S) -> set:
+    """Wait until no outgoing connection (or its TIME_WAIT) has any of the newly reserved `ports`
+    as its source port, up to limit_s. Returns the ports still held then: an instance that
+    binds one fails its start and goes back, as any failed start does."""
+    deadline = host.now() + limit_s
+    while True:
+        held = reserved_ports.lingering(
+            [host.read("/proc/net/tcp"), host.read("/proc/net/tcp6")],
+            ports,
+            [host.read("/proc/net/udp"), host.read("/proc/net/udp6")],
+        )
+        if not held or host.now() >= deadline:
+            return held
+        host.sleep(1)
+
+
 def apply(host: Host, want: dict, check=False) -> dict:
     """Bring the host to `want`, never taking more than one serving instance down at a time.
 
@@ -534,7 +550,9 @@ def apply(host: Host, want: dict, check=False) -> dict:
         want["prepare"]()
     # before any instance binds a new port; the old ones stay reserved until the end
     if reserving:
+        before = reserved_ports.parse(host.read(reserved_ports.PROC))
         reserve(host, ports, managed, grow=True)
+        result["lingering"] = sorted(linger(host, set(ports) - before))
     files = _Files(host)
     # scale-down first: it frees the ports and GPUs of the instances that go
     remove(host, gone, want.get("purge", False), want.get("data_root", layout.DATA_ROOT), found)

@@ -78,3 +78,34 @@ def wanted(runtime_text: str | None, conf_text: str | None, ports, grow: bool = 
         return now | want, mine | (want - now)
     others = now - mine
     return others | want, want - others
+
+
+_TCP_LISTEN = "0A"
+_UDP_UNCONNECTED = "07"
+# TIME_WAIT lasts 60 s on Linux (TCP_TIMEWAIT_LEN); a little more for the last ones to go
+LINGER_LIMIT_S = 75
+
+
+def _local_ports(texts, skip_state: str, wanted: set) -> set:
+    held = set()
+    for text in texts:
+        for line in (text or "").splitlines()[1:]:
+            fields = line.split()
+            if len(fields) < 4 or fields[3] == skip_state:
+                continue
+            try:
+                port = int(fields[1].rsplit(":", 1)[1], 16)
+            except (IndexError, ValueError):
+                continue
+            if port in wanted:
+                held.add(port)
+    return held
+
+
+def lingering(tcp_texts, ports, udp_texts=()) -> set:
+    """The ports of `ports` that a socket other than a listener has as its local port
+    (/proc/net/tcp, tcp6, udp, udp6 texts): an outgoing TCP connection given one before it was
+    reserved, or the TIME_WAIT it leaves for 60 s; a connected UDP socket. Reserving a port keeps
+    the kernel from handing it out again, not from the sockets that have it already."""
+    wanted = set(ports)
+    return _local_ports(tcp_texts, _TCP_LISTEN, wanted) | _local_ports(udp_texts, _UDP_UNCONNECTED, wanted)

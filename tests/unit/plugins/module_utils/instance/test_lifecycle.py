@@ -713,6 +713,54 @@ def test_new_ports_are_reserved_before_an_instance_binds_one_and_the_old_ones_le
     assert not again["changed"] and not again["plan"]["reserved_ports"]
 
 
+TCP_HEADER = "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
+
+
+def tcp_line(port: int, state: str) -> str:
+    return f"   0: 050011AC:{port:04X} 010011AC:15B3 {state} 00000000:00000000 00:00000000 00000000 0 0 0 1\n"
+
+
+def test_an_outgoing_connection_s_time_wait_on_a_new_port_is_waited_out_before_any_instance_binds_it():
+    # a pull just before the change left 49104 in TIME_WAIT: reserving it does not free it
+    h = ScriptedHost(2)
+    h.files[reserved_ports.PROC] = ("49100-49101\n", 0o644)
+    tcp = TCP_HEADER + tcp_line(49104, "06") + tcp_line(49100, "0A")
+    h.files["/proc/net/tcp"] = (tcp, 0o444)
+    starts = []
+    start = h._start
+
+    def spy(i):
+        starts.append(h.clock)
+        return start(i)
+
+    h._start = spy
+    real_sleep = h.sleep
+
+    def sleep(s):
+        real_sleep(s)
+        if h.clock >= 1030:  # its 60 s end
+            h.files["/proc/net/tcp"] = (TCP_HEADER + tcp_line(49100, "0A"), 0o444)
+
+    h.host.sleep = sleep
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(2)}, reserve=[49104, 49105], managed="m"))
+    assert result["failed"] is None and result["lingering"] == []
+    assert starts and min(starts) >= 1030
+    # a listener on an old port is an instance's own, never waited for
+    assert reserved_ports.lingering([TCP_HEADER + tcp_line(49100, "0A")], {49100}) == set()
+    assert reserved_ports.lingering([TCP_HEADER + tcp_line(49104, "01"), None], {49104, 49105}) == {49104}
+    # a connected UDP socket holds its port; an unbound-to-peer one is a listener (the plan refuses those)
+    udp = [TCP_HEADER + tcp_line(49105, "01") + tcp_line(49107, "07")]
+    assert reserved_ports.lingering([], {49105, 49107}, udp) == {49105}
+
+
+def test_a_port_held_past_the_limit_is_said_and_the_roll_goes_on_to_its_own_verdict():
+    h = ScriptedHost(2)
+    h.files[reserved_ports.PROC] = ("\n", 0o644)
+    h.files["/proc/net/tcp"] = (TCP_HEADER + tcp_line(49105, "01"), 0o444)
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(2)}, reserve=[49104, 49105], managed="m"))
+    assert result["lingering"] == [49105] and result["failed"] is None
+
+
 def test_reserved_ports_alone_are_a_change_that_check_mode_reports_without_writing():
     h = ScriptedHost(2)
     h.files[reserved_ports.PROC] = ("\n", 0o644)
