@@ -40,7 +40,8 @@ FINISHED = {
     "TIMEOUT",
 }
 # a job slurmctld has ended waits in COMPLETING until each of its nodes says its end is done: a node
-# that refuses slurmctld's messages (a munge key not the controller's) keeps it there, with no reason
+# that refuses slurmctld's messages (a munge key not the controller's) keeps it there, and Slurm's
+# reason says nothing of the node
 COMPLETING = "COMPLETING"
 SACCT_FIELDS = "JobID,State,ExitCode,Elapsed,NodeList"
 SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
@@ -295,9 +296,11 @@ def stuck_line(job: dict, seconds: int, nodes: list) -> str:
         else name
         for name in nodes
     )
+    # the job's Reason says why it ended (TimeLimit), when anything; never why it waits
+    reason = job.get("reason") if job.get("reason") not in (None, "", "None") else "none"
     return (
-        f"job {job.get('id')} has been {COMPLETING} for {seconds} s: slurmctld waits for {where} to end it, and "
-        f"Slurm gives no reason"
+        f"job {job.get('id')} has been {COMPLETING} for {seconds} s (Slurm's reason: {reason}): slurmctld waits for "
+        f"{where} to end it"
     )
 
 

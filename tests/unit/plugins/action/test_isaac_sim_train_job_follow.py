@@ -44,7 +44,8 @@ def test_a_job_that_stays_completing_fails_the_follow_naming_the_node_it_waits_f
     result = follow([answer("RUNNING"), answer("COMPLETING", node_states=STUCK_NODE)], completing_timeout=30)
     assert result["failed"] and result["stuck_nodes"] == ["node-2"] and result["stuck_for"] == 30
     assert result["msg"].startswith(
-        "job 7 has been COMPLETING for 30 s: slurmctld waits for node-2 (IDLE+COMPLETING+NOT_RESPONDING) to end it"
+        "job 7 has been COMPLETING for 30 s (Slurm's reason: none): slurmctld waits for node-2 "
+        "(IDLE+COMPLETING+NOT_RESPONDING) to end it"
     )
     assert "journalctl -u slurmd -u munge on node-2" in result["msg"]
     assert result["progress"] == ["job 7 RUNNING 00:00:05 node-[1-2]", "job 7 COMPLETING 00:00:05 node-[1-2]"]

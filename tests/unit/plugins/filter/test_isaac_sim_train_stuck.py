@@ -9,6 +9,7 @@ REFUSED = "2026-11-24T13:42:33+0000 node-2 slurmd[1615]: slurmd-node-2: error: M
 JOB = {
     "id": "7",
     "state": "COMPLETING",
+    "reason": "TimeLimit",
     "stuck_nodes": ["node-2", "node-3", "node-4", "gpu-9"],
     "stuck_for": 15,
     "node_states": {"node-2": {"state": "IDLE+COMPLETING+NOT_RESPONDING", "reason": ""}},
@@ -31,8 +32,8 @@ def test_each_node_is_named_with_what_its_journal_says_or_why_it_was_not_read():
     ]
     text = stuck(JOB, journals)
     assert text.startswith(
-        "job 7 has been COMPLETING for 15 s: slurmctld waits for node-2 (IDLE+COMPLETING+NOT_RESPONDING), node-3, "
-        "node-4, gpu-9 to end it"
+        "job 7 has been COMPLETING for 15 s (Slurm's reason: TimeLimit): slurmctld waits for node-2 "
+        "(IDLE+COMPLETING+NOT_RESPONDING), node-3, node-4, gpu-9 to end it"
     )
     assert f"node-2's journal (slurmd, munge): {REFUSED}." in text
     assert "node-3's journal could not be read: No journal files were opened due to insufficient permissions." in text

@@ -598,11 +598,15 @@ def stuck(**over):
 
 def test_a_job_stuck_in_completing_names_its_node_its_state_and_what_its_journal_says():
     assert slurm.stuck_line(stuck(), 31, ["slurm-node-2"]) == (
-        "job 3 has been COMPLETING for 31 s: slurmctld waits for slurm-node-2 (IDLE+COMPLETING+NOT_RESPONDING) to end "
-        "it, and Slurm gives no reason"
+        "job 3 has been COMPLETING for 31 s (Slurm's reason: none): slurmctld waits for slurm-node-2 "
+        "(IDLE+COMPLETING+NOT_RESPONDING) to end it"
+    )
+    # ended at its time limit (measured: Reason=TimeLimit while it waits)
+    assert slurm.stuck_line(stuck(reason="TimeLimit"), 31, ["slurm-node-2"]).startswith(
+        "job 3 has been COMPLETING for 31 s (Slurm's reason: TimeLimit): slurmctld waits for slurm-node-2 ("
     )
     text = slurm.stuck_message(stuck(), {"slurm-node-2": {"text": JOURNAL}})
-    assert text.startswith("job 3 has been COMPLETING for 31 s: slurmctld waits for slurm-node-2 (")
+    assert text.startswith("job 3 has been COMPLETING for 31 s (Slurm's reason: none): slurmctld waits for slurm-")
     last = f"2026-11-24T13:44:22+0000 slurm-node-2 slurmd[1615]: {REFUSED}"
     assert f"slurm-node-2's journal (slurmd, munge): {last} (2 such lines since the job was submitted)." in text
     assert "Fix: munge refuses credentials between slurm-node-2 and the controller" in text
