@@ -74,7 +74,7 @@ options:
     description:
       - Seconds a followed job may stay C(COMPLETING) (slurmctld has ended it and waits for its nodes to say its end
         is done) before the follow fails, naming the nodes it waits for with their state in Slurm; 1 or more.
-      - A node whose munge key is not the controller's refuses slurmctld's messages: a job there stays
+      - A node whose munge key is not the controller's refuses slurmctld's messages; a job there stays
         C(COMPLETING), and Slurm's reason says nothing of the node. The failed result has RV(stuck_nodes) (the role
         isaacsim.fleet.train then reads their journal); the job is not cancelled.
     type: int
