@@ -70,6 +70,15 @@ options:
         no longer know it.
     type: int
     default: 600
+  completing_timeout:
+    description:
+      - Seconds a followed job may stay C(COMPLETING) (slurmctld has ended it and waits for its nodes to say its end
+        is done) before the follow fails, naming the nodes it waits for with their state in Slurm; 1 or more.
+      - A node whose munge key is not the controller's refuses slurmctld's messages; a job there stays
+        C(COMPLETING), and Slurm's reason says nothing of the node. The failed result has RV(stuck_nodes) (the role
+        isaacsim.fleet.train then reads their journal); the job is not cancelled.
+    type: int
+    default: 300
 notes:
   - The node script's container command is written for each runtime's documented command line; only the Podman
     path runs in this collection's test cluster (Apptainer is not packaged for its Debian test hosts).
@@ -122,6 +131,33 @@ nodes:
   returned: O(state=query), O(state=finished), O(state=cancelled)
   type: str
   sample: gpu-node-[1-2]
+node_states:
+  description: Slurm's state and reason of each of the job's nodes (C(scontrol show node)), while it runs or completes.
+  returned: O(state=query), O(state=finished), O(state=cancelled), when the job is C(RUNNING) or C(COMPLETING)
+  type: dict
+  sample: {"gpu-node-2": {"state": "IDLE+COMPLETING+NOT_RESPONDING", "reason": ""}}
+not_responding:
+  description: Those of the job's nodes slurmctld gets no answer from.
+  returned: O(state=query), O(state=finished), O(state=cancelled), when the job is C(RUNNING) or C(COMPLETING)
+  type: list
+  elements: str
+  sample: [gpu-node-2]
+submitted_at:
+  description: When the job was submitted, in seconds since the epoch (from C(SubmitTime), read on the login node).
+  returned: O(state=query), O(state=finished), O(state=cancelled), while slurmctld knows the job
+  type: int
+  sample: 1795354574
+stuck_nodes:
+  description: The nodes a job that stayed C(COMPLETING) past O(completing_timeout) waits for.
+  returned: failure of O(state=finished) or O(state=cancelled) on a job stuck in C(COMPLETING)
+  type: list
+  elements: str
+  sample: [gpu-node-2]
+stuck_for:
+  description: Seconds the follow saw the job C(COMPLETING).
+  returned: failure of O(state=finished) or O(state=cancelled) on a job stuck in C(COMPLETING)
+  type: int
+  sample: 300
 progress:
   description: The lines shown while it was followed.
   returned: O(state=finished), O(state=cancelled)
@@ -225,6 +261,14 @@ def query(module, job_id):
             msg=f"train_job_id: Slurm knows no job {job_id} (neither slurmctld nor accounting nor the job completion "
             "log). Fix: the id sbatch printed."
         )
+    if status["state"] in ("RUNNING", slurm.COMPLETING) and status["nodes"] and not status.get("controller_down"):
+        # whether slurmctld hears from the job's nodes (a node that refuses its messages keeps a job COMPLETING)
+        rc, text, _err = _run(module, ["scontrol", "show", "node", "-o", status["nodes"]], False)
+        nodes = slurm.parse_nodes(text) if rc == 0 else {}
+        status.update(node_states=nodes, not_responding=slurm.not_responding(nodes))
+    submitted = status.pop("submitted", "")
+    if submitted:
+        status["submitted_at"] = slurm.epoch(submitted)
     return status
 
 
@@ -242,6 +286,7 @@ def main():
             "wait_timeout": {"type": "int", "default": 0},
             "poll_interval": {"type": "int", "default": 10},
             "outage_timeout": {"type": "int", "default": 600},
+            "completing_timeout": {"type": "int", "default": 300},
         },
         required_if=[
             ("state", "checked", ["job"]),

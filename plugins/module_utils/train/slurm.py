@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 import shlex
+import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import releases
@@ -39,6 +40,10 @@ FINISHED = {
     "SPECIAL_EXIT",
     "TIMEOUT",
 }
+# a job slurmctld has ended waits in COMPLETING until each of its nodes says its end is done: a node
+# that refuses slurmctld's messages (a munge key not the controller's) keeps it there, and Slurm's
+# reason says nothing of the node
+COMPLETING = "COMPLETING"
 SACCT_FIELDS = "JobID,State,ExitCode,Elapsed,NodeList"
 SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
 
@@ -51,6 +56,13 @@ _TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?$")
 _GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
 _SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+# a key of scontrol's one-line output; values may hold spaces ("Reason=Not responding [slurm@...]")
+_FIELD = re.compile(r"(?<!\S)([A-Za-z][A-Za-z0-9_/:]*)=")
+# what munge and slurmd log when a credential is refused or cannot be made ("error: Munge decode
+# failed: Invalid credential" in slurmd's journal when the node's key is not the controller's): a
+# line that names munge or a credential, and an error
+_MUNGE = re.compile(r"(?i)munge|credential")
+_ERROR = re.compile(r"(?i)\b(?:error|fail\w*|invalid|expired|rewound|replayed|unauthorized)\b")
 
 
 def node(name: str) -> str:
@@ -201,12 +213,22 @@ def _clock(seconds: int) -> str:
     return f"{days}-{text}" if days else text
 
 
+def _key_values(line: str) -> dict:
+    """The key=value fields of one line of `scontrol show ... -o`, values with spaces kept whole."""
+    keys = list(_FIELD.finditer(line))
+    return {
+        key.group(1): line[key.end() : keys[i + 1].start() if i + 1 < len(keys) else len(line)].strip()
+        for i, key in enumerate(keys)
+    }
+
+
 def parse_scontrol_job(text: str):
-    """{"id", "state", "elapsed", "nodes", "reason", "exit_code", "signal"} from
+    """{"id", "state", "elapsed", "nodes", "reason", "exit_code", "signal", "submitted"} from
     `scontrol show job -o ID` (one line of key=value words), or None. slurmctld knows a job from
     its submission until MinJobAge after its end, wherever scontrol runs."""
     first = (text or "").strip().splitlines()[:1]
-    fields = dict(w.split("=", 1) for w in (first[0].split() if first else []) if "=" in w)
+    # "Reason=ReqNodeNotAvail, UnavailableNodes:node-2" is one value
+    fields = _key_values(first[0]) if first else {}
     if "JobId" not in fields or "JobState" not in fields:
         return None
     code = exit_of(fields.get("ExitCode", "")) or (None, None)
@@ -219,7 +241,106 @@ def parse_scontrol_job(text: str):
         "reason": fields.get("Reason", ""),
         "exit_code": code[0],
         "signal": code[1],
+        "submitted": fields.get("SubmitTime", ""),
     }
+
+
+def parse_nodes(text: str) -> dict:
+    """{name: {"state", "reason"}} from `scontrol show node -o NODES` (one line per node; NODES may
+    be a host list such as node-[1-2]). state is Slurm's with its flags (IDLE+COMPLETING+NOT_RESPONDING),
+    reason "" when Slurm gives none."""
+    out = {}
+    for line in (text or "").splitlines():
+        fields = _key_values(line.strip())
+        if "NodeName" in fields and "State" in fields:
+            reason = fields.get("Reason", "")
+            reason = "" if reason in ("(null)", "None") else reason
+            out[fields["NodeName"]] = {"state": fields["State"], "reason": reason}
+    return out
+
+
+def not_responding(nodes: dict) -> list:
+    """The nodes (parse_nodes) slurmctld gets no answer from (sinfo marks them with *)."""
+    return sorted(name for name, node in nodes.items() if "NOT_RESPONDING" in node["state"].split("+"))
+
+
+def stuck_nodes(nodes: dict) -> list:
+    """The nodes a COMPLETING job waits on: those of its nodes (parse_nodes) still completing or
+    not answering, or all of them when Slurm marks none."""
+    flagged = sorted(
+        name for name, node in nodes.items() if {"COMPLETING", "NOT_RESPONDING"} & set(node["state"].split("+"))
+    )
+    return flagged or sorted(nodes)
+
+
+def epoch(text: str):
+    """Seconds since the epoch of a time as Slurm prints it (2026-11-24T13:42:32, the local time of
+    the host that reads it), or None."""
+    try:
+        return int(time.mktime(time.strptime(str(text).strip(), "%Y-%m-%dT%H:%M:%S")))
+    except ValueError:
+        return None
+
+
+def munge_errors(journal: str) -> list:
+    """The lines of a node's journal (journalctl -u slurmd -u munge) where munge refused or could
+    not make a credential."""
+    return [line.strip() for line in (journal or "").splitlines() if _MUNGE.search(line) and _ERROR.search(line)]
+
+
+def stuck_line(job: dict, seconds: int, nodes: list) -> str:
+    """What the follow says of a job that has stayed COMPLETING for `seconds` on `nodes`."""
+    states = job.get("node_states") or {}
+    where = ", ".join(
+        f"{name} ({states[name]['state']}{': ' + states[name]['reason'] if states[name]['reason'] else ''})"
+        if name in states
+        else name
+        for name in nodes
+    )
+    # the job's Reason says why it ended (TimeLimit), when anything; never why it waits
+    reason = job.get("reason") if job.get("reason") not in (None, "", "None") else "none"
+    return (
+        f"job {job.get('id')} has been {COMPLETING} for {seconds} s (Slurm's reason: {reason}): slurmctld waits for "
+        f"{where} to end it"
+    )
+
+
+def stuck_message(job: dict, journals: dict) -> str:
+    """Why a job stays COMPLETING, for a person: the nodes it waits on (job: the follow's failed
+    result, with stuck_nodes, stuck_for and node_states) and what each node's journal says.
+    journals: {node: {"text": journalctl's output} or {"error": why it could not be read}}; a node
+    with no entry is not a host of the inventory."""
+    nodes = job.get("stuck_nodes") or []
+    parts = [stuck_line(job, int(job.get("stuck_for") or 0), nodes) + "."]
+    refused = []
+    for name in nodes:
+        read = journals.get(name)
+        if read is None:
+            parts.append(f"{name} is not a host of the inventory: its journal was not read.")
+        elif read.get("error"):
+            parts.append(f"{name}'s journal could not be read: {read['error']}.")
+        else:
+            lines = munge_errors(read.get("text", ""))
+            if lines:
+                refused.append(name)
+                more = f" ({len(lines)} such lines since the job was submitted)" if len(lines) > 1 else ""
+                parts.append(f"{name}'s journal (slurmd, munge): {lines[-1]}{more}.")
+            else:
+                parts.append(f"{name}'s journal (slurmd, munge) says nothing of munge since the job was submitted.")
+    if refused:
+        parts.append(
+            f"Fix: munge refuses credentials between {', '.join(refused)} and the controller: a munge key that is not "
+            "the controller's (or clocks far apart: Expired or Rewound credential). Run playbooks/cluster.yml, which "
+            "gives every node the controller's key and says which node's key it replaced."
+        )
+    else:
+        where = ", ".join(nodes) or "its nodes"
+        parts.append(f"Fix: see journalctl -u slurmd -u munge and scontrol show node on {where}.")
+    parts.append(
+        f"The job is not cancelled: once slurmctld hears from the node it ends (a job whose launch the node refused is "
+        f"requeued and runs again); follow it with train_job_id={job.get('id')}."
+    )
+    return " ".join(parts)
 
 
 def exit_of(text: str):
@@ -230,13 +351,16 @@ def exit_of(text: str):
 
 def parse_sacct(text: str, job_id: str):
     """The job's own line of `sacct -n -P -o SACCT_FIELDS -j ID` (or `sacct -c`, which reads the
-    job completion log): {"id", "state", "exit_code", "signal", "elapsed", "nodes"}, or None."""
+    job completion log): {"id", "state", "exit_code", "signal", "elapsed", "nodes"}, or None. The
+    last one: the completion log has a line for each end of a requeued job (NODE_FAIL, then the
+    run after it)."""
+    found = None
     for line in text.splitlines():
         fields = line.strip().split("|")
         if len(fields) != 5 or fields[0] != str(job_id):
             continue
         code = exit_of(fields[2]) or (None, None)
-        return {
+        found = {
             # "CANCELLED by 0": the state's first word
             "state": fields[1].split()[0] if fields[1] else "",
             "id": fields[0],
@@ -245,7 +369,7 @@ def parse_sacct(text: str, job_id: str):
             "elapsed": fields[3],
             "nodes": fields[4],
         }
-    return None
+    return found
 
 
 def controller_down(scontrol_rc: int, scontrol_err: str) -> bool:
@@ -553,10 +677,13 @@ def submitted_id(text: str):
 
 
 def progress_line(job: dict) -> str:
-    """One line of a job's progress for a person: state, elapsed, nodes (or why it waits)."""
+    """One line of a job's progress for a person: state, elapsed, nodes (or why it waits), and
+    those of its nodes slurmctld gets no answer from."""
     where = job.get("nodes") or ""
     if job.get("state") == "PENDING" and job.get("reason") not in (None, "", "None"):
         where = f"waiting: {job['reason']}"
+    if job.get("not_responding"):
+        where = f"{where} - not responding: {', '.join(job['not_responding'])}"
     if job.get("controller_down"):
         where = f"{where} - {job['reason']}; waiting for it".lstrip(" -")
     return f"job {job.get('id')} {job.get('state', '?')} {job.get('elapsed', '')} {where}".rstrip()

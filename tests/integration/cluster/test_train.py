@@ -4,7 +4,7 @@ its code (a stand-in checkout with a training script that writes logs and checkp
 cluster, Slurm runs the job in Podman on a compute node, and the playbook follows it, brings its
 logs back and ends with its exit status. In order: bad requests (nothing reaches the cluster), a
 first job, a second submit (nothing copied, deletions applied, 2 GPUs, a failing exit), a new image
-and a cancel."""
+and a cancel, and a node whose munge key is not the controller's."""
 
 from __future__ import annotations
 
@@ -241,3 +241,74 @@ def test_a_new_image_is_copied_once_and_cancel_ends_a_running_job(lab):
     # what the training wrote to its cache came back to the shared one
     assert job in sh(CONTROLLER, f"cat {LAB}/cache/cache/main/standin-shaders").split()
     assert sh(CONTROLLER, f"sacct -c -n -P -o State -j {job}").strip() == "CANCELLED"
+
+
+def test_a_node_whose_munge_key_is_not_the_controller_s_is_named_and_cluster_yml_replaces_its_key(lab):
+    """A job runs on slurm-node-2, which then gets a munge key of its own: at the job's time limit
+    slurmctld ends it, the node refuses the message, and the job stays COMPLETING (Reason=TimeLimit,
+    nothing of the node; measured: until slurmctld sets the node DOWN, minutes later). The follow fails after
+    train_completing_timeout naming the node and the error in its journal; cluster.yml says it
+    replaced that node's key, the stuck job then ends, and a job there completes."""
+    key = "/etc/munge/munge.key"
+    pinned = {"train_sbatch_options": ["--nodelist=slurm-node-2"], "train_args": ["--task=Isaac-Ant-v0"]}
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            started = time.monotonic()
+            # one minute: past it slurmctld ends the job, and asks the node to end it
+            running = pool.submit(
+                train,
+                lab,
+                pinned,
+                train_time="1",
+                train_completing_timeout=15,
+                # whatever happens, the follow ends
+                train_wait_timeout=400,
+                train_args=["--task=Isaac-Ant-v0", "--sleep=600"],
+            )
+            deadline = time.monotonic() + 120
+            while not sh(CONTROLLER, "squeue -h -w slurm-node-2 -t RUNNING -o %i", check=False).strip():
+                assert time.monotonic() < deadline, sh(CONTROLLER, "squeue -h -t all", check=False)
+                time.sleep(0.5)
+            sh(
+                "slurm-node-2",
+                f"head -c 1024 /dev/urandom > {key} && chown munge:munge {key} && chmod 0400 {key} "
+                "&& systemctl restart munge",
+            )
+            stuck = running.result()
+        took = time.monotonic() - started
+        assert stuck.returncode == 2, stuck.stdout[-3000:] + stuck.stderr
+        job = submitted_id(stuck)
+        text = squash(stuck.stdout + stuck.stderr)
+        # Slurm's reason is the time limit, not the node; the follow names the node, its state and
+        # what its journal says
+        assert "JobState=COMPLETING Reason=TimeLimit" in sh(CONTROLLER, f"scontrol show job -o {job}")
+        named = re.search(
+            rf"job {job} has been COMPLETING for (\d+) s \(Slurm's reason: TimeLimit\): slurmctld waits for "
+            r"slurm-node-2 \([A-Z_+]+\) to end it",
+            text,
+        )
+        assert named and int(named.group(1)) >= 15, text[-3000:]
+        assert re.search(
+            r"slurm-node-2's journal \(slurmd, munge\): \S+ slurm-node-2 slurmd\[\d+\]: "
+            r"slurmd-slurm-node-2: error: Munge decode failed: Invalid credential",
+            text,
+        ), text[-3000:]
+        assert "Fix: munge refuses credentials between slurm-node-2 and the controller" in text
+        assert f"follow it with train_job_id={job}" in text
+        # bounded: the play does not wait for the job
+        assert took < 300, took
+    finally:
+        fixed = playbook("cluster.yml")
+    assert fixed.returncode == 0, fixed.stdout[-3000:] + fixed.stderr
+    # Ansible's YAML output doubles a quote inside a quoted message
+    said = squash(fixed.stdout).replace("''", "'")
+    assert "slurm-node-2: its munge key differed from the controller's (slurm-ctl)" in said, said[-3000:]
+    assert "replaced with the cluster's key, munge and slurmd restarted" in said
+    assert "slurm-node-1: its munge key differed" not in said
+    keys = {host: sh(host, f"sha256sum {key}").split()[0] for host in (CONTROLLER, "slurm-node-1", "slurm-node-2")}
+    assert len(set(keys.values())) == 1, keys
+    # the node answers again: the stuck job ends, and a job there completes
+    done = train(lab, pinned)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr
+    assert f"job {submitted_id(done)} COMPLETED on slurm-node-2" in squash(done.stdout)
+    assert sh(CONTROLLER, f"sacct -c -n -P -o State -j {job}").split() == ["TIMEOUT"]

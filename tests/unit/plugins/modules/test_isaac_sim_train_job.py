@@ -17,13 +17,15 @@ RUNNING = "JobId=4711 JobName=train-ant JobState=RUNNING Reason=None ExitCode=0:
 @pytest.fixture()
 def slurm(tmp_path, monkeypatch):
     """Stand-in Slurm commands: each records its words; sacct answers as a cluster without an
-    accounting database; SCONTROL and SACCT_C hold what scontrol and sacct -c print."""
+    accounting database; SCONTROL, SCONTROL_NODE and SACCT_C hold what scontrol show job, scontrol
+    show node and sacct -c print."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     scripts = {
         "sinfo": f"printf '{SINFO}'",
         "sbatch": "echo 4711",
         "scontrol": (
+            'if [ "$2" = node ]; then printf "%s" "$SCONTROL_NODE"; exit 0; fi\n'
             '[ -n "$SCONTROL" ] || { echo "slurm_load_jobs error: Invalid job id specified" >&2; exit 1; }\n'
             'printf "%s" "$SCONTROL"'
         ),
@@ -39,6 +41,7 @@ def slurm(tmp_path, monkeypatch):
         path.chmod(path.stat().st_mode | stat.S_IEXEC)
     monkeypatch.setenv("PATH", f"{bin_dir}:/usr/bin:/bin")
     monkeypatch.setenv("SCONTROL", "")
+    monkeypatch.setenv("SCONTROL_NODE", "")
     monkeypatch.setenv("SACCT_C", "")
     return tmp_path
 
@@ -149,3 +152,24 @@ def test_cancel_cancels_a_running_job_only_and_an_unknown_job_is_an_error(slurm,
     monkeypatch.setenv("SACCT_C", "")
     unknown = query("99", capsys)
     assert unknown["failed"] and "Slurm knows no job 99" in unknown["msg"]
+
+
+def test_the_nodes_of_a_running_or_completing_job_are_read_with_their_state(slurm, capsys, monkeypatch):
+    # slurm-node-2 refuses slurmctld's messages (its munge key is another): the job stays COMPLETING
+    monkeypatch.setenv(
+        "SCONTROL",
+        RUNNING.replace("RUNNING", "COMPLETING").replace(" RunTime", " SubmitTime=2026-11-24T13:42:32 RunTime"),
+    )
+    monkeypatch.setenv(
+        "SCONTROL_NODE", "NodeName=node-1 Arch=x86_64 State=IDLE+COMPLETING+NOT_RESPONDING ThreadsPerCore=1\n"
+    )
+    completing = query("4711", capsys)
+    assert completing["state"] == "COMPLETING" and not completing["finished"]
+    assert completing["node_states"] == {"node-1": {"state": "IDLE+COMPLETING+NOT_RESPONDING", "reason": ""}}
+    assert completing["not_responding"] == ["node-1"]
+    assert isinstance(completing["submitted_at"], int) and "submitted" not in completing
+    assert "scontrol show node -o node-1" in (slurm / "calls").read_text()
+    # a pending job has no nodes to read
+    monkeypatch.setenv("SCONTROL", "JobId=4711 JobName=train-ant JobState=PENDING Reason=Priority NodeList=(null)\n")
+    pending = query("4711", capsys)
+    assert "node_states" not in pending and (slurm / "calls").read_text().count("show node") == 1

@@ -138,6 +138,7 @@ def test_what_scontrol_and_sacct_say_of_a_job():
         "reason": "None",
         "exit_code": 0,
         "signal": 0,
+        "submitted": "",
     }
     assert slurm.parse_scontrol_job(SCONTROL_PENDING)["nodes"] == ""
     assert slurm.parse_scontrol_job("slurm_load_jobs error: Invalid job id specified") is None
@@ -484,3 +485,167 @@ def test_variables_passed_into_the_container_must_be_names():
     assert slurm.check_request(job, partitions) == [
         "train_env: 'A-B', 'X=1'. Fix: names of variables (letters, digits, underscore)."
     ]
+
+
+# recorded on the cluster scenario (Slurm 22.05.8, systemd 252) with slurm-node-2's munge key
+# replaced by another: a job sent there went COMPLETING at once and stayed so, Reason=None, until
+# slurmctld set the node DOWN about 8 minutes later and requeued the job
+SCONTROL_COMPLETING = (
+    "JobId=3 JobName=wrap UserId=root(0) GroupId=root(0) MCS_label=N/A Priority=4294901757 Nice=0 Account=(null) "
+    "QOS=(null) JobState=COMPLETING Reason=None Dependency=(null) Requeue=1 Restarts=1 BatchFlag=2 Reboot=0 "
+    "ExitCode=0:0 RunTime=00:00:00 TimeLimit=UNLIMITED TimeMin=N/A SubmitTime=2026-11-24T13:42:32 "
+    "EligibleTime=2026-11-24T13:42:32 AccrueTime=2026-11-24T13:42:32 StartTime=2026-11-24T13:48:43 EndTime=Unknown "
+    "Partition=gpu AllocNode:Sid=slurm-ctl:4465 ReqNodeList=slurm-node-2 ExcNodeList=(null) NodeList=slurm-node-2 "
+    "BatchHost=slurm-node-2 NumNodes=1 NumCPUs=1 NumTasks=1 CPUs/Task=1 ReqB:S:C:T=0:0:*:* "
+    "TRES=cpu=1,mem=4G,node=1,billing=1 Socks/Node=* NtasksPerN:B:S:C=0:0:*:* CoreSpec=*\n"
+)
+NODE_COMPLETING = (
+    "NodeName=slurm-node-2 Arch=x86_64 CoresPerSocket=2  CPUAlloc=0 CPUEfctv=2 CPUTot=2 CPULoad=1.08 "
+    "AvailableFeatures=(null) ActiveFeatures=(null) Gres=gpu:1 NodeAddr=172.17.0.4 NodeHostName=slurm-node-2 "
+    "Version=22.05.8 OS=Linux 6.18.44-fc-v595 #1 SMP PREEMPT_DYNAMIC @0  RealMemory=20009 AllocMem=0 FreeMem=21745 "
+    "Sockets=1 Boards=1 State=IDLE+COMPLETING+NOT_RESPONDING ThreadsPerCore=1 TmpDisk=0 Weight=1 Owner=N/A "
+    "MCS_label=N/A Partitions=gpu  BootTime=2026-11-24T05:30:34 SlurmdStartTime=2026-11-24T13:36:30 "
+    "LastBusyTime=2026-11-24T13:42:33 CfgTRES=cpu=2,mem=20009M,billing=2 AllocTRES= CapWatts=n/a CurrentWatts=0 "
+    "AveWatts=0 ExtSensorsJoules=n/s ExtSensorsWatts=0 ExtSensorsTemp=n/s\n"
+)
+NODE_DOWN = (
+    NODE_COMPLETING.replace("State=IDLE+COMPLETING+NOT_RESPONDING", "State=DOWN+NOT_RESPONDING").rstrip("\n")
+    + " Reason=Not responding [slurm@2026-11-24T13:50:22]\n"
+)
+NODE_IDLE = NODE_COMPLETING.replace("slurm-node-2", "slurm-node-1").replace("IDLE+COMPLETING+NOT_RESPONDING", "IDLE")
+# journalctl -u slurmd -u munge --output=short-iso on slurm-node-2: the key replaced, munge restarted,
+# then the job's launch refused (the _print_cred lines follow each error)
+JOURNAL = "".join(
+    f"2026-11-24T{line}\n"
+    for line in (
+        "13:42:30+0000 slurm-node-2 systemd[1]: Stopping munge.service - MUNGE authentication service...",
+        "13:42:30+0000 slurm-node-2 systemd[1]: munge.service: Deactivated successfully.",
+        "13:42:30+0000 slurm-node-2 systemd[1]: Started munge.service - MUNGE authentication service.",
+        "13:42:33+0000 slurm-node-2 slurmd[1615]: slurmd-slurm-node-2: error: Munge decode failed: Invalid credential",
+        "13:42:33+0000 slurm-node-2 slurmd[1615]: slurmd-slurm-node-2: auth/munge: _print_cred: ENCODED: Thu Jan 01 "
+        "00:00:00 1970",
+        "13:42:33+0000 slurm-node-2 slurmd[1615]: slurmd-slurm-node-2: auth/munge: _print_cred: DECODED: Thu Jan 01 "
+        "00:00:00 1970",
+        "13:44:22+0000 slurm-node-2 slurmd[1615]: slurmd-slurm-node-2: error: Munge decode failed: Invalid credential",
+    )
+)
+REFUSED = "slurmd-slurm-node-2: error: Munge decode failed: Invalid credential"
+
+
+def test_what_scontrol_says_of_a_job_stuck_in_completing_and_of_its_node():
+    job = slurm.parse_scontrol_job(SCONTROL_COMPLETING)
+    assert (job["state"], job["nodes"], job["reason"], job["submitted"]) == (
+        "COMPLETING",
+        "slurm-node-2",
+        "None",
+        "2026-11-24T13:42:32",
+    )
+    assert not slurm.status_of("3", SCONTROL_COMPLETING, "")["finished"]
+    # a reason with spaces is one value, not its first word
+    waiting = SCONTROL_COMPLETING.replace(
+        "JobState=COMPLETING Reason=None", "JobState=PENDING Reason=ReqNodeNotAvail, UnavailableNodes:slurm-node-2"
+    )
+    assert slurm.parse_scontrol_job(waiting)["reason"] == "ReqNodeNotAvail, UnavailableNodes:slurm-node-2"
+    nodes = slurm.parse_nodes(NODE_COMPLETING + NODE_IDLE)
+    assert nodes == {
+        "slurm-node-2": {"state": "IDLE+COMPLETING+NOT_RESPONDING", "reason": ""},
+        "slurm-node-1": {"state": "IDLE", "reason": ""},
+    }
+    assert slurm.parse_nodes(NODE_DOWN)["slurm-node-2"] == {
+        "state": "DOWN+NOT_RESPONDING",
+        "reason": "Not responding [slurm@2026-11-24T13:50:22]",
+    }
+    assert slurm.parse_nodes("Node slurm-node-9 not found\n") == {}
+    assert slurm.not_responding(nodes) == ["slurm-node-2"]
+    # the nodes a completing job waits for: those Slurm marks, else all of the job's
+    assert slurm.stuck_nodes(nodes) == ["slurm-node-2"]
+    both = {"a": {"state": "MIXED", "reason": ""}, "b": {"state": "IDLE", "reason": ""}}
+    assert slurm.stuck_nodes(both) == ["a", "b"]
+
+
+def test_slurm_times_are_seconds_of_the_host_that_reads_them(monkeypatch):
+    monkeypatch.setenv("TZ", "UTC")
+    time.tzset()
+    try:
+        assert slurm.epoch("2026-11-24T13:42:32") == 1795527752
+        assert slurm.epoch("Unknown") is None and slurm.epoch("") is None
+    finally:
+        monkeypatch.delenv("TZ")
+        time.tzset()
+
+
+def test_a_munge_credential_refused_is_found_in_the_node_s_journal():
+    assert slurm.munge_errors(JOURNAL) == [
+        f"2026-11-24T13:42:33+0000 slurm-node-2 slurmd[1615]: {REFUSED}",
+        f"2026-11-24T13:44:22+0000 slurm-node-2 slurmd[1615]: {REFUSED}",
+    ]
+    # munged that cannot start, a credential expired (clocks apart): errors too
+    assert slurm.munge_errors(
+        'x munged[9]: munged: Error: Keyfile is insecure: "/etc/munge/munge.key" should not be readable by other\n'
+        "x slurmd[9]: error: Munge decode failed: Expired credential\n"
+        "x systemd[1]: Started munge.service - MUNGE authentication service.\n"
+    ) == [
+        'x munged[9]: munged: Error: Keyfile is insecure: "/etc/munge/munge.key" should not be readable by other',
+        "x slurmd[9]: error: Munge decode failed: Expired credential",
+    ]
+
+
+def stuck(**over):
+    job = slurm.status_of("3", SCONTROL_COMPLETING, "")
+    job.update(node_states=slurm.parse_nodes(NODE_COMPLETING), stuck_nodes=["slurm-node-2"], stuck_for=31)
+    job.update(over)
+    return job
+
+
+def test_a_job_stuck_in_completing_names_its_node_its_state_and_what_its_journal_says():
+    assert slurm.stuck_line(stuck(), 31, ["slurm-node-2"]) == (
+        "job 3 has been COMPLETING for 31 s (Slurm's reason: none): slurmctld waits for slurm-node-2 "
+        "(IDLE+COMPLETING+NOT_RESPONDING) to end it"
+    )
+    # ended at its time limit (measured: Reason=TimeLimit while it waits)
+    assert slurm.stuck_line(stuck(reason="TimeLimit"), 31, ["slurm-node-2"]).startswith(
+        "job 3 has been COMPLETING for 31 s (Slurm's reason: TimeLimit): slurmctld waits for slurm-node-2 ("
+    )
+    text = slurm.stuck_message(stuck(), {"slurm-node-2": {"text": JOURNAL}})
+    assert text.startswith("job 3 has been COMPLETING for 31 s (Slurm's reason: none): slurmctld waits for slurm-")
+    last = f"2026-11-24T13:44:22+0000 slurm-node-2 slurmd[1615]: {REFUSED}"
+    assert f"slurm-node-2's journal (slurmd, munge): {last} (2 such lines since the job was submitted)." in text
+    assert "Fix: munge refuses credentials between slurm-node-2 and the controller" in text
+    assert "Run playbooks/cluster.yml" in text
+    assert text.endswith(
+        "The job is not cancelled: once slurmctld hears from the node it ends (a job whose launch the node refused is "
+        "requeued and runs again); follow it with train_job_id=3."
+    )
+    # a down node's reason is named with its state
+    down = stuck(node_states=slurm.parse_nodes(NODE_DOWN))
+    assert "slurm-node-2 (DOWN+NOT_RESPONDING: Not responding [slurm@2026-11-24T13:50:22])" in slurm.stuck_line(
+        down, 31, ["slurm-node-2"]
+    )
+
+
+def test_a_stuck_job_s_node_whose_journal_says_nothing_or_cannot_be_read_is_still_named():
+    quiet = slurm.stuck_message(stuck(), {"slurm-node-2": {"text": JOURNAL.splitlines()[0]}})
+    assert "slurm-node-2's journal (slurmd, munge) says nothing of munge since the job was submitted." in quiet
+    assert "Fix: see journalctl -u slurmd -u munge and scontrol show node on slurm-node-2" in quiet
+    unread = slurm.stuck_message(
+        stuck(), {"slurm-node-2": {"error": "No journal files were opened due to insufficient permissions."}}
+    )
+    assert (
+        "slurm-node-2's journal could not be read: No journal files were opened due to insufficient permissions."
+        in unread
+    )
+    elsewhere = slurm.stuck_message(stuck(), {})
+    assert "slurm-node-2 is not a host of the inventory: its journal was not read." in elsewhere
+
+
+def test_progress_names_the_nodes_slurmctld_gets_no_answer_from():
+    job = dict(slurm.parse_scontrol_job(SCONTROL_COMPLETING), not_responding=["slurm-node-2"])
+    assert slurm.progress_line(job) == "job 3 COMPLETING 00:00:00 slurm-node-2 - not responding: slurm-node-2"
+
+
+def test_a_requeued_job_is_what_its_last_end_in_the_completion_log_says():
+    # `sacct -c` on the cluster scenario after a node refused a job's launch (munge) and the job ran
+    # again once the node's key was the controller's
+    log = "4|NODE_FAIL|0:0|00:00:00|slurm-node-2\n4|COMPLETED|0:0|00:00:05|slurm-node-2\n"
+    assert slurm.parse_sacct(log, "4")["state"] == "COMPLETED"
+    assert slurm.status_of("4", "", log)["finished"]
