@@ -237,9 +237,14 @@ def test_an_open_dashboard_shows_a_rollout_s_new_image_without_a_reload(host, tm
     with chromium() as driver:
         driver.get((out / "status.html").as_uri())
 
-        def images():
-            cards = driver.find_elements("css selector", ".instance-card")
-            return [c.find_element("css selector", ".f-image code").text for c in cards]
+        def images(what="textContent"):
+            # in one script: the page redraws a card's fields on every refresh, so an element
+            # found in one call may be gone by the next
+            return driver.execute_script(
+                "return Array.from(document.querySelectorAll('.instance-card .f-image code'))"
+                ".map(function (code) { return code[arguments[0]] || code.getAttribute(arguments[0]); });",
+                what,
+            )
 
         assert len(images()) == INSTANCES and all(text.startswith(old + " @") for text in images()), images()
         wait_for(
@@ -247,21 +252,23 @@ def test_an_open_dashboard_shows_a_rollout_s_new_image_without_a_reload(host, tm
             timeout=15,
             what="the page to read the host",
         )
+
+        def rolled_on_every_card():
+            found = images()
+            return len(found) == INSTANCES and all(text.startswith(new + " @") for text in found)
+
         marker = driver.execute_script("window.sameDocument = 'yes'; return window.sameDocument")
         try:
             rolled = testbed.run_playbook(host, {"isaac_sim_image": new})
             assert rolled.returncode == 0, rolled.stdout[-3000:]
             wait_for(
-                lambda: all(text.startswith(new + " @") for text in images()),
+                rolled_on_every_card,
                 timeout=30,
                 interval=0.5,
                 what="the new image on every card",
             )
             assert driver.execute_script("return window.sameDocument") == marker  # never reloaded
-            digests = {
-                c.find_element("css selector", ".f-image code").get_attribute("title")
-                for c in driver.find_elements("css selector", ".instance-card")
-            }
+            digests = set(images("title"))
             assert all(d.startswith("sha256:") for d in digests), digests
             driver.save_screenshot(str(OUTPUT / "dashboard-rollout.png"))
         finally:
