@@ -241,8 +241,9 @@ def test_an_open_dashboard_shows_a_rollout_s_new_image_without_a_reload(host, tm
             # in one script: the page redraws a card's fields on every refresh, so an element
             # found in one call may be gone by the next
             return driver.execute_script(
+                "var what = arguments[0];"
                 "return Array.from(document.querySelectorAll('.instance-card .f-image code'))"
-                ".map(function (code) { return code[arguments[0]] || code.getAttribute(arguments[0]); });",
+                ".map(function (code) { return code[what]; });",
                 what,
             )
 
