@@ -14,29 +14,37 @@ import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
-_TCP_LISTEN = "0A"
-_UDP_UNCONNECTED = "07"
+TCP_LISTEN = "0A"
+UDP_UNCONNECTED = "07"
+
+
+def proc_net_entries(text: str | None):
+    """[(local port, state, inode)] of a /proc/net/{tcp,tcp6,udp,udp6} text; malformed lines are skipped."""
+    out = []
+    for line in (text or "").splitlines()[1:]:
+        fields = line.split()
+        if len(fields) < 10:
+            continue
+        try:
+            port = int(fields[1].rsplit(":", 1)[1], 16)
+        except (IndexError, ValueError):
+            continue
+        out.append((port, fields[3], fields[9]))
+    return out
 
 
 def parse_proc_net(text: str, proto: str, listening_state: str):
     """[(proto, port, inode)] for sockets in the listening state."""
-    out = []
-    for line in text.splitlines()[1:]:
-        fields = line.split()
-        if len(fields) < 10 or fields[3] != listening_state:
-            continue
-        port = int(fields[1].rsplit(":", 1)[1], 16)
-        out.append((proto, port, fields[9]))
-    return out
+    return [(proto, port, inode) for port, state, inode in proc_net_entries(text) if state == listening_state]
 
 
 def listening_sockets(proc="/proc"):
     found = []
     for name, proto, state in (
-        ("tcp", "tcp", _TCP_LISTEN),
-        ("tcp6", "tcp", _TCP_LISTEN),
-        ("udp", "udp", _UDP_UNCONNECTED),
-        ("udp6", "udp", _UDP_UNCONNECTED),
+        ("tcp", "tcp", TCP_LISTEN),
+        ("tcp6", "tcp", TCP_LISTEN),
+        ("udp", "udp", UDP_UNCONNECTED),
+        ("udp6", "udp", UDP_UNCONNECTED),
     ):
         try:
             with open(os.path.join(proc, "net", name)) as fh:

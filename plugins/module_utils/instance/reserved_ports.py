@@ -13,6 +13,8 @@ still work. Pure functions: the lifecycle reads and writes the two places.
 
 from __future__ import annotations
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe
+
 PROC = "/proc/sys/net/ipv4/ip_local_reserved_ports"
 # last in systemd-sysctl's order (after Debian's 99-sysctl.conf): it carries the value the host had, plus ours
 CONF = "/etc/sysctl.d/99-zz-isaac-sim-reserved-ports.conf"
@@ -80,26 +82,17 @@ def wanted(runtime_text: str | None, conf_text: str | None, ports, grow: bool = 
     return others | want, want - others
 
 
-_TCP_LISTEN = "0A"
-_UDP_UNCONNECTED = "07"
 # TIME_WAIT lasts 60 s on Linux (TCP_TIMEWAIT_LEN); a little more for the last ones to go
 LINGER_LIMIT_S = 75
 
 
 def _local_ports(texts, skip_state: str, wanted: set) -> set:
-    held = set()
-    for text in texts:
-        for line in (text or "").splitlines()[1:]:
-            fields = line.split()
-            if len(fields) < 4 or fields[3] == skip_state:
-                continue
-            try:
-                port = int(fields[1].rsplit(":", 1)[1], 16)
-            except (IndexError, ValueError):
-                continue
-            if port in wanted:
-                held.add(port)
-    return held
+    return {
+        port
+        for text in texts
+        for port, state, _inode in hostprobe.proc_net_entries(text)
+        if state != skip_state and port in wanted
+    }
 
 
 def lingering(tcp_texts, ports, udp_texts=()) -> set:
@@ -108,4 +101,6 @@ def lingering(tcp_texts, ports, udp_texts=()) -> set:
     reserved, or the TIME_WAIT it leaves for 60 s; a connected UDP socket. Reserving a port keeps
     the kernel from handing it out again, not from the sockets that have it already."""
     wanted = set(ports)
-    return _local_ports(tcp_texts, _TCP_LISTEN, wanted) | _local_ports(udp_texts, _UDP_UNCONNECTED, wanted)
+    return _local_ports(tcp_texts, hostprobe.TCP_LISTEN, wanted) | _local_ports(
+        udp_texts, hostprobe.UDP_UNCONNECTED, wanted
+    )
