@@ -73,8 +73,6 @@ actions:
   elements: str
 """
 
-import os
-
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
 
@@ -90,58 +88,13 @@ def main():
         ),
         supports_check_mode=True,
     )
-    p = module.params
-    files = {}
-    for path in list(p["files"]) + p["remove"] + [d.get("path", "") for d in p["directories"]]:
-        if not str(path).startswith("/"):
-            module.fail_json(msg=f"{path!r} is not an absolute path. Fix: give every file and directory in full.")
-    for path, spec in p["files"].items():
-        spec = spec if isinstance(spec, dict) else {"content": spec}
-        if "content" not in spec:
-            module.fail_json(msg=f"files.{path}: no content. Fix: give content (and mode) for every file.")
-        files[path] = {"content": str(spec["content"]), "mode": str(spec.get("mode", "0644"))}
-
-    systemctl = module.get_bin_path("systemctl", required=True)
-    rc, out, _err = module.run_command(
-        [systemctl, "show", "-p", "ActiveState", "-p", "UnitFileState", "-p", "LoadState", p["name"]]
-    )
-    show = dict(line.split("=", 1) for line in out.splitlines() if "=" in line) if rc == 0 else {}
-
-    if p["state"] == "absent":
-        gone = [path for path in list(files) + p["remove"] if os.path.lexists(path)]
-        verbs = host_service.actions("absent", show, [], gone)
-        changed_files = gone
-    else:
-        changed_files = host_service.changed_files(files, host_service.read_file)
-        fix = host_service.directories_to_fix(p["directories"])
-        verbs = host_service.actions("started", show, changed_files, [], directories=bool(fix))
-
-    diff = {
-        "before": "".join(f"{path}\n" for path in changed_files if host_service.read_file(path) is not None),
-        "after": "".join(f"{path}\n" for path in changed_files if p["state"] == "started"),
-    }
-    if not module.check_mode:
-        for verb in verbs:
-            if verb == "directories":
-                for d in fix:
-                    host_service.fix_directory(d)
-            elif verb == "write":
-                for path in changed_files:
-                    host_service.write_file(path, files[path]["content"], files[path]["mode"])
-            elif verb == "remove":
-                for path in changed_files:
-                    host_service.remove(path)
-            else:
-                argv = [systemctl, verb] + ([] if verb == "daemon-reload" else [p["name"]])
-                rc, out, err = module.run_command(argv)
-                if rc != 0:
-                    module.fail_json(
-                        msg=f"systemctl {verb} {p['name']} failed: {(err or out).strip()}. "
-                        f"See: systemctl status {p['name']}; journalctl -u {p['name']}",
-                        actions=verbs,
-                        changed_files=changed_files,
-                    )
-    module.exit_json(changed=bool(verbs), actions=verbs, changed_files=changed_files, diff=diff)
+    try:
+        service = host_service.Service(
+            module.params, module.get_bin_path("systemctl", required=True), module.run_command
+        )
+        module.exit_json(**service.apply(module.check_mode))
+    except host_service.ServiceError as e:
+        module.fail_json(msg=e.msg, **e.details)
 
 
 if __name__ == "__main__":

@@ -3,8 +3,9 @@
 """A host service of the collection that is not an instance (the status endpoint): its files
 and its systemd unit, brought to the wanted state in one module call.
 
-Pure decisions here; the module (isaac_sim_host_service) reads and writes. Instances never
-come here: they change only through the lifecycle (module_utils/instance/lifecycle.py).
+Pure decisions, and Service, which reads the host and applies them (the module isaac_sim_host_service
+only adapts it). Instances never come here: they change only through the lifecycle
+(module_utils/instance/lifecycle.py).
 """
 
 from __future__ import annotations
@@ -126,3 +127,85 @@ def remove(path: str) -> bool:
             os.rmdir(parent)
         return True
     return False
+
+
+class ServiceError(Exception):
+    """A step failed: msg says which and where to look; details go into the module's result."""
+
+    def __init__(self, msg: str, **details):
+        super().__init__(msg)
+        self.msg = msg
+        self.details = details
+
+
+def wanted_files(params: dict) -> dict:
+    """{path: {content, mode}} from the module's files, remove and directories; ServiceError on a bad one."""
+    paths = list(params["files"]) + params["remove"] + [d.get("path", "") for d in params["directories"]]
+    for path in paths:
+        if not str(path).startswith("/"):
+            raise ServiceError(f"{path!r} is not an absolute path. Fix: give every file and directory in full.")
+    files = {}
+    for path, spec in params["files"].items():
+        spec = spec if isinstance(spec, dict) else {"content": spec}
+        if "content" not in spec:
+            raise ServiceError(f"files.{path}: no content. Fix: give content (and mode) for every file.")
+        files[path] = {"content": str(spec["content"]), "mode": str(spec.get("mode", "0644"))}
+    return files
+
+
+class Service:
+    """One host service brought to params["state"] (the module's options: name, files, directories,
+    remove, state). run(argv) -> (rc, out, err) runs systemctl, the only program it calls."""
+
+    def __init__(self, params: dict, systemctl: str, run):
+        self.p = params
+        self.files = wanted_files(params)
+        self.systemctl = systemctl
+        self.run = run
+
+    def show(self) -> dict:
+        rc, out, _err = self.run(
+            [self.systemctl, "show", "-p", "ActiveState", "-p", "UnitFileState", "-p", "LoadState", self.p["name"]]
+        )
+        return dict(line.split("=", 1) for line in out.splitlines() if "=" in line) if rc == 0 else {}
+
+    def apply(self, check: bool) -> dict:
+        """What changed (changed, actions, changed_files, diff); nothing is done in check mode."""
+        p, show = self.p, self.show()
+        fix = []
+        if p["state"] == "absent":
+            changed = [path for path in list(self.files) + p["remove"] if os.path.lexists(path)]
+            verbs = actions("absent", show, [], changed)
+        else:
+            changed = changed_files(self.files, read_file)
+            fix = directories_to_fix(p["directories"])
+            verbs = actions("started", show, changed, [], directories=bool(fix))
+        diff = {
+            "before": "".join(f"{path}\n" for path in changed if read_file(path) is not None),
+            "after": "".join(f"{path}\n" for path in changed if p["state"] == "started"),
+        }
+        if not check:
+            for verb in verbs:
+                self._do(verb, changed, fix, verbs)
+        return {"changed": bool(verbs), "actions": verbs, "changed_files": changed, "diff": diff}
+
+    def _do(self, verb: str, changed: list, fix: list, verbs: list) -> None:
+        if verb == "directories":
+            for d in fix:
+                fix_directory(d)
+        elif verb == "write":
+            for path in changed:
+                write_file(path, self.files[path]["content"], self.files[path]["mode"])
+        elif verb == "remove":
+            for path in changed:
+                remove(path)
+        else:
+            name = self.p["name"]
+            rc, out, err = self.run([self.systemctl, verb] + ([] if verb == "daemon-reload" else [name]))
+            if rc != 0:
+                raise ServiceError(
+                    f"systemctl {verb} {name} failed: {(err or out).strip()}. "
+                    f"See: systemctl status {name}; journalctl -u {name}",
+                    actions=verbs,
+                    changed_files=changed,
+                )
