@@ -14,6 +14,11 @@ import os
 import re
 import shlex
 
+try:
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import units
+except ImportError:  # copied next to the host's scripts (roles/isaac_sim: the status library)
+    import units
+
 CONFIG_DIR = "/etc/isaac-sim"
 UNIT_DIR = "/etc/systemd/system"
 LIBEXEC_DIR = "/usr/local/libexec/isaac-sim"
@@ -41,6 +46,13 @@ STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"
 STATUS_ENV = "status.env"
 K_STATUS_URL = "ISAAC_SIM_STATUS_URL"
+# the metrics exporter for node_exporter's textfile collector (a host service: a timer and its oneshot)
+METRICS_UNIT = "isaac-sim-metrics.service"
+METRICS_TIMER = "isaac-sim-metrics.timer"
+METRICS_SCRIPT = "isaac-sim-metrics"
+METRICS_FILE = "isaac_sim.prom"
+# the first line of every file the collection writes on a host
+MANAGED = "Ansible managed (isaacsim.fleet)"
 # NVIDIA's Hub Workstation Cache, one per host, shared by its 6.x instances (a host service)
 HUB_UNIT = "isaac-sim-hub.service"
 HUB_CONTAINER = "isaac-sim-hub"
@@ -194,6 +206,10 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "status_script": STATUS_SCRIPT,
         "status_env": f"{CONFIG_DIR}/{STATUS_ENV}",
         "k_status_url": K_STATUS_URL,
+        "metrics_unit": METRICS_UNIT,
+        "metrics_timer": METRICS_TIMER,
+        "metrics_script": METRICS_SCRIPT,
+        "metrics_file": METRICS_FILE,
         "hub_unit": HUB_UNIT,
         "hub_dropin": HUB_DROPIN,
         "hub_dir": f"{data_root}/hub-cache",
@@ -364,40 +380,41 @@ def render_companion_env(companion: dict, plan: dict, managed: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout) -> str:
+def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout) -> list:
     """The [Service] section shared by instances and companions: everything from the env file."""
-    return f"""[Service]
-Type=simple
-EnvironmentFile={env}
-SyslogIdentifier={name}
-# A container left by a crash or an unclean reboot would block the name.
-ExecStartPre=-/usr/bin/docker rm -f ${{{K_CONTAINER}}}
-# isaac-sim-run refuses to start while a port of the block is held (Kit would move to
-# another port) and exits {PORTS_HELD_STATUS}: not retried, so systemctl status keeps saying why.
-RestartPreventExitStatus={PORTS_HELD_STATUS}
-ExecStart={LIBEXEC_DIR}/{RUN_SCRIPT}
-ExecStartPost={LIBEXEC_DIR}/{READY_SCRIPT}
-# the container may have exited already (an app that quit): not an error
-ExecStop=-{docker_if_up(f"stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}")}
-ExecStopPost=-{docker_if_up(f"rm -f ${{{K_CONTAINER}}}")}
-ExecStopPost=-/bin/rm -f ${{{K_READY_MARKER}}}
-# Any exit, status 0 included, is restarted (6.x quits when a stream session ends);
-# only systemctl stop keeps it down. {RUN_SCRIPT} flushes the start-limit counter on a
-# clean exit after ready (a session end), so only crashes and failed starts count.
-Restart=always
-RestartSec={restart_sec}
-TimeoutStartSec={ready_timeout + 30}
-TimeoutStopSec={stop_timeout + 30}
-"""
+    return [
+        ("Type", "simple"),
+        ("EnvironmentFile", env),
+        ("SyslogIdentifier", name),
+        "# A container left by a crash or an unclean reboot would block the name.",
+        ("ExecStartPre", f"-/usr/bin/docker rm -f ${{{K_CONTAINER}}}"),
+        f"# {RUN_SCRIPT} refuses to start while a port of the block is held (Kit would move to",
+        f"# another port) and exits {PORTS_HELD_STATUS}: not retried, so systemctl status keeps saying why.",
+        ("RestartPreventExitStatus", PORTS_HELD_STATUS),
+        ("ExecStart", f"{LIBEXEC_DIR}/{RUN_SCRIPT}"),
+        ("ExecStartPost", f"{LIBEXEC_DIR}/{READY_SCRIPT}"),
+        "# the container may have exited already (an app that quit): not an error",
+        ("ExecStop", "-" + docker_if_up(f"stop -t ${{{K_STOP_TIMEOUT}}} ${{{K_CONTAINER}}}")),
+        ("ExecStopPost", "-" + docker_if_up(f"rm -f ${{{K_CONTAINER}}}")),
+        ("ExecStopPost", f"-/bin/rm -f ${{{K_READY_MARKER}}}"),
+        "# Any exit, status 0 included, is restarted (6.x quits when a stream session ends);",
+        f"# only systemctl stop keeps it down. {RUN_SCRIPT} flushes the start-limit counter on a",
+        "# clean exit after ready (a session end), so only crashes and failed starts count.",
+        ("Restart", "always"),
+        ("RestartSec", restart_sec),
+        ("TimeoutStartSec", ready_timeout + 30),
+        ("TimeoutStopSec", stop_timeout + 30),
+    ]
 
 
-def _start_limit(settings: dict, ready_timeout: int) -> str:
+def _start_limit(settings: dict, ready_timeout: int) -> list:
     burst = settings["start_limit_burst"]
     interval = burst * (settings["restart_sec"] + ready_timeout + 30)
-    return f"""# Wide enough that {burst} failed starts, each up to the ready deadline apart, still count.
-StartLimitIntervalSec={interval}
-StartLimitBurst={burst}
-"""
+    return [
+        f"# Wide enough that {burst} failed starts, each up to the ready deadline apart, still count.",
+        ("StartLimitIntervalSec", interval),
+        ("StartLimitBurst", burst),
+    ]
 
 
 def docker_if_up(args: str) -> str:
@@ -411,21 +428,25 @@ def docker_if_up(args: str) -> str:
 def render_unit(settings: dict, managed: str) -> str:
     """The template unit isaac-sim@.service. Everything per instance comes from its env file."""
     env = env_file("%i")
-    return f"""# {managed}
-# One Isaac Sim container per instance: systemctl start isaac-sim@2
-# The instance's settings live in {env}.
-[Unit]
-Description=Isaac Sim instance %i
-Requires=docker.service
-After=docker.service network-online.target
-Wants=network-online.target
-PartOf={TARGET}
-AssertPathExists={env}
-{_start_limit(settings, settings["ready_timeout"])}
-{_service(env, CONTAINER_PREFIX + "%i", settings["restart_sec"], settings["ready_timeout"], settings["stop_timeout"])}
-[Install]
-WantedBy={TARGET}
-"""
+    unit_section = [
+        ("Description", "Isaac Sim instance %i"),
+        ("Requires", "docker.service"),
+        ("After", "docker.service network-online.target"),
+        ("Wants", "network-online.target"),
+        ("PartOf", TARGET),
+        ("AssertPathExists", env),
+    ] + _start_limit(settings, settings["ready_timeout"])
+    service = _service(
+        env, CONTAINER_PREFIX + "%i", settings["restart_sec"], settings["ready_timeout"], settings["stop_timeout"]
+    )
+    return units.render(
+        [("Unit", unit_section), ("Service", service), ("Install", [("WantedBy", TARGET)])],
+        header=[
+            managed,
+            "One Isaac Sim container per instance: systemctl start isaac-sim@2",
+            f"The instance's settings live in {env}.",
+        ],
+    )
 
 
 def render_companion_unit(companion: dict, settings: dict, managed: str) -> str:
@@ -435,32 +456,32 @@ def render_companion_unit(companion: dict, settings: dict, managed: str) -> str:
     name = companion["name"]
     env = companion_env_file("%i", name)
     owner = unit("%i")
-    return f"""# {managed}
-# Companion {name} of each Isaac Sim instance: systemctl status {companion_unit("%i", name)}
-# The companion's settings for instance %i live in {env}.
-[Unit]
-Description=Isaac Sim instance %i: companion {name}
-BindsTo={owner}
-After={owner}
-PartOf={owner}
-AssertPathExists={env}
-# No start limit: when its instance restarts, systemd (252) counts the start that waits for the
-# companion to finish stopping once per step of the stop, and would leave it failed for good.
-# RestartSec paces a companion that crash-loops; its instance keeps its own limit.
-StartLimitIntervalSec=0
-
-{
-        _service(
-            env,
-            companion_container("%i", name),
-            settings["restart_sec"],
-            companion["ready_timeout"],
-            companion["stop_timeout"],
-        )
-    }
-[Install]
-WantedBy={owner}
-"""
+    unit_section = [
+        ("Description", f"Isaac Sim instance %i: companion {name}"),
+        ("BindsTo", owner),
+        ("After", owner),
+        ("PartOf", owner),
+        ("AssertPathExists", env),
+        "# No start limit: when its instance restarts, systemd (252) counts the start that waits for the",
+        "# companion to finish stopping once per step of the stop, and would leave it failed for good.",
+        "# RestartSec paces a companion that crash-loops; its instance keeps its own limit.",
+        ("StartLimitIntervalSec", 0),
+    ]
+    service = _service(
+        env,
+        companion_container("%i", name),
+        settings["restart_sec"],
+        companion["ready_timeout"],
+        companion["stop_timeout"],
+    )
+    return units.render(
+        [("Unit", unit_section), ("Service", service), ("Install", [("WantedBy", owner)])],
+        header=[
+            managed,
+            f"Companion {name} of each Isaac Sim instance: systemctl status {companion_unit('%i', name)}",
+            f"The companion's settings for instance %i live in {env}.",
+        ],
+    )
 
 
 def render_hub_unit(hub: dict, managed: str) -> str:
@@ -482,47 +503,143 @@ def render_hub_unit(hub: dict, managed: str) -> str:
         f"--volume={hub['dir']}:{HUB_MOUNT}:rw",
         hub["image"],
     ]
-    return f"""# {managed}
-# NVIDIA's Hub Workstation Cache for this host's Isaac Sim instances (isaac_sim_hub_cache_enabled).
-[Unit]
-Description=NVIDIA Hub Workstation Cache for the Isaac Sim instances of this host
-Requires=docker.service
-After=docker.service network-online.target
-Wants=network-online.target
-
-[Service]
-ExecStartPre=-/usr/bin/docker rm -f {HUB_CONTAINER}
-ExecStart={" ".join(run)}
-ExecStartPost=/bin/bash -c "{wait}"
-ExecStop=-{docker_if_up(f"stop -t 10 {HUB_CONTAINER}")}
-Restart=always
-RestartSec=5
-TimeoutStartSec=90
-
-[Install]
-WantedBy=multi-user.target
-"""
+    unit_section = [
+        ("Description", "NVIDIA Hub Workstation Cache for the Isaac Sim instances of this host"),
+        ("Requires", "docker.service"),
+        ("After", "docker.service network-online.target"),
+        ("Wants", "network-online.target"),
+    ]
+    service = [
+        ("ExecStartPre", f"-/usr/bin/docker rm -f {HUB_CONTAINER}"),
+        ("ExecStart", " ".join(run)),
+        ("ExecStartPost", f'/bin/bash -c "{wait}"'),
+        ("ExecStop", "-" + docker_if_up(f"stop -t 10 {HUB_CONTAINER}")),
+        ("Restart", "always"),
+        ("RestartSec", 5),
+        ("TimeoutStartSec", 90),
+    ]
+    return units.render(
+        [("Unit", unit_section), ("Service", service), ("Install", [("WantedBy", "multi-user.target")])],
+        header=[
+            managed,
+            "NVIDIA's Hub Workstation Cache for this host's Isaac Sim instances (isaac_sim_hub_cache_enabled).",
+        ],
+    )
 
 
 def render_hub_dropin(managed: str) -> str:
     """Every instance wants the Hub cache and starts after it (a drop-in: no instance restarts for it)."""
-    return f"""# {managed}
-[Unit]
-Wants={HUB_UNIT}
-After={HUB_UNIT}
-"""
+    return units.render([("Unit", [("Wants", HUB_UNIT), ("After", HUB_UNIT)])], header=[managed])
+
+
+# systemd's sandbox for a host service that only reads (the status endpoint: 2.3 in systemd-analyze security)
+SANDBOX = (
+    ("User", "root"),
+    ("CapabilityBoundingSet", ""),
+    ("AmbientCapabilities", ""),
+    ("NoNewPrivileges", "yes"),
+    ("ProtectSystem", "strict"),
+    ("ProtectHome", "yes"),
+    ("PrivateTmp", "yes"),
+    ("ProtectKernelTunables", "yes"),
+    ("ProtectKernelModules", "yes"),
+    ("ProtectKernelLogs", "yes"),
+    ("ProtectControlGroups", "yes"),
+    ("ProtectClock", "yes"),
+    ("ProtectHostname", "yes"),
+    ("RestrictNamespaces", "yes"),
+    ("RestrictRealtime", "yes"),
+    ("RestrictSUIDSGID", "yes"),
+    ("LockPersonality", "yes"),
+    ("MemoryDenyWriteExecute", "yes"),
+    ("RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6"),
+    ("SystemCallArchitectures", "native"),
+    ("SystemCallFilter", "@system-service"),
+    ("UMask", "0077"),
+)
+
+
+def render_status_unit(server: dict, managed: str = MANAGED) -> str:
+    """The host's read-only status endpoint. server: name (the inventory's), address, port, allow
+    (networks), origins, gpu_source."""
+    argv = [
+        f"/usr/bin/python3 {LIBEXEC_DIR}/{STATUS_SCRIPT} --lib {LIB_DIR} --name {shlex.quote(server['name'])}",
+        f"--address {server['address']} --port {server['port']}",
+    ]
+    argv += [f"--allow {net}" for net in server.get("allow") or ()]
+    argv += [f"--origin {shlex.quote(origin)}" for origin in server.get("origins") or ()]
+    argv.append(f"--gpu-source {server['gpu_source']}")
+    service = [
+        ("ExecStart", " ".join(argv)),
+        ("Restart", "always"),
+        ("RestartSec", 5),
+        "# It reads the instances' env files (root's, mode 0600) and asks systemd, Docker and",
+        "# nvidia-smi: root for the files it owns, without any capability, with nothing writable.",
+        *SANDBOX,
+        ("MemoryMax", "256M"),
+        ("TasksMax", 64),
+    ]
+    unit = [
+        ("Description", "Isaac Sim status of this host, read-only, for the fleet dashboard"),
+        ("After", "network-online.target docker.service"),
+        ("Wants", "network-online.target"),
+    ]
+    return units.render(
+        [("Unit", unit), ("Service", service), ("Install", [("WantedBy", "multi-user.target")])], header=[managed]
+    )
+
+
+def render_metrics_units(metrics: dict, managed: str = MANAGED) -> dict:
+    """{unit name: text} of the metrics exporter: a oneshot that writes METRICS_FILE in
+    metrics["textfile_dir"] and the timer that runs it every metrics["interval"]."""
+    service = [
+        ("Type", "oneshot"),
+        (
+            "ExecStart",
+            f"/usr/bin/python3 {LIBEXEC_DIR}/{METRICS_SCRIPT} --lib {LIB_DIR} "
+            f"--output {metrics['textfile_dir']}/{METRICS_FILE} --gpu-source {metrics['gpu_source']}",
+        ),
+        ("Nice", 10),
+    ]
+    timer = [("OnActiveSec", "5s"), ("OnUnitActiveSec", metrics["interval"]), ("AccuracySec", "1s")]
+    return {
+        METRICS_UNIT: units.render(
+            [
+                (
+                    "Unit",
+                    [
+                        ("Description", "Isaac Sim instance metrics for node_exporter's textfile collector"),
+                        ("After", "docker.service"),
+                    ],
+                ),
+                ("Service", service),
+            ],
+            header=[managed],
+        ),
+        METRICS_TIMER: units.render(
+            [
+                ("Unit", [("Description", f"Write Isaac Sim instance metrics every {metrics['interval']}")]),
+                ("Timer", timer),
+                ("Install", [("WantedBy", "timers.target")]),
+            ],
+            header=[managed],
+        ),
+    }
 
 
 def render_target(managed: str) -> str:
-    return f"""# {managed}
-# All Isaac Sim instances of this host: systemctl stop {TARGET}
-# Docker stopping stops it and every instance (Requires=); whenever Docker starts again, however it
-# went away, it starts this target and so every enabled instance (WantedBy=docker.service).
-[Unit]
-Description=Isaac Sim instances
-Requires=docker.service
-After=docker.service
-
-[Install]
-WantedBy=multi-user.target docker.service
-"""
+    return units.render(
+        [
+            (
+                "Unit",
+                [("Description", "Isaac Sim instances"), ("Requires", "docker.service"), ("After", "docker.service")],
+            ),
+            ("Install", [("WantedBy", "multi-user.target docker.service")]),
+        ],
+        header=[
+            managed,
+            f"All Isaac Sim instances of this host: systemctl stop {TARGET}",
+            "Docker stopping stops it and every instance (Requires=); whenever Docker starts again, however it",
+            "went away, it starts this target and so every enabled instance (WantedBy=docker.service).",
+        ],
+    )

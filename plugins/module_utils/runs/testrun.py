@@ -23,7 +23,7 @@ import re
 import signal
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse, xml_safe
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout, units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, releases
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import judge
 
@@ -141,31 +141,34 @@ def unit_text(run: str, name: str, svc: dict, argv: list) -> str:
     """The service's unit: systemd runs, restarts (compose's policy) and stops its container."""
     container = layout.run_name(run, name)
     grace = math.ceil(svc.get("stop_grace_period") or 10)
+    limit = []
     if svc["restart"] == "no":
-        restart, limit = "no", ""
+        restart = "no"
     else:
         # every policy restarts on failure only: a service may finish (exit 0) at any time
         retries = svc.get("restart_retries") or 0
-        limit = f"StartLimitIntervalSec=1d\nStartLimitBurst={retries + 1}\n" if retries else "StartLimitIntervalSec=0\n"
+        limit = (
+            [("StartLimitIntervalSec", "1d"), ("StartLimitBurst", retries + 1)]
+            if retries
+            else [("StartLimitIntervalSec", 0)]
+        )
         restart = "on-failure"
-    return (
-        "[Unit]\n"
-        f"Description=isaacsim.fleet test run {run}: service {name}\n"
-        f"{limit}"
-        "\n[Service]\n"
-        "Type=exec\n"
+    service = [
+        ("Type", "exec"),
         # -v: an image's own VOLUMEs (a database's data) go with their container
-        f"ExecStartPre=-{DOCKER} rm -f -v {container}\n"
-        f"ExecStartPre=-/bin/rm -f {exit_file(run, name)}\n"
-        f"ExecStart={' '.join(systemd_quote(w) for w in argv)}\n"
-        f"ExecStop=-{DOCKER} stop --time={grace} {container}\n"
-        f"ExecStopPost=-{DOCKER} rm -f -v {container}\n"
+        ("ExecStartPre", f"-{DOCKER} rm -f -v {container}"),
+        ("ExecStartPre", f"-/bin/rm -f {exit_file(run, name)}"),
+        ("ExecStart", " ".join(systemd_quote(w) for w in argv)),
+        ("ExecStop", f"-{DOCKER} stop --time={grace} {container}"),
+        ("ExecStopPost", f"-{DOCKER} rm -f -v {container}"),
         # systemd gives ExecStopPost how the main process ended; kept past the unit's unloading
-        f"ExecStopPost=-/bin/sh -c 'echo \"$$EXIT_CODE $$EXIT_STATUS\" > {exit_file(run, name)}'\n"
-        f"Restart={restart}\n"
-        "RestartSec=1\n"
-        f"TimeoutStopSec={grace + 30}\n"
-    )
+        ("ExecStopPost", f"-/bin/sh -c 'echo \"$$EXIT_CODE $$EXIT_STATUS\" > {exit_file(run, name)}'"),
+        ("Restart", restart),
+        ("RestartSec", 1),
+        ("TimeoutStopSec", grace + 30),
+    ]
+    unit = [("Description", f"isaacsim.fleet test run {run}: service {name}")] + limit
+    return units.render([("Unit", unit), ("Service", service)])
 
 
 def runtime_file(run: str, service: str, kind: str) -> str:

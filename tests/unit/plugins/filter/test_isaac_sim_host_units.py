@@ -1,0 +1,64 @@
+"""The isaac_sim_host_units filter: the host services' units, from the layout's names."""
+
+from __future__ import annotations
+
+import pytest
+from ansible.errors import AnsibleFilterError
+from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_host_units import FilterModule, isaac_sim_host_units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
+STATUS = {
+    "name": "gpu host 1",
+    "address": "0.0.0.0",
+    "port": 8290,
+    "allow": ["10.0.0.0/8", "127.0.0.1/32"],
+    "origins": ["http://dash:8080"],
+    "gpu_source": "auto",
+}
+METRICS = {"textfile_dir": "/var/lib/node-exporter", "interval": "15s", "gpu_source": "nvidia-smi"}
+
+
+def lines(text: str) -> list:
+    return text.splitlines()
+
+
+def test_status_unit_runs_the_server_with_its_settings_sandboxed():
+    units = isaac_sim_host_units(STATUS, "status")
+    assert list(units) == [layout.STATUS_UNIT]
+    text = lines(units[layout.STATUS_UNIT])
+    assert text[0] == f"# {layout.MANAGED}" and text[1] == "[Unit]"
+    [start] = [line for line in text if line.startswith("ExecStart=")]
+    assert start == (
+        f"ExecStart=/usr/bin/python3 {layout.LIBEXEC_DIR}/{layout.STATUS_SCRIPT} --lib {layout.LIB_DIR}"
+        " --name 'gpu host 1' --address 0.0.0.0 --port 8290 --allow 10.0.0.0/8 --allow 127.0.0.1/32"
+        " --origin http://dash:8080 --gpu-source auto"
+    )
+    for key, value in layout.SANDBOX:
+        assert f"{key}={value}" in text
+    assert text[-2:] == ["[Install]", "WantedBy=multi-user.target"]
+
+
+def test_metrics_are_a_oneshot_and_its_timer_writing_into_the_textfile_directory():
+    units = isaac_sim_host_units(METRICS, "metrics")
+    assert sorted(units) == sorted([layout.METRICS_UNIT, layout.METRICS_TIMER])
+    service, timer = lines(units[layout.METRICS_UNIT]), lines(units[layout.METRICS_TIMER])
+    assert "Type=oneshot" in service
+    assert f"--output /var/lib/node-exporter/{layout.METRICS_FILE} --gpu-source nvidia-smi" in service[-2]
+    assert "OnUnitActiveSec=15s" in timer and "Description=Write Isaac Sim instance metrics every 15s" in timer
+    assert "[Install]" not in service and timer[-1] == "WantedBy=timers.target"
+
+
+@pytest.mark.parametrize(
+    "settings, service, message",
+    [
+        (STATUS, "hub", "no host service 'hub'"),
+        ({k: v for k, v in METRICS.items() if k != "interval"}, "metrics", "settings lack interval"),
+    ],
+)
+def test_an_unknown_service_or_a_missing_setting_is_named(settings, service, message):
+    with pytest.raises(AnsibleFilterError, match=message):
+        isaac_sim_host_units(settings, service)
+
+
+def test_the_filter_is_registered():
+    assert FilterModule().filters()["isaac_sim_host_units"] is isaac_sim_host_units
