@@ -304,6 +304,13 @@ cost:
   returned: always
   type: dict
   sample: {"spawns": 2, "docker_api_calls": 2}
+timings_ms:
+  description:
+    - The milliseconds of each part of the call - C(files) (env files), C(systemd), C(docker), C(gpu), C(build),
+      C(events) (the last day's ends in the journal), C(logs) - so a slower status shows which part grew.
+  returned: always
+  type: dict
+  sample: {"files": 0.4, "systemd": 6.1, "docker": 3.2, "gpu": 0.1, "build": 0.3, "events": 9.8, "logs": 0.0}
 """
 
 from ansible.module_utils.basic import AnsibleModule

@@ -8,7 +8,11 @@ Prints, for each N:
     one `systemctl show` of the units and one `docker inspect` of the containers;
 and at N = 4 the time of a playbook with the module against a naive one that
 runs ansible.builtin.systemd_service and community.docker.docker_container_info
-once per instance.
+once per instance. Then where the module's own time goes, per N: the imports it
+pays beyond the ping module's (python -X importtime, the collection's own
+module_utils apart), and each part of the status read as the module reports it
+(timings_ms: env files, systemd, Docker, GPU, building records, the journal's
+events, log tails), medians over the runs.
 
 A script, not a test: timings on shared machines are noisy. Needs strace and
 nsenter on the machine that runs it. Run after ./tools/bootstrap:
@@ -69,6 +73,31 @@ print(json.dumps(out))
 """
 
 
+# runs inside the host: median self time (ms) of the imports of each payload, by who owns them
+IMPORTS = r"""
+import json, re, statistics, subprocess, sys
+paths, runs = json.loads(sys.argv[1]), int(sys.argv[2])
+line = re.compile(r"import time:\s+(\d+) \|\s+\d+ \|\s*(\S+)")
+def groups(path):
+    err = subprocess.run([sys.executable, "-X", "importtime", path], capture_output=True, text=True).stderr
+    out = {"collection": 0.0, "ansible": 0.0, "stdlib": 0.0}
+    for m in map(line.match, err.splitlines()):
+        if m:
+            name = m.group(2)
+            key = "stdlib" if not name.startswith("ansible") else "ansible"
+            key = "collection" if name.startswith("ansible_collections") else key
+            out[key] += int(m.group(1)) / 1000
+    return out
+res = {}
+for name, path in paths.items():
+    each = [groups(path) for _n in range(runs)]
+    res[name] = {k: statistics.median(g[k] for g in each) for k in each[0]}
+print(json.dumps(res))
+"""
+
+PARTS = ("files", "systemd", "docker", "gpu", "build", "events", "logs")
+
+
 def sh(cmd):
     return subprocess.run(["docker", "exec", HOST, "sh", "-c", cmd], capture_output=True, text=True, check=True).stdout
 
@@ -89,6 +118,15 @@ def keep_payload(inv, module, dest):
 
 def module_result():
     return json.loads(sh(f"python3 {PAYLOAD}"))
+
+
+def breakdown(runs):
+    """Median ms of the module's imports beyond ping's, and of each part of its status read."""
+    imports = json.loads(sh(f"python3 -c '{IMPORTS}' '{json.dumps({'module': PAYLOAD, 'ping': PING})}' {runs}"))
+    reads = [module_result()["timings_ms"] for _n in range(runs)]
+    parts = {part: statistics.median(r.get(part, 0.0) for r in reads) for part in PARTS}
+    extra = {k: imports["module"][k] - imports["ping"][k] for k in imports["module"]}
+    return extra, parts
 
 
 def spawns_by_strace():
@@ -159,7 +197,7 @@ def main():
                     f"{args.runs}"
                 )
             )
-            rows.append((n, spawned, result["cost"], times))
+            rows.append((n, spawned, result["cost"], times, breakdown(args.runs)))
             if n == 4:
                 module_play, naive_play = tmp / "module.yml", tmp / "naive.yml"
                 module_play.write_text(MODULE_PLAY)
@@ -175,15 +213,28 @@ def main():
         f"{'N':>2}  {'spawns (strace)':<16} {'(module says)':<14} {'module':>8} {'bare pair':>10} {'ratio':>7}"
         f" {'ping':>7} {'module-ping':>12} {'ratio':>6}  spawned"
     )
-    for n, spawned, cost, t in rows:
+    for n, spawned, cost, t, _parts in rows:
         own = t["module"] - t["ping"]
         print(
             f"{n:>2}  {len(spawned):<16} {cost['spawns']:<14} {t['module'] * 1000:6.0f}ms "
             f"{t['bare'] * 1000:8.0f}ms {t['module'] / t['bare']:6.2f}x {t['ping'] * 1000:5.0f}ms"
             f" {own * 1000:10.0f}ms {own / t['bare']:5.2f}x  {', '.join(spawned)}"
         )
-    print(f"docker API calls per module call: {', '.join(str(c['docker_api_calls']) for _n, _t, c, _s in rows)}")
-    grows = len({len(s) for _n, s, _c, _t in rows}) > 1
+    print(f"docker API calls per module call: {', '.join(str(c['docker_api_calls']) for _n, _s, c, _t, _p in rows)}")
+    print("\nwhere module-ping goes (ms, medians): imports beyond ping's, then each part of the status read")
+    print(
+        f"{'N':>2}  {'imp:coll':>8} {'imp:ansible':>11} {'imp:stdlib':>10}"
+        + "".join(f" {p:>8}" for p in PARTS)
+        + f" {'rest':>7}"
+    )
+    for n, _s, _c, t, (extra, parts) in rows:
+        rest = (t["module"] - t["ping"]) * 1000 - sum(extra.values()) - sum(parts.values())
+        print(
+            f"{n:>2}  {extra['collection']:8.1f} {extra['ansible']:11.1f} {extra['stdlib']:10.1f}"
+            + "".join(f" {parts[p]:8.1f}" for p in PARTS)
+            + f" {rest:7.1f}"
+        )
+    grows = len({len(s) for _n, s, _c, _t, _p in rows}) > 1
     print(f"spawns grow with N: {'YES' if grows else 'no'}")
     print(
         f"N=4 playbook, median of 3: module {plays['module']:.1f} s, naive per-instance {plays['naive']:.1f} s, "

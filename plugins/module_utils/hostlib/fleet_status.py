@@ -574,17 +574,20 @@ def gather(
     `stream` is not used (the journal is read through run); it stays in the signature while
     roles/isaac_sim/files/isaac-sim-metrics passes None in its place.
     """
+    lap = _Laps()
     errors = []
     envs, env_errors = read_env_files(config_dir)
     errors += env_errors
     deployed = bool(envs) or os.path.exists(unit_path)
 
     companion_envs = read_companion_env_files(config_dir)
+    lap("files")
     rc, out, err = run(systemctl_show_argv(sorted(envs), sorted(companion_envs)))
     units = parse_systemctl_show(out) if rc == 0 else {}
     companion_units = parse_companion_units(out) if rc == 0 else {}
     if rc != 0:
         errors.append(f"systemctl show failed: {err.strip()}")
+    lap("systemd")
 
     containers, docker_ok = {}, True
     try:
@@ -593,9 +596,11 @@ def gather(
     except DockerError as exc:
         docker_ok = False
         errors.append(str(exc))
+    lap("docker")
 
     usage, gpu_error = gpu_usage.read(gpu_source, run, import_nvml)
     pid_containers = {p["pid"]: gpu_usage.container_of_pid(p["pid"], proc) for p in (usage or {}).get("processes", [])}
+    lap("gpu")
 
     address = public_address or default_ipv4()
     records = build(
@@ -612,6 +617,7 @@ def gather(
         companion_units=companion_units,
         companion_markers=read_companion_markers(run_dir),
     )
+    lap("build")
     rc, out, err = run(events_argv())
     if rc != 0:
         errors.append(f"journalctl -t {EVENTS_TAG} failed: {(err or out).strip()}")
@@ -619,6 +625,7 @@ def gather(
     for r in records:
         if r["id"] is not None:
             r["last_day"] = events.get(r["name"], dict.fromkeys(_EVENT_KINDS.values(), 0)) if rc == 0 else None
+    lap("events")
     with_units = [r["id"] for r in records if r["unit"]]
     if log_lines and with_units:
         tails, journal_error = read_journal_tails(run, with_units, log_lines)
@@ -626,6 +633,7 @@ def gather(
             errors.append(journal_error)
         for r in records:
             r["logs"] = tails.get(r["id"], [])
+    lap("logs")
     return {
         "deployed": deployed,
         "instances": records,
@@ -653,7 +661,22 @@ def gather(
             if c.get("test_run")
         ],
         "errors": errors,
+        # where this call spent its time, so a slower status shows which part grew
+        "timings_ms": lap.parts,
     }
+
+
+class _Laps:
+    """Milliseconds per part of gather(), each part timed from the end of the one before."""
+
+    def __init__(self):
+        self.parts = {}
+        self._last = time.perf_counter()
+
+    def __call__(self, part: str) -> None:
+        now = time.perf_counter()
+        self.parts[part] = round((now - self._last) * 1000, 1)
+        self._last = now
 
 
 def read_status_url(config_dir: str):
