@@ -2,15 +2,16 @@
 # Apache-2.0
 """The smallest Docker Engine API client the status code needs.
 
-Speaks HTTP over the daemon's unix socket with the standard library, so the
+Speaks HTTP/1.1 over the daemon's unix socket with a plain socket, so the
 status module and the metrics timer need neither the docker CLI (a process
-per call) nor the Docker SDK on the host. Every request is counted: the
-status module promises a fixed number of API calls per host.
+per call) nor the Docker SDK on the host. Not http.client: importing it (and
+the email and ssl packages it pulls in) cost the status module more than its
+whole read of Docker. Every request is counted: the status module promises a
+fixed number of API calls per host.
 """
 
 from __future__ import annotations
 
-import http.client
 import json
 import socket
 from urllib.parse import quote
@@ -26,16 +27,48 @@ class DockerError(Exception):
         self.status = status
 
 
-class _UnixConnection(http.client.HTTPConnection):
-    def __init__(self, path, timeout):
-        super().__init__("localhost", timeout=timeout)
-        self._path = path
+def _exchange(path: str, target: str, timeout) -> bytes:
+    """The daemon's whole answer to one GET; it closes the connection after it (Connection: close)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout)
+        sock.connect(path)
+        sock.sendall(f"GET {target} HTTP/1.1\r\nHost: docker\r\nConnection: close\r\n\r\n".encode("ascii"))
+        parts = []
+        while True:
+            data = sock.recv(65536)
+            if not data:
+                return b"".join(parts)
+            parts.append(data)
 
-    def connect(self):
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.settimeout(self.timeout)
-        sock.connect(self._path)
-        self.sock = sock
+
+def _dechunk(body: bytes) -> bytes:
+    """A chunked body (Transfer-Encoding: chunked) made whole; trailers are dropped."""
+    out, at = [], 0
+    while True:
+        eol = body.index(b"\r\n", at)
+        size = int(body[at:eol].split(b";", 1)[0], 16)
+        if size == 0:
+            return b"".join(out)
+        out.append(body[eol + 2 : eol + 2 + size])
+        at = eol + 2 + size + 2
+
+
+def parse_response(raw: bytes) -> tuple:
+    """(status, body) of an HTTP/1.x response as the daemon sends it."""
+    head, sep, body = raw.partition(b"\r\n\r\n")
+    lines = head.decode("iso-8859-1").split("\r\n")
+    fields = lines[0].split(" ", 2)
+    if not sep or len(fields) < 2 or not fields[0].startswith("HTTP/") or not fields[1].isdigit():
+        raise ValueError(f"not an HTTP response: {raw[:80]!r}")
+    headers = {}
+    for line in lines[1:]:
+        name, _colon, value = line.partition(":")
+        headers[name.strip().lower()] = value.strip()
+    if "chunked" in headers.get("transfer-encoding", "").lower():
+        body = _dechunk(body)
+    elif headers.get("content-length", "").isdigit():
+        body = body[: int(headers["content-length"])]
+    return int(fields[1]), body
 
 
 class DockerSocket:
@@ -47,17 +80,14 @@ class DockerSocket:
     def get(self, endpoint: str):
         """The decoded JSON answer of GET /v1.41{endpoint}."""
         self.calls += 1
-        conn = _UnixConnection(self.path, self.timeout)
         try:
-            conn.request("GET", f"/v{API_VERSION}{endpoint}")
-            resp = conn.getresponse()
-            body = resp.read()
+            status, body = parse_response(_exchange(self.path, f"/v{API_VERSION}{endpoint}", self.timeout))
         except OSError as exc:
             raise DockerError(f"cannot reach the Docker daemon at {self.path}: {exc}") from exc
-        finally:
-            conn.close()
-        if resp.status != 200:
-            raise DockerError(f"Docker answered {resp.status} to GET {endpoint}: {body[:200]!r}", resp.status)
+        except ValueError as exc:  # a cut or garbled answer
+            raise DockerError(f"the Docker daemon at {self.path} answered GET {endpoint} unreadably: {exc}") from exc
+        if status != 200:
+            raise DockerError(f"Docker answered {status} to GET {endpoint}: {body[:200]!r}", status)
         return json.loads(body)
 
     def containers(self, name_prefix: str):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import os
 import re
-import xml.etree.ElementTree as ET
 
 SMI_XML = ["nvidia-smi", "-q", "-x"]
 _MIB = 1024 * 1024
@@ -82,7 +81,11 @@ def _mib(text):
 
 
 def parse_smi_xml(text: str) -> dict:
-    """Parse `nvidia-smi -q -x`: GPUs in index order, and every process on each."""
+    """Parse `nvidia-smi -q -x`: GPUs in index order, and every process on each. ParseError (a
+    SyntaxError) for text that is not XML."""
+    # imported here: a host without nvidia-smi (or with NVML) never pays for the XML parser
+    import xml.etree.ElementTree as ET
+
     root = ET.fromstring(text)
     gpus, procs = [], []
     for index, gpu in enumerate(root.findall("gpu")):
@@ -155,7 +158,7 @@ def read(source, run, import_nvml=import_nvml):
     if rc == 0 and out.strip():
         try:
             return parse_smi_xml(out), None
-        except ET.ParseError as exc:
+        except SyntaxError as exc:  # ElementTree's ParseError
             errors.append(f"nvidia-smi: unreadable XML ({exc})")
     else:
         errors.append(f"nvidia-smi: {(err or out).strip() or 'exit ' + str(rc)}")

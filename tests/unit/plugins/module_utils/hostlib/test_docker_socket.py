@@ -79,3 +79,58 @@ def test_no_daemon_says_where_it_looked(tmp_path):
     with pytest.raises(DockerError, match="cannot reach the Docker daemon at .*absent.sock"):
         docker.containers("isaac-sim-")
     assert docker.calls == 1
+
+
+class _ChunkedDockerd(_Dockerd):
+    """Answers as Go's net/http does for a large body: HTTP/1.1, chunked, closing after it."""
+
+    protocol_version = "HTTP/1.1"
+
+    def do_GET(self):  # noqa: N802 - http.server's naming
+        data = recorded("docker-containers.json").encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Transfer-Encoding", "chunked")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        for at in range(0, len(data), 1000):
+            piece = data[at : at + 1000]
+            self.wfile.write(f"{len(piece):x};ext=1\r\n".encode() + piece + b"\r\n")
+        self.wfile.write(b"0\r\nX-Trailer: t\r\n\r\n")
+        self.close_connection = True
+
+
+def test_a_chunked_answer_reads_whole(tmp_path):
+    path = str(tmp_path / "docker.sock")
+    server = _Server(path, _ChunkedDockerd)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        got = DockerSocket(path).containers("isaac-sim-")
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert got == json.loads(recorded("docker-containers.json"))
+
+
+def test_an_answer_that_is_not_http_is_a_docker_error(tmp_path):
+    import socket
+
+    path = str(tmp_path / "docker.sock")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(path)
+    listener.listen(1)
+
+    def answer():
+        conn, _addr = listener.accept()
+        conn.recv(4096)
+        conn.sendall(b"garbage")
+        conn.close()
+
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(DockerError, match="answered GET /images/json unreadably: not an HTTP response"):
+            DockerSocket(path).images()
+    finally:
+        listener.close()
+        thread.join(5)
