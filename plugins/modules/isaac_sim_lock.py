@@ -79,41 +79,23 @@ import time
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 
+ARGUMENT_SPEC = dict(
+    state=dict(type="str", choices=["present", "absent", "renewed"], default="present"),
+    holder=dict(type="dict", required=True),
+    stale_after=dict(type="int", default=3600),
+    break_lock=dict(type="bool", default=False),
+    dead=dict(type="str", default=""),
+    wait=dict(type="int", default=0),
+)
+
 
 def main():
-    module = AnsibleModule(
-        argument_spec=dict(
-            state=dict(type="str", choices=["present", "absent", "renewed"], default="present"),
-            holder=dict(type="dict", required=True),
-            stale_after=dict(type="int", default=3600),
-            break_lock=dict(type="bool", default=False),
-            dead=dict(type="str", default=""),
-            wait=dict(type="int", default=0),
-        ),
-        supports_check_mode=True,
-    )
-    p = module.params
-    me = p["holder"]
-    if not me.get("id"):
-        module.fail_json(
-            msg="holder: needs an id. Fix: call isaacsim.fleet.isaac_sim_lock as a task (its action plugin fills it)."
-        )
-    now = time.time()
+    module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
     try:
-        if p["state"] == "renewed":
-            renewed = False if module.check_mode else runlock.renew(me, now)
-            module.exit_json(changed=False, acquired=renewed, holder=None, note="")
-        if p["state"] == "absent":
-            released = False if module.check_mode else runlock.release(me)
-            module.exit_json(changed=False, acquired=False, released=released, holder=None, note="")
-        if module.check_mode:
-            current = runlock.read()
-            verdict, said = runlock.decide(current, me, now, p["stale_after"], p["break_lock"], p["dead"])
-            module.exit_json(changed=False, acquired=verdict == "take", holder=current, note=said)
-        acquired, holder, note = runlock.acquire(me, now, p["stale_after"], p["break_lock"], p["dead"])
-    except OSError as exc:
-        module.fail_json(msg=f"the lock {runlock.LOCK}: {exc}")
-    module.exit_json(changed=False, acquired=acquired, holder=holder, note=note)
+        out = runlock.request(module.params, time.time(), module.check_mode)
+    except runlock.LockError as exc:
+        module.fail_json(msg=str(exc))
+    module.exit_json(changed=False, **out)
 
 
 if __name__ == "__main__":

@@ -266,168 +266,67 @@ host:
            image_id: "sha256:9c15...", metrics_timer: false, serving: 4}
 """
 
-import os
-
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, plan
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, default_image
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
+
+ARGUMENT_SPEC = dict(
+    release=dict(type="str", required=True),
+    image=dict(type="str", default=""),
+    instance_count=dict(type="int", required=True),
+    max_instances=dict(type="int", default=8),
+    scale_to_zero=dict(type="bool", default=False),
+    port_bases=dict(type="dict", default={}),
+    port_stride=dict(type="int", default=1),
+    gpu_enabled=dict(type="bool", default=True),
+    gpu_map=dict(type="dict", default={}),
+    gpu_exclusive=dict(type="bool", default=False),
+    memory_limit=dict(type="str", default="32g"),
+    shm_size=dict(type="str", default="2g"),
+    data_root=dict(type="path", default="/var/lib/isaac-sim"),
+    public_address=dict(type="str"),
+    ready_pattern=dict(type="str"),
+    accept_eula=dict(type="bool", default=False),
+    privacy_consent=dict(type="bool", default=False),
+    env=dict(type="dict", default={}),
+    secret_env_names=dict(type="list", elements="str", default=[], no_log=False),
+    docker_args=dict(type="list", elements="str", default=[]),
+    app_args=dict(type="list", elements="str", default=[]),
+    ready_timeout=dict(type="raw", default=300),
+    stop_timeout=dict(type="raw", default=60),
+    restart_sec=dict(type="raw", default=10),
+    start_limit_burst=dict(type="raw", default=5),
+    health_interval=dict(type="raw", default=30),
+    health_retries=dict(type="raw", default=3),
+    unhealthy_restart=dict(type="raw", default=300),
+    image_pull=dict(type="str", default="missing"),
+    registry_login=dict(type="bool", default=False),
+    check_host_ports=dict(type="bool", default=True),
+    companions=dict(type="list", elements="raw", default=[]),
+    profile=dict(type="str", default="streaming"),
+    instance_profiles=dict(type="dict", default={}),
+    status_server=dict(type="dict", default={"enabled": False}),
+    hub_cache=dict(type="dict", default={"enabled": False}),
+    web_viewer_image=dict(type="str", default=""),
+    network_mode=dict(type="str", default="host"),
+    macvlan_parent=dict(type="str", default=""),
+    macvlan_subnet=dict(type="str", default=""),
+    macvlan_gateway=dict(type="str", default=""),
+    address_pool=dict(type="raw", default=[]),
+    instance_addresses=dict(type="dict", default={}),
+    config_dir=dict(type="path", default="/etc/isaac-sim"),
+    systemd_dir=dict(type="path", default="/etc/systemd/system"),
+)
 
 
 def main():
-    module = AnsibleModule(
-        argument_spec=dict(
-            release=dict(type="str", required=True),
-            image=dict(type="str", default=""),
-            instance_count=dict(type="int", required=True),
-            max_instances=dict(type="int", default=8),
-            scale_to_zero=dict(type="bool", default=False),
-            port_bases=dict(type="dict", default={}),
-            port_stride=dict(type="int", default=1),
-            gpu_enabled=dict(type="bool", default=True),
-            gpu_map=dict(type="dict", default={}),
-            gpu_exclusive=dict(type="bool", default=False),
-            memory_limit=dict(type="str", default="32g"),
-            shm_size=dict(type="str", default="2g"),
-            data_root=dict(type="path", default="/var/lib/isaac-sim"),
-            public_address=dict(type="str"),
-            ready_pattern=dict(type="str"),
-            accept_eula=dict(type="bool", default=False),
-            privacy_consent=dict(type="bool", default=False),
-            env=dict(type="dict", default={}),
-            secret_env_names=dict(type="list", elements="str", default=[], no_log=False),
-            docker_args=dict(type="list", elements="str", default=[]),
-            app_args=dict(type="list", elements="str", default=[]),
-            ready_timeout=dict(type="raw", default=300),
-            stop_timeout=dict(type="raw", default=60),
-            restart_sec=dict(type="raw", default=10),
-            start_limit_burst=dict(type="raw", default=5),
-            health_interval=dict(type="raw", default=30),
-            health_retries=dict(type="raw", default=3),
-            unhealthy_restart=dict(type="raw", default=300),
-            image_pull=dict(type="str", default="missing"),
-            registry_login=dict(type="bool", default=False),
-            check_host_ports=dict(type="bool", default=True),
-            companions=dict(type="list", elements="raw", default=[]),
-            profile=dict(type="str", default="streaming"),
-            instance_profiles=dict(type="dict", default={}),
-            status_server=dict(type="dict", default={"enabled": False}),
-            hub_cache=dict(type="dict", default={"enabled": False}),
-            web_viewer_image=dict(type="str", default=""),
-            network_mode=dict(type="str", default="host"),
-            macvlan_parent=dict(type="str", default=""),
-            macvlan_subnet=dict(type="str", default=""),
-            macvlan_gateway=dict(type="str", default=""),
-            address_pool=dict(type="raw", default=[]),
-            instance_addresses=dict(type="dict", default={}),
-            config_dir=dict(type="path", default="/etc/isaac-sim"),
-            systemd_dir=dict(type="path", default="/etc/systemd/system"),
-        ),
-        supports_check_mode=True,
-    )
-    p = module.params
-    cfg = {k: p[k] for k in p}
-    # empty: the source address of the host's default route, as the status module finds it
-    cfg["public_address"] = p["public_address"] or fleet_status.default_ipv4()
-
-    host = {"memory_bytes": hostprobe.memory_bytes(), "gpu_count": 0, "gpus": [], "ports_held": []}
-    # a missing binary would end the module with a raw OSError; the plan says it in words instead
-    smi = module.get_bin_path(hostprobe.GPU_QUERY[0]) if p["gpu_enabled"] else None
-    if smi:
-        rc, out, err = module.run_command([smi] + hostprobe.GPU_QUERY[1:])
-        if rc == 0:
-            host["gpus"] = hostprobe.parse_gpu_list(out)
-            host["gpu_count"] = len(host["gpus"])
-    host["nvidia_smi"] = bool(smi)
-    docker = module.get_bin_path("docker")
-
-    image = p["image"] or (default_image(p["release"]) if p["release"] in RELEASES else "")
-    # what later tasks would otherwise ask the host again: the image (its id), the metrics timer
-    host["image_present"], host["image_id"] = False, None
-    if docker and image:
-        rc, out, _err = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", image])
-        host["image_present"], host["image_id"] = rc == 0, out.strip() if rc == 0 else None
-    # companion images not on the host yet: the role pulls them with the instance's image
-    host["companion_images_missing"] = []
-    wanted_images = [c.get("image") for c in p["companions"] if isinstance(c, dict) and c.get("image")]
-    streams = "streaming" in [p["profile"], *p["instance_profiles"].values()]
-    has_viewer = p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]
-    if p["web_viewer_image"] and streams and has_viewer:
-        wanted_images.insert(0, p["web_viewer_image"])
-    if p["hub_cache"].get("enabled") and p["hub_cache"].get("image"):
-        wanted_images.insert(0, p["hub_cache"]["image"])
-    for ref in dict.fromkeys(str(r) for r in wanted_images):
-        present = False
-        if docker:
-            rc, _out, _err = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", ref])
-            present = rc == 0
-        if not present:
-            host["companion_images_missing"].append(ref)
-    host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
-    host["status_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.STATUS_UNIT))
-    host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
-    # instances serving now: a Docker restart on this host waits for the canary batches
-    systemctl = module.get_bin_path("systemctl")
-    host["serving"] = 0
-    if systemctl:
-        argv = [systemctl, "list-units", layout.UNIT_GLOB, "--state=active", "--plain", "--no-legend"]
-        rc, out, _err = module.run_command(argv)
-        host["serving"] = len([line for line in out.splitlines() if line.strip()]) if rc == 0 else 0
-
-    own_addresses = p["network_mode"] == network.MACVLAN
-    if own_addresses:
-        # the LAN the instances join: interfaces, their addresses, the default route, our network
-        host["interfaces"] = sorted(os.listdir("/sys/class/net")) if os.path.isdir("/sys/class/net") else []
-        ip = module.get_bin_path("ip")
-        if ip:
-            host["links"] = network.parse_links(module.run_command([ip, "-j", "-4", "addr", "show"])[1])
-            host["default_route"] = network.parse_default_route(
-                module.run_command([ip, "-j", "-4", "route", "show", "default"])[1]
-            )
-        if docker:
-            try:
-                host["network"] = network.parse_network(DockerSocket().network(layout.NETWORK))
-            except DockerError as exc:
-                module.fail_json(msg=f"could not ask Docker for the network {layout.NETWORK}: {exc}")
-
-    if p["check_host_ports"] and p["release"] in RELEASES:
-        profile = RELEASES[p["release"]]["ports"]
-        blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), p["port_bases"], max(p["port_stride"], 1))
-        # with addresses of their own, the instances' and companions' ports are not the host's
-        wanted = set()
-        if not own_addresses:
-            wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
-        if p["status_server"].get("enabled") and str(p["status_server"].get("port", "")).isdigit():
-            wanted.add(("tcp", int(p["status_server"]["port"])))
-        if p["hub_cache"].get("enabled"):
-            wanted.add(("tcp", layout.HUB_PORT))
-        for spec in p["companions"] if isinstance(p["companions"], list) and not own_addresses else []:
-            for proto, base in companions.own_ports(spec if isinstance(spec, dict) else {}).values():
-                wanted |= {(proto, base + i * max(p["port_stride"], 1)) for i in blocks}
-
-        def our_ids():
-            if not docker:
-                return []
-            argv = [docker, "ps", "--no-trunc", "--filter", "name=^" + layout.CONTAINER_PREFIX, "--format", "{{.ID}}"]
-            rc, out, _err = module.run_command(argv)
-            return out.split() if rc == 0 else []
-
-        host["ports_held"] = hostprobe.ports_held(wanted, our_ids, our_units=[layout.STATUS_UNIT])
-
+    module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
     try:
-        result = plan.build(cfg, host)
-    except plan.PlanError as exc:
-        module.fail_json(
-            msg="Isaac Sim configuration rejected before any change:\n- " + "\n- ".join(exc.errors),
-            errors=exc.errors,
-        )
-
-    existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], layout.TARGET + ".wants"))
-    stale = [i for i in existing if i not in result["ids"]]
-    for warning in result["warnings"]:
+        out = host_facts.plan_host(host_facts.bind(module), module.params)
+    except host_facts.PlanRefusedError as exc:
+        module.fail_json(msg=exc.msg, **exc.fields)
+    for warning in out.pop("warnings"):
         module.warn(warning)
-    module.exit_json(changed=False, plan=result, stale_ids=stale, host=host)
+    module.exit_json(changed=False, **out)
 
 
 if __name__ == "__main__":

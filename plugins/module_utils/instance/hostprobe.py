@@ -132,34 +132,36 @@ def parse_gpu_list(text):
 GPU_QUERY = ["nvidia-smi", "--query-gpu=index,name,memory.total,driver_version", "--format=csv,noheader,nounits"]
 
 
-def existing_instances(config_dir, wants_dir):
-    """Instance numbers this collection set up before: env files and enabled units."""
+def existing_instances(config_dir, wants_dir, find=glob.glob):
+    """Instance numbers this collection set up before: env files and enabled units.
+
+    find: how a glob pattern is matched (glob.glob; a scripted host's own in the tests)."""
     ids = set()
-    for path in glob.glob(os.path.join(config_dir, "instance-*.env")):
+    for path in find(os.path.join(config_dir, "instance-*.env")):
         match = re.search(r"instance-(\d+)\.env$", path)
         if match:
             ids.add(int(match.group(1)))
-    for path in glob.glob(os.path.join(wants_dir, "isaac-sim@*.service")):
+    for path in find(os.path.join(wants_dir, "isaac-sim@*.service")):
         match = re.search(r"isaac-sim@(\d+)\.service$", path)
         if match:
             ids.add(int(match.group(1)))
     return sorted(ids)
 
 
-def existing_companions(config_dir) -> dict:
+def existing_companions(config_dir, find=glob.glob) -> dict:
     """{instance: [companion names]} of the companion env files this collection wrote."""
     found = {}
-    for path in glob.glob(os.path.join(config_dir, "instance-*.*.env")):
+    for path in find(os.path.join(config_dir, "instance-*.*.env")):
         match = layout.COMPANION_ENV_RE.match(os.path.basename(path))
         if match:
             found.setdefault(int(match.group(1)), []).append(match.group(2))
     return {i: sorted(names) for i, names in sorted(found.items())}
 
 
-def companion_templates(unit_dir) -> list:
+def companion_templates(unit_dir, find=glob.glob) -> list:
     """Names of the companion unit templates (isaac-sim-NAME@.service) in unit_dir."""
     names = []
-    for path in glob.glob(os.path.join(unit_dir, layout.COMPANION_TEMPLATE_GLOB)):
+    for path in find(os.path.join(unit_dir, layout.COMPANION_TEMPLATE_GLOB)):
         match = layout.COMPANION_TEMPLATE_RE.match(os.path.basename(path))
         if match:
             names.append(match.group(1))

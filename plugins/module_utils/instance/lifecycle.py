@@ -16,18 +16,20 @@ restart and an upgrade. The steps are the same everywhere:
   as it is, and the failure is reported with the instance and the reason.
 
 The host is reached through a small interface (run, read, write, remove,
-mode, exists, sleep, now, wall) that the module binds to the real host and
-the unit tests to a scripted one.
+mode, exists, sleep, now, wall, find, network) that the module binds to the
+real host and the unit tests to a scripted one.
 """
 
 from __future__ import annotations
 
+import glob
 import os
 import re
 import shutil
 import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import reserved_ports
 
 _GATE_WORDS = re.compile(
@@ -40,14 +42,24 @@ class Host:
 
     read(path) -> text or None; write(path, text, mode); remove(path) removes a
     file or a tree; mode(path) -> int or None; now() a monotonic clock, wall()
-    epoch seconds for the journal.
+    epoch seconds for the journal; find(pattern) -> the paths a glob pattern
+    matches (none unless given); network(name) -> Docker's answer for a network
+    (raises DockerError; Docker is not reachable unless given).
     """
 
-    def __init__(self, run, read, write, remove, mode, exists, sleep, now, wall, interrupted=None):
+    def __init__(
+        self, run, read, write, remove, mode, exists, sleep, now, wall, interrupted=None, find=None, network=None
+    ):
         self.run, self.read, self.write, self.remove, self.mode = run, read, write, remove, mode
         self.exists, self.sleep, self.now, self.wall = exists, sleep, now, wall
         # why the run that asked for this is gone ("" while it is there): checked between instances
         self.interrupted = interrupted or (lambda: "")
+        self.find = find or (lambda _pattern: [])
+        self.network = network or _no_docker
+
+
+def _no_docker(name):
+    raise DockerError(f"no Docker to ask for the network {name}")
 
 
 def bind(module) -> Host:
@@ -89,7 +101,19 @@ def bind(module) -> Host:
         except OSError:
             return None
 
-    return Host(run, read, write, remove, mode, os.path.exists, time.sleep, time.monotonic, time.time)
+    return Host(
+        run,
+        read,
+        write,
+        remove,
+        mode,
+        os.path.exists,
+        time.sleep,
+        time.monotonic,
+        time.time,
+        find=glob.glob,
+        network=lambda name: DockerSocket().network(name),
+    )
 
 
 # InvocationID changes with every start: a session end resets NRestarts (isaac-sim-run), so the

@@ -162,3 +162,36 @@ def release(me: dict, path: str = LOCK, guard: str = GUARD) -> bool:
             return False
         os.unlink(path)
         return True
+
+
+class LockError(Exception):
+    """The lock module fails with this message."""
+
+
+def request(p: dict, now: float, check=False, path: str = "", guard: str = "", record_path: str = "") -> dict:
+    """The isaac_sim_lock module's result (changed aside) for its parameters `p`: the lock taken,
+    renewed or given back for p["holder"]; in check mode only what would be. path, guard,
+    record_path: the lock's files (LOCK, GUARD, RECORD when empty)."""
+    path, guard, record_path = path or LOCK, guard or GUARD, record_path or RECORD
+    me = p["holder"]
+    if not me.get("id"):
+        raise LockError(
+            "holder: needs an id. Fix: call isaacsim.fleet.isaac_sim_lock as a task (its action plugin fills it)."
+        )
+    try:
+        if p["state"] == "renewed":
+            renewed = False if check else renew(me, now, path, guard)
+            return {"acquired": renewed, "holder": None, "note": ""}
+        if p["state"] == "absent":
+            released = False if check else release(me, path, guard)
+            return {"acquired": False, "released": released, "holder": None, "note": ""}
+        if check:
+            current = read(path)
+            verdict, said = decide(current, me, now, p["stale_after"], p["break_lock"], p["dead"])
+            return {"acquired": verdict == "take", "holder": current, "note": said}
+        acquired, holder, note = acquire(
+            me, now, p["stale_after"], p["break_lock"], p["dead"], path, guard, record_path
+        )
+    except OSError as exc:
+        raise LockError(f"the lock {path}: {exc}") from exc
+    return {"acquired": acquired, "holder": holder, "note": note}

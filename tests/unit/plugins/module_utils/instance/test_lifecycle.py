@@ -6,6 +6,7 @@ does (the gate's message in the journal), one that crashes during the soak,
 an instance stuck activating. The real thing runs in the molecule scenarios.
 """
 
+import fnmatch
 import os
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
@@ -66,10 +67,22 @@ class ScriptedHost:
             self.sleep,
             lambda: self.clock,
             lambda: 1795000000 + self.clock,
+            find=self.find,
         )
 
     def write(self, path, text, mode):
         self.files[path] = (text, mode)
+
+    def find(self, pattern):
+        """glob over the files, and the target's links of the instances enabled (one directory, as glob)."""
+        wants = os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants")
+        links = [os.path.join(wants, layout.unit(i)) for i, u in self.units.items() if u["UnitFileState"] == "enabled"]
+        folder, name = os.path.split(pattern)
+        return sorted(
+            p
+            for p in list(self.files) + links
+            if os.path.dirname(p) == folder and fnmatch.fnmatch(os.path.basename(p), name)
+        )
 
     def remove(self, path):
         self.log.append(f"rm {path}")

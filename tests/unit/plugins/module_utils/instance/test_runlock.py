@@ -129,3 +129,21 @@ def test_the_run_that_takes_over_an_interrupted_runs_lock_is_told_what_it_left(t
     assert "interrupted (its controller stopped): done isaac-sim-0; left as they were isaac-sim-2, isaac-sim-3" in note
     # a record of another run says nothing
     assert runlock.recorded_text(entry, BOB["id"]) == ""
+
+
+def test_request_is_the_module_s_call_on_the_files_it_is_given(tmp_path):
+    where = dict(paths(tmp_path), record_path=recorded(tmp_path))
+    params = {"holder": ALICE, "state": "present", "stale_after": 3600, "break_lock": False, "dead": ""}
+    assert runlock.request(params, NOW, check=True, **where) == {"acquired": True, "holder": None, "note": ""}
+    assert not os.path.exists(where["path"])
+    taken = runlock.request(params, NOW, **where)
+    assert taken["acquired"] and taken["holder"]["since"] == NOW
+    assert runlock.request(dict(params, state="renewed"), NOW + 5, **where)["acquired"]
+    assert runlock.read(where["path"])["renewed"] == NOW + 5
+    assert runlock.request(dict(params, state="absent"), NOW, **where)["released"]
+    try:
+        runlock.request(dict(params, holder={}), NOW, **where)
+    except runlock.LockError as exc:
+        assert str(exc).startswith("holder: needs an id.")
+    else:
+        raise AssertionError("a holder without an id was accepted")

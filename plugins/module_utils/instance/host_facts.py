@@ -1,0 +1,180 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""What the plan is checked against, read from the host, and the plan built on it: the
+isaac_sim_plan module's whole call.
+
+The host is reached through a Probe (which, run, network, default_ipv4, and where /proc and
+/sys/class/net are) that the module binds to the real host and the unit tests to a scripted
+one, as lifecycle.Host is. Everything here only reads.
+"""
+
+from __future__ import annotations
+
+import os
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, default_image
+
+PROC = "/proc"
+SYS_NET = "/sys/class/net"
+
+
+class Probe:
+    """The host as the plan reads it.
+
+    which(name) -> the command's path, or None when it is not installed; run(argv) -> (rc, out,
+    err), argv[0] a path from which; network(name) -> Docker's answer for a network (raises
+    DockerError); default_ipv4() -> the source address of the default route; proc and sys_net:
+    where /proc and /sys/class/net are.
+    """
+
+    def __init__(self, which, run, network, default_ipv4, proc=PROC, sys_net=SYS_NET):
+        self.which, self.run, self.network, self.default_ipv4 = which, run, network, default_ipv4
+        self.proc, self.sys_net = proc, sys_net
+
+
+def bind(module) -> Probe:
+    """The real host, for a module running on it."""
+    return Probe(
+        module.get_bin_path,
+        module.run_command,
+        lambda name: DockerSocket().network(name),
+        fleet_status.default_ipv4,
+        PROC,
+        SYS_NET,
+    )
+
+
+class PlanRefusedError(Exception):
+    """The module fails with this message and these fields."""
+
+    def __init__(self, msg: str, **fields):
+        super().__init__(msg)
+        self.msg, self.fields = msg, fields
+
+
+def _image_id(probe: Probe, docker, ref):
+    """(present, id) of an image on the host."""
+    rc, out, _err = probe.run([docker, "image", "inspect", "--format", "{{.Id}}", ref])
+    return rc == 0, out.strip() if rc == 0 else None
+
+
+def _gpus(probe: Probe, p: dict, host: dict) -> None:
+    # a missing binary would end the module with a raw OSError; the plan says it in words instead
+    smi = probe.which(hostprobe.GPU_QUERY[0]) if p["gpu_enabled"] else None
+    if smi:
+        rc, out, _err = probe.run([smi] + hostprobe.GPU_QUERY[1:])
+        if rc == 0:
+            host["gpus"] = hostprobe.parse_gpu_list(out)
+            host["gpu_count"] = len(host["gpus"])
+    host["nvidia_smi"] = bool(smi)
+
+
+def _images(probe: Probe, p: dict, host: dict, docker) -> None:
+    image = p["image"] or (default_image(p["release"]) if p["release"] in RELEASES else "")
+    # what later tasks would otherwise ask the host again: the image (its id), the metrics timer
+    host["image_present"], host["image_id"] = False, None
+    if docker and image:
+        host["image_present"], host["image_id"] = _image_id(probe, docker, image)
+    # companion images not on the host yet: the role pulls them with the instance's image
+    host["companion_images_missing"] = []
+    wanted_images = [c.get("image") for c in p["companions"] if isinstance(c, dict) and c.get("image")]
+    streams = "streaming" in [p["profile"], *p["instance_profiles"].values()]
+    has_viewer = p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]
+    if p["web_viewer_image"] and streams and has_viewer:
+        wanted_images.insert(0, p["web_viewer_image"])
+    if p["hub_cache"].get("enabled") and p["hub_cache"].get("image"):
+        wanted_images.insert(0, p["hub_cache"]["image"])
+    for ref in dict.fromkeys(str(r) for r in wanted_images):
+        present = _image_id(probe, docker, ref)[0] if docker else False
+        if not present:
+            host["companion_images_missing"].append(ref)
+
+
+def _units(probe: Probe, p: dict, host: dict) -> None:
+    host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
+    host["status_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.STATUS_UNIT))
+    host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
+    # instances serving now: a Docker restart on this host waits for the canary batches
+    systemctl = probe.which("systemctl")
+    host["serving"] = 0
+    if systemctl:
+        argv = [systemctl, "list-units", layout.UNIT_GLOB, "--state=active", "--plain", "--no-legend"]
+        rc, out, _err = probe.run(argv)
+        host["serving"] = len([line for line in out.splitlines() if line.strip()]) if rc == 0 else 0
+
+
+def _lan(probe: Probe, host: dict, docker) -> None:
+    """The LAN the instances join: interfaces, their addresses, the default route, our network."""
+    host["interfaces"] = sorted(os.listdir(probe.sys_net)) if os.path.isdir(probe.sys_net) else []
+    ip = probe.which("ip")
+    if ip:
+        host["links"] = network.parse_links(probe.run([ip, "-j", "-4", "addr", "show"])[1])
+        host["default_route"] = network.parse_default_route(probe.run([ip, "-j", "-4", "route", "show", "default"])[1])
+    if docker:
+        try:
+            host["network"] = network.parse_network(probe.network(layout.NETWORK))
+        except DockerError as exc:
+            raise PlanRefusedError(f"could not ask Docker for the network {layout.NETWORK}: {exc}") from exc
+
+
+def _ports(probe: Probe, p: dict, docker, own_addresses: bool) -> list:
+    """The sockets on the ports the plan wants, each with its process and whether it is ours."""
+    profile = RELEASES[p["release"]]["ports"]
+    blocks = plan.port_blocks(p["release"], max(p["instance_count"], 0), p["port_bases"], max(p["port_stride"], 1))
+    # with addresses of their own, the instances' and companions' ports are not the host's
+    wanted = set()
+    if not own_addresses:
+        wanted = {(profile[kind][0], port) for block in blocks.values() for kind, port in block.items()}
+    if p["status_server"].get("enabled") and str(p["status_server"].get("port", "")).isdigit():
+        wanted.add(("tcp", int(p["status_server"]["port"])))
+    if p["hub_cache"].get("enabled"):
+        wanted.add(("tcp", layout.HUB_PORT))
+    for spec in p["companions"] if isinstance(p["companions"], list) and not own_addresses else []:
+        for proto, base in companions.own_ports(spec if isinstance(spec, dict) else {}).values():
+            wanted |= {(proto, base + i * max(p["port_stride"], 1)) for i in blocks}
+
+    def our_ids():
+        if not docker:
+            return []
+        argv = [docker, "ps", "--no-trunc", "--filter", "name=^" + layout.CONTAINER_PREFIX, "--format", "{{.ID}}"]
+        rc, out, _err = probe.run(argv)
+        return out.split() if rc == 0 else []
+
+    return hostprobe.ports_held(wanted, our_ids, probe.proc, our_units=[layout.STATUS_UNIT])
+
+
+def facts(probe: Probe, p: dict) -> dict:
+    """What was found on the host: memory, GPUs, ports held, images, units, the LAN."""
+    host = {"memory_bytes": hostprobe.memory_bytes(probe.proc), "gpu_count": 0, "gpus": [], "ports_held": []}
+    _gpus(probe, p, host)
+    docker = probe.which("docker")
+    _images(probe, p, host, docker)
+    _units(probe, p, host)
+    own_addresses = p["network_mode"] == network.MACVLAN
+    if own_addresses:
+        _lan(probe, host, docker)
+    if p["check_host_ports"] and p["release"] in RELEASES:
+        host["ports_held"] = _ports(probe, p, docker, own_addresses)
+    return host
+
+
+def plan_host(probe: Probe, p: dict) -> dict:
+    """The module's result (plan, stale_ids, host) and the plan's warnings, from its parameters;
+    raises PlanRefusedError with every error of a configuration the plan rejects."""
+    cfg = {k: p[k] for k in p}
+    # empty: the source address of the host's default route, as the status module finds it
+    cfg["public_address"] = p["public_address"] or probe.default_ipv4()
+    host = facts(probe, p)
+    try:
+        result = plan.build(cfg, host)
+    except plan.PlanError as exc:
+        raise PlanRefusedError(
+            "Isaac Sim configuration rejected before any change:\n- " + "\n- ".join(exc.errors),
+            errors=exc.errors,
+        ) from exc
+    existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], layout.TARGET + ".wants"))
+    stale = [i for i in existing if i not in result["ids"]]
+    return {"plan": result, "stale_ids": stale, "host": host, "warnings": result["warnings"]}

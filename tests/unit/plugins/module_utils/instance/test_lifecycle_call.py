@@ -1,0 +1,142 @@
+"""One call of the lifecycle module (module_utils/instance/lifecycle_call.py) on the scripted host:
+the instances' macvlan network, created before the first instance changes and removed once no
+instance wants it, and the failures that name what to fix."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle_call, network, plan
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import OLD, ScriptedHost
+
+LAN = {"mode": "macvlan", "driver": "macvlan", "parent": "eth0", "subnet": "10.0.0.0/24", "gateway": "10.0.0.1"}
+RM = " ".join(network.remove_argv())
+
+
+def ours(containers=None, subnet="10.0.0.0/24"):
+    """Docker's answer for our network, with these containers on it."""
+    return {
+        "Driver": "macvlan",
+        "Options": {"parent": "eth0"},
+        "IPAM": {"Config": [{"Subnet": subnet, "Gateway": "10.0.0.1"}]},
+        "Labels": {layout.LABEL_NETWORK: "macvlan"},
+        "Containers": {
+            f"id{n}": {"Name": name, "IPv4Address": "10.0.0.50/24"} for n, name in enumerate(containers or [])
+        },
+    }
+
+
+def params(tmp_path, **over) -> dict:
+    """The module's parameters with its defaults: apply a plan of four 6.x instances."""
+    built = plan.build(plan_config(data_root=str(tmp_path / "data"), image="reg/isaac-sim:6.0.1"), {})
+    built.update(uid=os.getuid(), gid=os.getgid())
+    p = {
+        "action": "apply",
+        "ids": [],
+        "plan": built,
+        "image_id": "unknown",
+        "secret_env": {},
+        "scripts": {name: "#!/bin/sh\n" for name in layout.SCRIPTS},
+        "managed": "managed",
+        "soak_seconds": 0,
+        "defer_running": False,
+        "remove_others": True,
+        "purge": False,
+        "data_root": str(tmp_path / "data"),
+        "controller_run": "",
+    }
+    p.update(over)
+    return p
+
+
+def scripted(n=4, running=True, net=None, fails=None):
+    """A scripted host whose Docker answers `net` for our network (None: Docker not reachable)
+    and whose `docker network` commands fail with `fails`."""
+    h = ScriptedHost(n, running=running)
+
+    def answer(name):
+        if net is None:
+            raise DockerError("cannot reach the Docker daemon")
+        return net
+
+    h.host.network = answer
+    run = h.host.run
+
+    def run_docker(argv):
+        if argv[:2] == ["docker", "network"]:
+            h.log.append(" ".join(argv))
+            return (1, "", fails) if fails else (0, "", "")
+        return run(argv)
+
+    h.host.run = run_docker
+    return h
+
+
+def test_removing_the_last_instance_removes_our_network_once_nobody_is_on_it(tmp_path):
+    h = scripted(1, net=ours())
+    out = lifecycle_call.call(h.host, params(tmp_path, action="remove", ids=[0]))
+    assert out["network"] == "remove" and RM in h.log and out["changed"] is True
+
+
+def test_the_network_is_kept_while_a_container_or_an_instance_s_env_file_wants_it(tmp_path):
+    h = scripted(1, net=ours(["someone-else"]))
+    assert lifecycle_call.call(h.host, params(tmp_path, action="remove", ids=[0]))["network"] == "kept"
+    h = scripted(2, net=ours())
+    h.files[layout.env_file(1)] = (OLD + f"{layout.K_ADDRESS}=10.0.0.51\n", 0o644)
+    out = lifecycle_call.call(h.host, params(tmp_path, action="remove", ids=[0]))
+    assert out["network"] == "kept" and RM not in h.log
+
+
+def test_a_network_that_cannot_be_removed_is_an_error_naming_it(tmp_path):
+    h = scripted(1, net=ours(), fails="network isaac-sim-macvlan is busy\n")
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, params(tmp_path, action="remove", ids=[0]))
+    assert exc.value.msg == "could not remove the network isaac-sim-macvlan: network isaac-sim-macvlan is busy"
+
+
+def test_apply_needs_docker_to_answer_when_the_instances_need_the_network(tmp_path):
+    p = params(tmp_path)
+    p["plan"]["network"] = dict(LAN)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(scripted(net=None).host, p)
+    assert exc.value.msg == "could not ask Docker for the network isaac-sim-macvlan: cannot reach the Docker daemon"
+    # on the host's network, no Docker is no network
+    out = lifecycle_call.call(scripted(running=False, net=None).host, params(tmp_path))
+    assert out["network"] is None and out["changed"] is True
+
+
+def test_a_network_that_cannot_be_created_stops_the_apply_before_any_instance_file(tmp_path):
+    h = scripted(4, running=False, net={}, fails="parent eth0 does not exist")
+    p = params(tmp_path)
+    p["plan"]["network"] = dict(LAN)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, p)
+    assert exc.value.msg == (
+        "could not create the network isaac-sim-macvlan (eth0, 10.0.0.0/24): parent eth0 does not exist; "
+        "nothing else was changed"
+    )
+    assert not any(path.startswith(layout.CONFIG_DIR) for path in h.files) and h.commands("start") == []
+
+
+def test_a_network_in_use_that_differs_from_the_plan_changes_nothing(tmp_path):
+    h = scripted(4, net=ours(["isaac-sim-0"], subnet="10.1.0.0/24"))
+    p = params(tmp_path)
+    p["plan"]["network"] = dict(LAN)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, p)
+    assert exc.value.msg.startswith("the network isaac-sim-macvlan differs from the plan's and is in use")
+    assert h.files[layout.env_file(0)][0] == OLD and [x for x in h.log if x.startswith("docker network")] == []
+
+
+def test_a_created_network_is_reported_and_check_mode_only_says_it(tmp_path):
+    p = params(tmp_path)
+    p["plan"]["network"] = dict(LAN)
+    h = scripted(4, running=False, net={})
+    checked = lifecycle_call.call(h.host, p, check=True)
+    assert checked["network"] == "create" and [x for x in h.log if x.startswith("docker network")] == []
+    out = lifecycle_call.call(h.host, p)
+    assert out["network"] == "create" and h.log.count(" ".join(network.create_argv(LAN))) == 1

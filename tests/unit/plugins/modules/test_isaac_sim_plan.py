@@ -1,0 +1,188 @@
+"""The isaac_sim_plan module end to end: its commands answered as recorded, /proc and the unit
+and config directories in a temporary directory, the Docker API a stand-in. The module only
+reads: every command it runs is a query."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from ansible.module_utils import basic
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
+from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_plan
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import recorded, run_module
+
+IMAGE = "nvcr.io/nvidia/isaac-sim:6.0.1"
+IMAGE_ID = "sha256:9c15" + "0" * 60
+# systemctl list-units isaac-sim@*.service --state=active --plain --no-legend, two serving
+SERVING = (
+    "isaac-sim@0.service loaded active running Isaac Sim instance 0\n"
+    "isaac-sim@1.service loaded active running Isaac Sim instance 1\n"
+)
+# /proc/net/tcp with a foreign process listening on 49101 (0xBFCD), inode 41002
+TCP = (
+    "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
+    "   1: 00000000:BFCD 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 41002 1 0 100 0\n"
+)
+# read-only queries: what the module may run on a host
+QUERIES = ("nvidia-smi", "docker image inspect", "docker ps", "systemctl list-units", "ip -j -4")
+
+
+@pytest.fixture()
+def host(tmp_path, monkeypatch):
+    """One H100 (recorded nvidia-smi), the instance image present, two instances serving, 48 GiB;
+    instances 0-5 set up earlier (env files); no socket held. Returns (args, commands, dirs)."""
+    proc = tmp_path / "proc"
+    (proc / "net").mkdir(parents=True)
+    (proc / "meminfo").write_text("MemTotal:       50331648 kB\n")
+    systemd = tmp_path / "systemd"
+    (systemd / (layout.TARGET + ".wants")).mkdir(parents=True)
+    (systemd / "isaac-sim-metrics.timer").write_text("[Timer]\n")
+    config = tmp_path / "etc"
+    config.mkdir()
+    for i in range(6):
+        (config / f"instance-{i}.env").write_text("")
+    monkeypatch.setattr(host_facts, "PROC", str(proc))
+    monkeypatch.setattr(host_facts, "SYS_NET", str(tmp_path / "sys-class-net"))
+    images = {IMAGE: IMAGE_ID}
+    commands = []
+
+    def run_command(self, args, **kwargs):
+        line = " ".join([args[0].rsplit("/", 1)[-1]] + list(args[1:]))
+        commands.append(line)
+        if line.startswith("nvidia-smi"):
+            return 0, recorded("h100-nvidia-smi-query-gpu.csv"), ""
+        if line.startswith("docker image inspect"):
+            return (0, images[args[-1]] + "\n", "") if args[-1] in images else (1, "", "No such image")
+        if line.startswith("systemctl list-units"):
+            return 0, SERVING, ""
+        return 0, "", ""
+
+    installed = {"nvidia-smi", "docker", "systemctl", "ip"}
+    # where a warning goes depends on whether controller code was imported in this process
+    warned = []
+    monkeypatch.setattr(basic.AnsibleModule, "warn", lambda self, warning: warned.append(warning))
+    monkeypatch.setattr(basic.AnsibleModule, "run_command", run_command)
+    monkeypatch.setattr(
+        basic.AnsibleModule,
+        "get_bin_path",
+        lambda self, name, *a, **kw: f"/usr/bin/{name}" if name in installed else None,
+    )
+    args = {
+        "release": "6.x",
+        "image": IMAGE,
+        "instance_count": 4,
+        "accept_eula": True,
+        "public_address": "10.0.0.5",
+        "memory_limit": "8g",
+        "config_dir": str(config),
+        "systemd_dir": str(systemd),
+        "data_root": str(tmp_path / "data"),
+    }
+    return args, commands, {"proc": proc, "installed": installed, "images": images, "warned": warned}
+
+
+def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
+    args, commands, dirs = host
+    result = run_module(isaac_sim_plan.main, args, capsys)
+    assert result["changed"] is False
+    plan = result["plan"]
+    assert plan["ids"] == [0, 1, 2, 3] and plan["image"] == IMAGE
+    assert [i["ports"]["signal"] for i in plan["instances"]] == [49100, 49101, 49102, 49103]
+    assert [i["gpu"] for i in plan["instances"]] == [0, 0, 0, 0]
+    assert result["host"] == {
+        "memory_bytes": 50331648 * 1024,
+        "gpu_count": 1,
+        "gpus": [{"index": 0, "name": "NVIDIA H100 80GB HBM3", "memory_total_mib": 81559, "driver": "580.159.04"}],
+        "ports_held": [],
+        "nvidia_smi": True,
+        "image_present": True,
+        "image_id": IMAGE_ID,
+        "companion_images_missing": [],
+        "metrics_timer": True,
+        "status_unit": False,
+        "hub_unit": False,
+        "serving": 2,
+    }
+    # instances 4 and 5 were set up before and are no longer planned
+    assert result["stale_ids"] == [4, 5]
+    # the plan's warnings reach the play as the module's
+    assert any("isaac_sim_memory_limit" in w for w in plan["warnings"])
+    assert dirs["warned"] == plan["warnings"]
+    assert all(c.startswith(QUERIES) for c in commands), commands
+
+
+def test_a_bad_option_fails_with_the_plan_s_message_and_changes_nothing(host, capsys):
+    args, commands, _dirs = host
+    before = sorted(os.listdir(args["config_dir"]))
+    result = run_module(isaac_sim_plan.main, dict(args, release="7.x", accept_eula=False), capsys)
+    assert result["msg"].startswith("Isaac Sim configuration rejected before any change:\n- isaac_sim_release: ")
+    assert result["errors"] and result["errors"][0].startswith("isaac_sim_release: '7.x' is not a release")
+    assert "- " + result["errors"][-1] in result["msg"]
+    assert "plan" not in result and "argument_spec" not in result
+    assert sorted(os.listdir(args["config_dir"])) == before
+    assert all(c.startswith(QUERIES) for c in commands), commands
+
+
+def test_check_mode_plans_the_same_and_runs_only_queries(host, capsys):
+    args, commands, _dirs = host
+    normal = run_module(isaac_sim_plan.main, args, capsys)
+    checked = run_module(isaac_sim_plan.main, dict(args, _ansible_check_mode=True), capsys)
+    assert checked["plan"] == normal["plan"] and checked["host"] == normal["host"]
+    assert checked["changed"] is False
+    assert all(c.startswith(QUERIES) for c in commands), commands
+
+
+def test_a_port_held_by_a_foreign_process_is_refused_naming_port_and_process(host, capsys):
+    args, _commands, dirs = host
+    (dirs["proc"] / "net" / "tcp").write_text(TCP)
+    pid = dirs["proc"] / "200"
+    (pid / "fd").mkdir(parents=True)
+    (pid / "comm").write_text("nginx\n")
+    (pid / "cgroup").write_text("0::/system.slice/nginx.service\n")
+    os.symlink("socket:[41002]", pid / "fd" / "3")
+    result = run_module(isaac_sim_plan.main, args, capsys)
+    assert result["failed"] and any("49101" in e and "nginx (pid 200)" in e for e in result["errors"])
+    # not checked: the port is not looked at
+    again = run_module(isaac_sim_plan.main, dict(args, check_host_ports=False), capsys)
+    assert not again.get("failed") and again["host"]["ports_held"] == []
+
+
+def test_without_nvidia_smi_the_plan_says_so_in_words(host, capsys):
+    args, _commands, dirs = host
+    dirs["installed"].discard("nvidia-smi")
+    result = run_module(isaac_sim_plan.main, args, capsys)
+    assert result["failed"] and any(
+        e.startswith("isaac_sim_gpu_enabled: true, but this host has no nvidia-smi") for e in result["errors"]
+    )
+    without = run_module(isaac_sim_plan.main, dict(args, gpu_enabled=False), capsys)
+    assert without["host"]["nvidia_smi"] is False and without["host"]["gpus"] == []
+
+
+def test_missing_images_are_listed_for_the_role_to_pull(host, capsys):
+    args, _commands, dirs = host
+    del dirs["images"][IMAGE]
+    companions = [{"name": "bridge", "image": "reg/bridge:1"}]
+    result = run_module(
+        isaac_sim_plan.main,
+        dict(args, web_viewer_image="reg/viewer:2", companions=companions, registry_login=True),
+        capsys,
+    )
+    assert result["host"]["image_present"] is False and result["host"]["image_id"] is None
+    assert result["host"]["companion_images_missing"] == ["reg/viewer:2", "reg/bridge:1"]
+
+
+def test_macvlan_reads_the_lan_and_a_docker_that_does_not_answer_is_an_error(host, capsys, monkeypatch):
+    args, commands, _dirs = host
+
+    class NoDocker:
+        def network(self, name):
+            raise DockerError("cannot reach the Docker daemon")
+
+    monkeypatch.setattr(host_facts, "DockerSocket", NoDocker)
+    macvlan = dict(args, network_mode="macvlan", address_pool=["10.0.0.50-10.0.0.57"])
+    result = run_module(isaac_sim_plan.main, macvlan, capsys)
+    assert result["msg"] == "could not ask Docker for the network isaac-sim-macvlan: cannot reach the Docker daemon"
+    assert "ip -j -4 addr show" in commands and "ip -j -4 route show default" in commands
