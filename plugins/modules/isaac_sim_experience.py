@@ -215,58 +215,9 @@ simulator_slot:
   type: int
 """
 
-import os
-import secrets
-import time
-
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import gpu_usage, layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle
-from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import experience, run_store, testrun
-
-
-def _simulator(module, host, exp, instance, lent_to=None):
-    """What the services are given of the borrowed instance; fails the module when it cannot be
-    lent (and ends the loan `lent_to` holds: nothing ran on it)."""
-    if exp["simulator"] is None or module.params["simulator"] == "dedicated":
-        return None
-    if instance is None:
-        module.fail_json(
-            msg=f"{exp['name']}: service {exp['simulator']} is the simulator (image: isaac-sim), and no instance was "
-            "given to borrow. Fix: set instance (experience_instance) to a ready instance of the host."
-        )
-    # another run has it (it may be restarting on its way back): readiness is asked once lent
-    held = not lent_to and lifecycle.lent_to(host, instance) is not None
-    simulator, error = testrun.borrowed(host, exp["simulator"], instance, lambda path: held or os.path.exists(path))
-    if error:
-        if lent_to:
-            lifecycle.unlend(host, instance, lent_to)
-        module.fail_json(msg=error)
-    return simulator
-
-
-def _dedicated(module, host, exp):
-    """({image, release, gpu, limits}, errors) for a run with a simulator of its own; None when
-    the run borrows (or has no simulator)."""
-    p = module.params
-    if exp["simulator"] is None or p["simulator"] != "dedicated":
-        return None, []
-    host_gpus, why = gpu_usage.count_on(module)
-    settings, errors = testrun.dedicated_settings(
-        p["simulator_image"],
-        p["simulator_release"],
-        testrun.deployed_simulator(host.read),
-        p["instance"],
-        p["gpus"],
-        host_gpus,
-    )
-    if settings and not settings["gpu"]:
-        module.warn(
-            f"{exp['name']}: this host has no GPU ({why}); the dedicated simulator runs without one, which only a "
-            "stand-in image can."
-        )
-    return settings, errors
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import runner
 
 
 def main():
@@ -293,113 +244,7 @@ def main():
         },
         supports_check_mode=True,
     )
-    p = module.params
-    env = dict(p["environment"], **p["secret_environment"])
-    exp, errors, warnings = experience.read(p["compose"], env, p["profiles"], p["name"], p["secret_environment"])
-    run = p["run"] or testrun.run_id(p["name"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
-    if not layout.RUN_ID_RE.match(run):
-        errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
-    if p["timeout"] <= 0:
-        errors.append(f"timeout: {p['timeout']:g}. Fix: a number of seconds above 0.")
-    errors += testrun.store_errors(p["unfetched_after"], p["keep_days"])
-    for warning in warnings:
-        module.warn(warning)
-    base = {
-        "run": run,
-        "directory": layout.run_dir(run, p["data_root"]),
-        "ignored": warnings,
-        "borrowed_instance": None,
-        "recovered": [],
-        "expired": [],
-    }
-    if errors:
-        module.fail_json(msg=" ".join(errors), errors=errors, **base)
-    host = lifecycle.bind(module)
-    api = DockerSocket()
-
-    pull = testrun.puller(host, enabled=p["pull"] and not module.check_mode)
-    dedicated, errors = _dedicated(module, host, exp)
-    if errors:
-        module.fail_json(msg=" ".join(errors), errors=errors, **base)
-    read = exp
-    if dedicated:
-        # the slot is taken once nothing stops the run; its directory does not change what is checked
-        exp, _given = testrun.dedicate(
-            read, cache=testrun.slot_dir(0, p["data_root"]), start_period=p["timeout"], **dedicated
-        )
-
-    try:
-        errors = testrun.preflight(api, exp, p["gpus"], pull)
-    except DockerError as exc:
-        module.fail_json(msg=f"Docker cannot be asked about the images: {exc}", **base)
-    if errors:
-        module.fail_json(msg=" ".join(errors), errors=errors, **base)
-    simulator = _simulator(module, host, exp, p["instance"])
-    if module.check_mode:
-        module.exit_json(changed=True, order=exp["order"], **base)
-    companions = hostprobe.existing_companions(layout.CONFIG_DIR)
-    # runs whose runner was killed had these instances: back clean, then free, through the lifecycle
-    lent_out, ended = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
-    for i, gone in lent_out:
-        lifecycle.give_back(host, i, gone, companions=companions)
-    # runs no controller brought back go with this one; what is past retention goes
-    store = os.path.join(p["data_root"], "runs")
-    base["recovered"], base["expired"] = run_store.take(
-        store, testrun.live_runs(host), time.time(), p["unfetched_after"], p["keep_days"], host.remove, ended
-    )
-    if base["expired"]:
-        module.warn(f"removed from {store}, older than keep_days ({p['keep_days']:g}): {', '.join(base['expired'])}")
-    lent = simulator and simulator["instance"] is not None
-    if lent:
-        # another run's loan is waited out, up to this run's timeout
-        holder = lifecycle.lend(
-            host, simulator["instance"], run, wait_s=p["timeout"], pid=os.getpid(), companions=companions
-        )
-        if holder:
-            module.fail_json(
-                msg=f"instance: isaac-sim@{simulator['instance']} stayed lent to run {holder} for this run's whole "
-                f"timeout ({p['timeout']:g} s). Fix: pick a free one, or a longer timeout.",
-                **base,
-            )
-        # lent only once ready: a run waited for may have found it restarting
-        simulator = _simulator(module, host, exp, p["instance"], lent_to=run)
-        base["borrowed_instance"] = simulator["instance"]
-    if dedicated:
-        exp, simulator, error = testrun.own_simulator(host, run, read, dedicated, p["data_root"], p["timeout"])
-        if error:
-            module.fail_json(msg=error, **base)
-        base["simulator_slot"] = simulator["slot"]
-    try:
-        result = testrun.execute(
-            host,
-            api,
-            exp,
-            run,
-            hostname=os.uname().nodename,
-            timeout=p["timeout"],
-            data_root=p["data_root"],
-            simulator=simulator,
-            gpus_free=p["gpus"],
-            poll=p["poll"],
-            metrics_every=p["metrics_interval"],
-            pid=os.getpid(),
-            secret_keys=set(exp["secret_keys"]),
-        )
-    except (RuntimeError, DockerError) as exc:
-        module.fail_json(msg=f"run {run} could not start: {exc}. Nothing of it is left on the host.", **base)
-    finally:
-        testrun.give_back(host, simulator)
-        # restarted clean and ready, then free: here, on the host, so a controller that is gone
-        # (or an Ansible task that never comes) cannot leave the next run a used instance
-        if lent:
-            error = lifecycle.give_back(host, simulator["instance"], run, companions=companions)
-            if error:
-                base["restart_error"] = f"isaac-sim@{simulator['instance']} did not come back: {error}"
-    result.pop("orchestrator_output", None)
-    base.update(result)
-    base["bundle"], packed = run_store.pack(store, [run] + base["recovered"])
-    base["directories"] = [os.path.join(store, name) for name in packed]
-    module.exit_json(changed=True, **base)
+    runner.finish(module, runner.bind(module).experience(module.params))
 
 
 if __name__ == "__main__":

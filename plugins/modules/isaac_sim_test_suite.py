@@ -104,18 +104,9 @@ expired:
   elements: str
 """
 
-import os
-import secrets
-import threading
-import time
-
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import gpu_usage, layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle
-from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import experience, run_store, testrun
-
-KEEP = ("title", "key", "experience", "timeout")
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import runner
 
 
 def main():
@@ -131,142 +122,7 @@ def main():
         },
         supports_check_mode=True,
     )
-    p = module.params
-    if p["parallel"] < 1:
-        module.fail_json(msg=f"parallel: {p['parallel']}. Fix: 1 or more runs at once.")
-    store_errors = testrun.store_errors(p["unfetched_after"], p["keep_days"])
-    if store_errors:
-        module.fail_json(msg=" ".join(store_errors), errors=store_errors)
-    host = lifecycle.bind(module)
-    api = DockerSocket()
-    hostname = os.uname().nodename
-    read, errors = [], []
-    for run in p["runs"]:
-        exp, exp_errors, _warnings = experience.read(
-            run["compose"], run.get("environment") or {}, run.get("profiles") or [], run["experience"]
-        )
-        errors += exp_errors
-        read.append(exp)
-
-    if errors:
-        module.fail_json(msg=" ".join(errors), errors=errors)
-
-    pull = testrun.puller(host, enabled=not module.check_mode)
-
-    # an image that cannot be had fails the runs that need it, not the host's whole share
-    unusable = {}
-    try:
-        for image in sorted({i for exp in read for i in exp["images"]}):
-            found = testrun.preflight(api, {"name": image, "images": [image], "gpus": 0, "services": {}}, [], pull)
-            if found:
-                unusable[image] = found[0]
-    except DockerError as exc:
-        module.fail_json(msg=f"Docker cannot be asked about the images: {exc}")
-    if module.check_mode:
-        module.exit_json(changed=bool(p["runs"]), results=[], errors=list(unusable.values()))
-    companions = hostprobe.existing_companions(layout.CONFIG_DIR)
-    # runs with a simulator of their own: the host's image, release and limits, one GPU where it has any
-    own, own_errors = None, []
-    if any(run.get("dedicated") for run in p["runs"]):
-        host_gpus, _why = gpu_usage.count_on(module)
-        own, own_errors = testrun.dedicated_settings(
-            None, None, testrun.deployed_simulator(host.read), None, p["gpus"], host_gpus
-        )
-    # runs whose runner was killed: torn down, their instances back clean, then free
-    lent_out, ended = testrun.sweep(host, testrun.cli(host), lambda pid: os.path.exists(f"/proc/{pid}"))
-    for i, gone in lent_out:
-        lifecycle.give_back(host, i, gone, companions=companions)
-    # runs no controller brought back go with this share; what is past retention goes
-    store = os.path.join(p["data_root"], "runs")
-    recovered, expired = run_store.take(
-        store, testrun.live_runs(host), time.time(), p["unfetched_after"], p["keep_days"], host.remove, ended
-    )
-    if expired:
-        module.warn(f"removed from {store}, older than keep_days ({p['keep_days']:g}): {', '.join(expired)}")
-    # one give-back at a time: each restart ends ready before the next begins
-    restart_lock = threading.Lock()
-
-    def execute_one(run, instance, gpu_ids):
-        exp = read[run["_index"]]
-        missing = [unusable[i] for i in exp["images"] if i in unusable]
-        if missing:
-            return dict({k: run[k] for k in KEEP}, host=hostname, error=" ".join(missing))
-        run_id = testrun.run_id(run["key"], time.strftime("%Y%m%d-%H%M%S"), secrets.token_hex(2))
-        simulator = None
-        if run.get("dedicated"):
-            if own is None:
-                return dict({k: run[k] for k in KEEP}, host=hostname, error=" ".join(own_errors))
-            exp, simulator, error = testrun.own_simulator(host, run_id, exp, own, p["data_root"], float(run["timeout"]))
-            if error:
-                return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
-        elif exp["simulator"]:
-            # another suite's or run's loan is waited out, up to the run's own timeout
-            holder = lifecycle.lend(
-                host, instance, run_id, wait_s=float(run["timeout"]), pid=os.getpid(), companions=companions
-            )
-            if holder:
-                return dict(
-                    {k: run[k] for k in KEEP},
-                    host=hostname,
-                    error=f"isaac-sim@{instance} stayed lent to {holder} for the run's whole timeout",
-                )
-            simulator, error = testrun.borrowed(host, exp["simulator"], instance, os.path.exists)
-            if error:
-                lifecycle.unlend(host, instance, run_id)
-                return dict({k: run[k] for k in KEEP}, host=hostname, error=error)
-        restart_error = None
-        try:
-            result = testrun.execute(
-                host,
-                api,
-                exp,
-                run_id,
-                hostname=hostname,
-                timeout=float(run["timeout"]),
-                data_root=p["data_root"],
-                simulator=simulator,
-                gpus_free=gpu_ids,
-                pid=os.getpid(),
-            )
-        finally:
-            testrun.give_back(host, simulator)
-            if simulator and simulator.get("instance") is not None:
-                with restart_lock:
-                    restart_error = lifecycle.give_back(host, instance, run_id, companions=companions)
-        result.pop("orchestrator_output", None)
-        result.update({k: run[k] for k in KEEP})
-        if instance is not None:
-            result["instance"] = instance
-        if restart_error:
-            result["restart_error"] = f"isaac-sim@{instance} did not come back: {restart_error}"
-        return result
-
-    def gpus_of(n, run):
-        """GPUs a run reserves: its services', and its own simulator's."""
-        if run.get("dedicated") and own:
-            return testrun.dedicate(read[n], cache="", start_period=1, **own)[0]["gpus"]
-        return read[n]["gpus"]
-
-    runs = [
-        dict(run, _index=n, gpus=gpus_of(n, run), simulator=bool(read[n]["simulator"]) and not run.get("dedicated"))
-        for n, run in enumerate(p["runs"])
-    ]
-    results = testrun.run_queue(runs, p["parallel"], p["instances"], p["gpus"], execute_one, threading)
-    for n, result in enumerate(results):
-        if "error" in result and "run" not in result:
-            results[n] = dict({k: runs[n][k] for k in KEEP}, host=hostname, error=result["error"])
-    # every run's directory in one file: one fetch per host, not one per artefact; the directories
-    # stay until the controller has it (one that dies first leaves them to the host's next run)
-    ran = [result["run"] for result in results if result.get("directory") and os.path.isdir(result["directory"])]
-    bundle, packed = run_store.pack(store, ran + recovered)
-    module.exit_json(
-        changed=True,
-        results=results,
-        bundle=bundle,
-        directories=[os.path.join(store, name) for name in packed],
-        recovered=recovered,
-        expired=expired,
-    )
+    runner.finish(module, runner.bind(module).share(module.params))
 
 
 if __name__ == "__main__":

@@ -15,8 +15,8 @@ from __future__ import annotations
 import os
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import xml_safe
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import experience, judge
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import junit as junit_xml
 
 KEYS = {"file", "name", "repeat", "environment", "parameters", "profiles", "timeout", "simulator"}
 SIMULATOR_MODES = ("borrow", "dedicated")
@@ -172,32 +172,23 @@ def with_missing(results: list, plan: dict, why: dict) -> list:
     return out
 
 
+def verdict_of(result: dict) -> dict:
+    """A run's verdict; a run that had none (it could not start, its host did not answer) is an
+    error with the reason it gave."""
+    return result.get("verdict") or {"result": judge.ERROR, "reason": result.get("error", "no verdict"), "seconds": 0}
+
+
 def junit(results: list) -> str:
-    """One JUnit file for the suite: a test case per run."""
-    cases, failures, errors, total = [], 0, 0, 0.0
+    """One JUnit file for the suite: a test case per run (junit's rule)."""
+    cases = []
     for r in results:
-        v = r.get("verdict") or {"result": judge.ERROR, "reason": r.get("error", "no verdict"), "seconds": 0}
-        total += v["seconds"]
-        case = (
-            f"  <testcase classname={xml_safe.attr('isaacsim.fleet.' + str(r.get('host')))} "
-            f'name={xml_safe.attr(r["title"])} time="{v["seconds"]:.3f}">\n'
-        )
-        if v["result"] in (judge.FAILED, judge.TIMEOUT):
-            failures += 1
-            case += f"    <failure message={xml_safe.attr(v['reason'])} type={xml_safe.attr(v['result'])}/>\n"
-        elif v["result"] != judge.PASSED:
-            errors += 1
-            case += f'    <error message={xml_safe.attr(v["reason"])} type="error"/>\n'
+        output = None
         if r.get("run"):
-            case += f"    <system-out>{xml_safe.text('run ' + r['run'] + ' on ' + str(r.get('host')))}</system-out>\n"
+            output = "run " + r["run"] + " on " + str(r.get("host"))
         elif r.get("error"):
-            case += f"    <system-out>{xml_safe.text(str(r['error']))}</system-out>\n"
-        cases.append(case + "  </testcase>\n")
-    return (
-        '<?xml version="1.0" encoding="UTF-8"?>\n'
-        f'<testsuite name="isaacsim.fleet test suite" tests="{len(results)}" failures="{failures}" '
-        f'errors="{errors}" skipped="0" time="{total:.3f}">\n' + "".join(cases) + "</testsuite>\n"
-    )
+            output = str(r["error"])
+        cases.append({"host": r.get("host"), "name": r["title"], "verdict": verdict_of(r), "output": output})
+    return junit_xml.testsuite("isaacsim.fleet test suite", cases)
 
 
 def summary_lines(results: list, wall: float | None = None) -> list:
@@ -205,7 +196,7 @@ def summary_lines(results: list, wall: float | None = None) -> list:
     lines = [f"{'run':<40} {'host':<20} {'result':<8} {'seconds':>8}  reason"]
     counts = {}
     for r in sorted(results, key=lambda r: r["title"]):
-        v = r.get("verdict") or {"result": judge.ERROR, "reason": r.get("error", "no verdict"), "seconds": 0}
+        v = verdict_of(r)
         if r.get("restart_error"):
             v = dict(v, reason=f"{v['reason']}; {r['restart_error']}")
         counts[v["result"]] = counts.get(v["result"], 0) + 1

@@ -22,10 +22,11 @@ import math
 import re
 import signal
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse, xml_safe
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout, units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, releases
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import judge
+from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import junit as junit_xml
 
 DOCKER = "/usr/bin/docker"
 PROPS = "Id,LoadState,ActiveState,SubState,NRestarts,Result,ExecMainCode,ExecMainStatus"
@@ -284,33 +285,17 @@ class Metrics:
 
 
 def junit(result: dict) -> str:
-    """A JUnit XML file of one run: one test case, failed or errored with the verdict's reason,
-    the orchestrators' log tails as its output."""
+    """A JUnit XML file of one run: one test case, failed or errored with the verdict's reason
+    (junit's rule), the run's properties, the orchestrators' log tails as its output."""
     verdict = result["verdict"]
-    name = result["experience"]
-    failures = 1 if verdict["result"] in (judge.FAILED, judge.TIMEOUT) else 0
-    errors = 1 if verdict["result"] == judge.ERROR else 0
-    case = (
-        f"  <testcase classname={xml_safe.attr('isaacsim.fleet.' + result['host'])} name={xml_safe.attr(name)} "
-        f'time="{verdict["seconds"]:.3f}">\n'
-    )
-    message = xml_safe.attr(verdict["reason"])
-    if failures:
-        case += f"    <failure message={message} type={xml_safe.attr(verdict['result'])}/>\n"
-    if errors:
-        case += f'    <error message={message} type="error"/>\n'
-    props = "".join(
-        f"      <property name={xml_safe.attr(k)} value={xml_safe.attr(str(v))}/>\n"
-        for k, v in (("run", result["run"]), ("host", result["host"]), ("result", verdict["result"]))
-    )
-    out = xml_safe.text(result.get("orchestrator_output") or "")
-    case += f"    <system-out>{out}</system-out>\n  </testcase>\n"
-    return (
-        '<?xml version="1.0" encoding="UTF-8"?>\n'
-        f'<testsuite name="isaacsim.fleet experiences" tests="1" failures="{failures}" errors="{errors}" '
-        f'skipped="0" time="{verdict["seconds"]:.3f}">\n'
-        f"  <properties>\n{props}  </properties>\n{case}</testsuite>\n"
-    )
+    case = {
+        "host": result["host"],
+        "name": result["experience"],
+        "verdict": verdict,
+        "output": result.get("orchestrator_output") or "",
+    }
+    props = (("run", result["run"]), ("host", result["host"]), ("result", verdict["result"]))
+    return junit_xml.testsuite("isaacsim.fleet experiences", [case], props)
 
 
 def puller(host, enabled=True):
