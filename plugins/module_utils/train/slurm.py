@@ -485,11 +485,6 @@ def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool
     return argv + [image] + list(command)
 
 
-def container_name() -> str:
-    """The name of a job's container on a node (Podman and Docker), one per job and node."""
-    return _values(runtimes.RUNTIMES["podman"])["container"]
-
-
 def training_command(job: dict) -> list:
     """The training inside the container: python on the script with its arguments, or torchrun
     with one process per GPU of each node when the job has more than one GPU in all."""
@@ -581,10 +576,9 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
         binds.append((job["logs_dir"], f"{WORKDIR}/logs"))
     env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR", "MASTER_PORT"})
     env_names += ["SLURM_JOB_ID", "SLURM_NNODES", "SLURM_NODEID"]
-    values = _values(entry, archive=job.get("image_archive"))
+    values = _values(entry, image=job["image"], archive=job.get("image_archive"))
     # a runtime that makes a container of the image on each node runs that container
     image = values["container"] if entry["create"] else job["image"]
-    values["image"] = job["image"]
     rc = f"{node('LOCAL_CACHE')}/{entry['rc']['file']}" if entry["rc"] else None
     gpus = bool(int(job.get("gpus_per_node") or 0))
     run = runtime_argv(runtime, image, binds, env_names, training_command(job), gpus, rc=rc)

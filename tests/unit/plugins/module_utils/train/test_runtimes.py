@@ -143,4 +143,3 @@ def test_the_image_nodes_read_is_the_archive_for_images_run_by_id_and_the_file_f
     enroot = slurm.complete({"runtime": "enroot", "image_file": "/s/i.sqsh", "image_id": "sha256:0a45"})
     assert slurm.image_path(enroot) == "/s/i.sqsh"
     assert slurm.image_path({"runtime": "unknown", "image": "/s/x"}) == "/s/x"
-    assert slurm.shown(slurm.container_name()) == "train-$SLURM_JOB_ID-$SLURM_NODEID"
