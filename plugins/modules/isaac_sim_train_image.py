@@ -80,20 +80,15 @@ command:
   elements: str
 """
 
-import os
-
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.train import slurm
-
-# the program each runtime's build runs on the build host
-_TOOL = {"apptainer": "apptainer", "enroot": "enroot", "podman": "docker", "docker": "docker"}
+from ansible_collections.isaacsim.fleet.plugins.module_utils.train import job_image, runtimes
 
 
 def main():
     module = AnsibleModule(
         argument_spec={
             "source": {"type": "str", "required": True},
-            "runtime": {"type": "str", "required": True, "choices": list(slurm.RUNTIMES)},
+            "runtime": {"type": "str", "required": True, "choices": list(runtimes.RUNTIMES)},
             "build_dir": {"type": "path", "required": True},
             "present": {"type": "bool", "default": False},
             "fakeroot": {"type": "bool", "default": True},
@@ -101,39 +96,19 @@ def main():
         supports_check_mode=True,
     )
     p = module.params
-    docker = module.get_bin_path("docker")
-    if not docker:
-        module.fail_json(msg="train_image: the build host has no docker command. Fix: build where the image is.")
-    rc, out, err = module.run_command([docker, "image", "inspect", "--format", "{{.Id}}", p["source"]])
-    if rc != 0:
-        module.fail_json(
-            msg=f"train_image: {p['source']!r} is not an image of the build host's Docker ({err.strip()}). "
-            "Fix: build or pull it there, or name one that `docker images` lists."
+    try:
+        result = job_image.ensure(
+            job_image.bind(module),
+            p["source"],
+            p["runtime"],
+            p["build_dir"],
+            present=p["present"],
+            fakeroot=p["fakeroot"],
+            check=module.check_mode,
         )
-    image_id = out.strip()
-    name = slurm.image_file(p["source"], p["runtime"], image_id)
-    done = {"id": image_id, "file": name, "path": os.path.join(p["build_dir"], name)}
-    if p["present"]:
-        module.exit_json(changed=False, built=False, **done)
-    tool = module.get_bin_path(_TOOL[p["runtime"]])
-    if not tool:
-        module.fail_json(
-            msg=f"train_runtime: {p['runtime']} images are built with {_TOOL[p['runtime']]}, which the build host "
-            "lacks. Fix: install it there (Apptainer: https://apptainer.org/docs/admin/main/installation.html)."
-        )
-    # built beside the file and moved over it: a build that stops half way never stands as the image
-    partial = done["path"] + ".partial"
-    argv = slurm.build_argv(p["runtime"], p["source"], partial, fakeroot=p["fakeroot"])
-    if module.check_mode:
-        module.exit_json(changed=True, built=True, command=argv, **done)
-    os.makedirs(p["build_dir"], exist_ok=True)
-    if os.path.exists(partial):
-        os.remove(partial)
-    rc, out, err = module.run_command(argv)
-    if rc != 0:
-        module.fail_json(msg=f"{' '.join(argv)} failed ({rc}): {(err or out).strip()}", command=argv)
-    os.replace(partial, done["path"])
-    module.exit_json(changed=True, built=True, command=argv, **done)
+    except job_image.ImageError as exc:
+        module.fail_json(msg=str(exc), **exc.result)
+    module.exit_json(**result)
 
 
 if __name__ == "__main__":

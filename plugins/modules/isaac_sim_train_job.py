@@ -205,7 +205,7 @@ def request_errors(module, job):
 def image_errors(module, job):
     """The image the nodes read must be on the shared path before anything is submitted (in check
     mode it is not copied, so only named)."""
-    path = job.get("image_archive") if job.get("runtime") in ("podman", "docker") else job.get("image")
+    path = slurm.image_path(job)
     if not path or not (module.check_mode or os.path.isfile(path)):
         return [
             f"{_IMAGE_VARIABLE}: the job's image is not on the cluster ({path or 'no path'}). "

@@ -4,31 +4,50 @@
 
 from __future__ import annotations
 
+# Who opens a port of the block: the instance (when its profile opens it) or a companion (when one
+# serves it: a port kept for a companion, the 6.x web viewer's, is reported only when one does).
+INSTANCE, COMPANION = "instance", "companion"
+
+# What the Isaac Sim WebRTC Streaming Client asks for (4.x and later), then the web viewer and the
+# services API where the block has them
+_STREAMING_CLIENT = (
+    ("signal", "signal", "{host}:{port}", INSTANCE),
+    ("stream", "stream", "{host}:{port}/udp", INSTANCE),
+    ("web_viewer", "web_viewer", "http://{host}:{port}/", COMPANION),
+    ("http", "api", "http://{host}:{port}/", INSTANCE),
+)
+
+# The URL shapes of each release (the release table's releases, plugins/module_utils/instance/releases.py):
+# (kind of port in the release's block, name reported, address with {host} and {port}, who opens it),
+# in the order they are reported. Here, not in the release table: hosts read an instance's release
+# from its env file and this library imports nothing outside itself (tests/unit/test_release_choices.py
+# checks that every release has its shapes, of its own ports).
+URLS = {
+    "2023.1": (
+        # served by the instance itself: the browser client, told where the signalling is
+        ("http", "webrtc_client", "http://{host}:{port}/streaming/webrtc-client?server={host}", INSTANCE),
+        # the native livestream, for the Omniverse Streaming Client
+        ("native", "native", "{host}:{port}", INSTANCE),
+    ),
+    "4.x": _STREAMING_CLIENT,
+    "5.x": _STREAMING_CLIENT,
+    "6.x": _STREAMING_CLIENT,
+}
+
 
 def endpoints(release: str, ports: dict, host: str, served=(), listens=None) -> dict:
-    """{name: address} for one instance's port block: only what listens.
+    """{name: address} for one instance's port block: only what listens, in the shapes of its
+    release (URLS; a release this library does not know has the streaming client's).
 
     listens: the kinds of the block the instance itself opens (its profile's; None: all of them).
-    served: the ports of the block a companion listens on; a port kept for a companion (the 6.x
-    web viewer's) is reported only when one does, so no URL names a port nothing listens on.
+    served: the ports of the block a companion listens on.
     """
     opened = set(ports) if listens is None else set(listens)
+    served = set(served)
     out = {}
-    if release == "2023.1":
-        if "http" in opened:
-            out["webrtc_client"] = f"http://{host}:{ports['http']}/streaming/webrtc-client?server={host}"
-        if "native" in opened:
-            out["native"] = f"{host}:{ports['native']}"
-        return out
-    # what the Isaac Sim WebRTC Streaming Client asks for
-    if "signal" in opened:
-        out["signal"] = f"{host}:{ports['signal']}"
-    if "stream" in opened:
-        out["stream"] = f"{host}:{ports['stream']}/udp"
-    if "web_viewer" in ports and ports["web_viewer"] in set(served):
-        out["web_viewer"] = f"http://{host}:{ports['web_viewer']}/"
-    if "http" in opened and "http" in ports:
-        out["api"] = f"http://{host}:{ports['http']}/"
+    for kind, name, shape, by in URLS.get(release, _STREAMING_CLIENT):
+        if kind in ports and (ports[kind] in served if by == COMPANION else kind in opened):
+            out[name] = shape.format(host=host, port=ports[kind])
     return out
 
 

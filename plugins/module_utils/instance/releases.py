@@ -5,11 +5,18 @@
 One profile per release family: the container user, where it keeps caches,
 which ports its block holds and how each port is set (a kit flag or an
 environment variable), the ways it can run (isaac_sim_profile: the launch script
-and the ports each opens), the line it prints when ready, and the oldest driver
-it runs on.
+and the ports each opens), where a person reaches an instance (urls: the URL shapes of
+its ports), the line it prints when ready, and the oldest driver it runs on.
+
+The URL shapes are defined in hostlib/endpoints.py (URLS) and named here: every host
+reads them there, by the release its env files name, and that library imports nothing
+outside itself. A new release is a new entry here and its shapes there
+(tests/unit/test_release_choices.py checks that they agree).
 """
 
 from __future__ import annotations
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import endpoints
 
 # A port is set either by a kit flag ("--/path=VALUE") or an environment
 # variable passed into the container.
@@ -84,6 +91,8 @@ RELEASES = {
             NATIVE: _launch("/isaac-sim/runheadless.native.sh", ("native",), None),
             HEADLESS: _headless(0),
         },
+        # where a person reaches it: its ports' URL shapes (hostlib/endpoints.py)
+        "urls": endpoints.URLS["2023.1"],
         "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
         "ready_pattern": r"App is loaded\.",
         "min_driver": "525.85",
@@ -102,6 +111,8 @@ RELEASES = {
             STREAMING: _launch("/isaac-sim/runheadless.sh", _STREAMING_PORTS_5X, "signal"),
             HEADLESS: _headless(0),
         },
+        # where a person reaches it: its ports' URL shapes (hostlib/endpoints.py)
+        "urls": endpoints.URLS["4.x"],
         "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
         "ready_pattern": r"App is loaded\.",
         "min_driver": "535.129",
@@ -120,6 +131,8 @@ RELEASES = {
             STREAMING: _launch("/isaac-sim/runheadless.sh", _STREAMING_PORTS_5X, "signal"),
             HEADLESS: _headless(1234),
         },
+        # where a person reaches it: its ports' URL shapes (hostlib/endpoints.py)
+        "urls": endpoints.URLS["5.x"],
         "public_address": (KIT, "/app/livestream/publicEndpointAddress"),
         "ready_pattern": r"App is loaded\.",
         "min_driver": "570.169",
@@ -144,6 +157,8 @@ RELEASES = {
             STREAMING: _launch("/isaac-sim/runheadless.sh", ("signal", "stream"), "signal"),
             HEADLESS: _headless(1234),
         },
+        # where a person reaches it: its ports' URL shapes (hostlib/endpoints.py)
+        "urls": endpoints.URLS["6.x"],
         "public_address": (ENV, "ISAACSIM_HOST"),
         "ready_pattern": r"App is loaded\.",
         "min_driver": "570.169",

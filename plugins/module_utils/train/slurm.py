@@ -18,14 +18,12 @@ import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import releases
+from ansible_collections.isaacsim.fleet.plugins.module_utils.train import runtimes
 
-RUNTIMES = ("apptainer", "podman", "docker", "enroot")
-# where the image the jobs run lives on the cluster, per runtime
-IMAGE_SUFFIX = {"apptainer": ".sif", "podman": ".tar", "docker": ".tar", "enroot": ".sqsh"}
+# the runtimes' names (runtimes.RUNTIMES has what each one does)
+RUNTIMES = tuple(runtimes.RUNTIMES)
 WORKDIR = "/workspace/isaaclab"
 RENDEZVOUS_PORT = 29500
-# enroot's command script for a job: the code directory, then the training (not the entrypoint)
-ENROOT_RC = f'cd {WORKDIR} && exec "$@"'
 # job states (squeue(1), JOB STATE CODES) after which a job does not run again
 FINISHED = {
     "BOOT_FAIL",
@@ -416,15 +414,21 @@ def _hex(image_id) -> str:
 def image_file(source: str, runtime: str, image_id: str) -> str:
     """The file name of a job image on the cluster: the team's image name and its id, so that a
     new image never replaces the file a queued job is about to run."""
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + f"-{_hex(image_id)[:12]}" + IMAGE_SUFFIX[runtime]
+    suffix = runtimes.runtime(runtime)["image_suffix"]
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", source) + f"-{_hex(image_id)[:12]}" + suffix
+
+
+def _runs_by_id(job: dict) -> bool:
+    """Whether the job's nodes run its image by id, loaded from the job image (an archive)."""
+    return runtimes.RUNTIMES.get(job.get("runtime"), {}).get("image") == "id"
 
 
 def complete(job: dict) -> dict:
     """The job as the scripts take it, from what the playbook gives: the image from image_file
-    (its path on the cluster) and image_id (podman and docker nodes run it by id, loaded from
+    (its path on the cluster) and image_id (the runtimes whose nodes run it by id, loaded from
     the file), the cache mounts of the release when none are given."""
     job = dict(job)
-    if job.get("runtime") in ("podman", "docker"):
+    if _runs_by_id(job):
         job["image"] = _hex(job.get("image_id"))
         job["image_archive"] = job.get("image_file")
     else:
@@ -439,6 +443,25 @@ def cache_binds(cache: str, mounts: dict) -> list:
     return [(f"{cache}/{sub}", target) for sub, target in sorted(mounts.items())]
 
 
+def image_path(job: dict):
+    """The job image's file on the cluster (complete's job): what the nodes read before it runs."""
+    return job.get("image_archive") if _runs_by_id(job) else job.get("image")
+
+
+def _values(entry: dict, **more) -> dict:
+    """What a runtime entry's words are made of (runtimes.py, its templates)."""
+    ids = {"job_id": node("SLURM_JOB_ID"), "node_id": node("SLURM_NODEID")}
+    container = entry["container"].format(**ids) if entry["container"] else None
+    values = {"workdir": WORKDIR, "container": container, "job_gpus": node("JOB_GPUS")}
+    values.update(gpu_devices=node("GPU_DEVICES[@]"), **ids)
+    values.update(more)
+    return values
+
+
+def _argv(words, values: dict) -> list:
+    return [word.format(**values) for word in words]
+
+
 def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool, rc=None) -> list:
     """The command that runs `command` in the job's image on a node (words of the node script;
     node() marks the node's variables in them). env_names: variables passed from the node's
@@ -450,37 +473,16 @@ def runtime_argv(runtime: str, image: str, binds, env_names, command, gpus: bool
 
     Apptainer takes the environment's variables from APPTAINERENV_<NAME> (the node script
     exports them; values never appear on a command line), enroot from --env NAME; rc: enroot's
-    command script, in place of the image's entrypoint."""
-    if runtime not in RUNTIMES:
-        raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
-    if runtime == "apptainer":
-        # a clean environment and private /tmp and $HOME, a writable layer that goes with the job
-        argv = ["apptainer", "exec", "--containall", "--writable-tmpfs", f"--pwd={WORKDIR}"]
-        argv += ["--nv"] if gpus else []
-        argv += [f"--bind={src}:{dst}:rw" for src, dst in binds]
-        return argv + [image] + list(command)
-    if runtime == "enroot":
-        argv = ["enroot", "start", "--rw"] + ([f"--rc={rc}"] if rc else [])
-        argv += [f"--mount={src}:{dst}" for src, dst in binds]
-        argv += [f"--env={name}" for name in env_names]
-        return argv + [image] + list(command)
-    argv = [runtime, "run", "--rm", "--network=host", "--ipc=host", "--entrypoint=", f"--workdir={WORKDIR}"]
-    argv += [f"--name={container_name()}"]
-    if runtime == "podman":
-        # the container stays in the job's cgroup, so Slurm's CPU, memory and device limits hold
-        # and a cancelled job's processes end with it (Docker's daemon starts containers outside it)
-        argv += ["--cgroups=disabled"]
-    if gpus:
-        # CDI names for Podman (nvidia-ctk cdi generate), the toolkit's --gpus for Docker
-        argv += [node("GPU_DEVICES[@]")] if runtime == "podman" else [f'--gpus="device={node("JOB_GPUS")}"']
-    argv += [f"--volume={src}:{dst}:rw" for src, dst in binds]
-    argv += [f"--env={name}" for name in env_names]
+    command script, in place of the image's entrypoint. Each runtime's words: runtimes.RUNTIMES."""
+    entry = runtimes.runtime(runtime)
+    values = _values(entry)
+    argv = _argv(entry["run"], values)
+    if rc and entry["rc"]:
+        argv.append(entry["rc"]["option"].format(rc=rc))
+    argv += _argv(entry["gpus"], values) if gpus else []
+    argv += [entry["bind"].format(src=src, dst=dst) for src, dst in binds]
+    argv += [entry["env"].format(name=name) for name in env_names] if entry["env"] else []
     return argv + [image] + list(command)
-
-
-def container_name() -> str:
-    """The name of a job's container on a node (Podman and Docker), one per job and node."""
-    return f"train-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}"
 
 
 def training_command(job: dict) -> list:
@@ -566,6 +568,7 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
     it), mounts ({cache subdirectory: path in the container}), python, script, args,
     gpus_per_node, nodes, env_names."""
     runtime = job["runtime"]
+    entry = runtimes.runtime(runtime)
     # the node's own disk (Slurm's per-job $TMPDIR by default); only this job's directory in it
     base = _word(job["local_cache"]) if job.get("local_cache") else '"${TMPDIR:-/tmp}"'
     binds = cache_binds(node("LOCAL_CACHE"), job["mounts"]) + [(job["code_dir"], WORKDIR)]
@@ -573,10 +576,10 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
         binds.append((job["logs_dir"], f"{WORKDIR}/logs"))
     env_names = sorted(set(job.get("env_names") or []) | {"CUDA_VISIBLE_DEVICES", "MASTER_ADDR", "MASTER_PORT"})
     env_names += ["SLURM_JOB_ID", "SLURM_NNODES", "SLURM_NODEID"]
-    # enroot runs a container made from the job's squashfs image on each node (a name per node:
-    # its containers may live in a shared $HOME), with a command script in place of the entrypoint
-    image = f"isaaclab-{node('SLURM_JOB_ID')}-{node('SLURM_NODEID')}" if runtime == "enroot" else job["image"]
-    rc = f"{node('LOCAL_CACHE')}/.enroot-rc" if runtime == "enroot" else None
+    values = _values(entry, image=job["image"], archive=job.get("image_archive"))
+    # a runtime that makes a container of the image on each node runs that container
+    image = values["container"] if entry["create"] else job["image"]
+    rc = f"{node('LOCAL_CACHE')}/{entry['rc']['file']}" if entry["rc"] else None
     gpus = bool(int(job.get("gpus_per_node") or 0))
     run = runtime_argv(runtime, image, binds, env_names, training_command(job), gpus, rc=rc)
     dirs = " ".join(_word(f"{node('LOCAL_CACHE')}/{sub}") for sub in sorted(job["mounts"]))
@@ -590,9 +593,8 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
         f'mkdir -p {dirs} && rsync -a "$SHARED_CACHE/" "$LOCAL_CACHE/" 2>/dev/null || true',
         "copy_back() {",
     ]
-    if runtime in ("podman", "docker"):
-        # a cancelled job's container goes with it (Docker's would run on under its daemon)
-        text.append(f"  {runtime} rm -f {_word(container_name())} >/dev/null 2>&1 || true")
+    if entry["remove_on_exit"]:
+        text.append(f"  {line(_argv(entry['remove_on_exit'], values))} >/dev/null 2>&1 || true")
     text += [
         # rsync writes each file beside its place and renames it: a copy cut short, or another
         # job reading meanwhile, never meets a torn file
@@ -604,31 +606,25 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
         # the job's device cgroup)
         'JOB_GPUS="${SLURM_STEP_GPUS:-${SLURM_JOB_GPUS:-}}"',
     ]
-    if runtime == "podman" and gpus:
-        text += [
-            "GPU_DEVICES=()",
-            'for gpu in ${JOB_GPUS//,/ }; do GPU_DEVICES+=("--device=nvidia.com/gpu=$gpu"); done',
-        ]
-    if runtime == "apptainer":
-        # into the container by Apptainer's own prefix (--containall passes nothing else)
-        text += [f'export APPTAINERENV_{name}="${{{name}:-}}"' for name in env_names]
-    if runtime in ("podman", "docker") and job.get("image_archive"):
+    text += entry["gpu_setup"] if gpus else []
+    if entry["env_export"]:
+        # into the container by the runtime's own prefix
+        text += [f'export {entry["env_export"].format(name=name)}="${{{name}:-}}"' for name in env_names]
+    if entry["load"] and job.get("image_archive"):
         # the image comes to each node once, from the archive on the shared path; run by its id
-        text.append(
-            f"{runtime} image inspect {_word(job['image'])} >/dev/null 2>&1 || "
-            f"{runtime} load -q -i {_word(job['image_archive'])} >/dev/null"
-        )
-    if runtime == "enroot":
-        text += [
-            "printf '%s\\n' " + shlex.quote(ENROOT_RC) + ' > "$LOCAL_CACHE/.enroot-rc"',
-            f"enroot create --force --name {_word(image)} {_word(job['image'])} >/dev/null",
-        ]
+        find, load = (line(_argv(words, values)) for words in entry["load"])
+        text.append(f"{find} >/dev/null 2>&1 || {load} >/dev/null")
+    if entry["rc"]:
+        script = entry["rc"]["script"].format(**values)
+        text.append("printf '%s\\n' " + shlex.quote(script) + f' > "$LOCAL_CACHE/{entry["rc"]["file"]}"')
+    if entry["create"]:
+        text.append(f"{line(_argv(entry['create'], values))} >/dev/null")
     # the training runs in the background so that a cancel (scancel's SIGTERM) is handled at
     # once: the container is stopped (Podman's conmon would die with the step and leave it
     # running), then the caches go back, within Slurm's KillWait (30 s by default); bash defers
     # a trap while a foreground command runs
-    if runtime in ("podman", "docker"):
-        stop = f"  {runtime} stop -t 10 {_word(container_name())} >/dev/null 2>&1 || true"
+    if entry["stop"]:
+        stop = f"  {line(_argv(entry['stop'], values))} >/dev/null 2>&1 || true"
     else:
         stop = '  kill -TERM "$TRAINING" 2>/dev/null || true'
     text += [
@@ -643,30 +639,17 @@ def node_script(job: dict, managed: str = "Ansible managed (isaacsim.fleet)") ->
         'wait "$TRAINING"',
         "status=$?",
     ]
-    if runtime == "enroot":
-        text.append(f"enroot remove --force {_word(image)} >/dev/null 2>&1 || true")
+    if entry["remove"]:
+        text.append(f"{line(_argv(entry['remove'], values))} >/dev/null 2>&1 || true")
     text += ['echo "isaacsim.fleet: training on node $SLURM_NODEID exited with $status"', "exit $status"]
     return "\n".join(text) + "\n"
 
 
 def build_argv(runtime: str, source_image: str, out: str, archive=None, fakeroot=True) -> list:
-    """The command that turns the team's Docker image into what the runtime runs, on the build host.
-
-    apptainer: a SIF from the local Docker daemon's image (docker-daemon://, as the guide builds
-    it, which needs a tag: :latest where none is given), or from a `docker save` archive;
-    --fakeroot lets a user without root build (user namespaces and /etc/subuid). enroot: a
-    squashfs image from the daemon. podman and docker: a `docker save` archive of the team's
-    image that each node loads once (Podman loads Docker's archives)."""
-    if runtime == "apptainer":
-        tagged = "@" in source_image or ":" in source_image.rsplit("/", 1)[-1]
-        daemon = f"docker-daemon://{source_image}" + ("" if tagged else ":latest")
-        source = f"docker-archive:{archive}" if archive else daemon
-        return ["apptainer", "build", "--force"] + (["--fakeroot"] if fakeroot else []) + [out, source]
-    if runtime == "enroot":
-        return ["enroot", "import", "--output", out, f"dockerd://{source_image}"]
-    if runtime in ("podman", "docker"):
-        return ["docker", "save", "--output", out, source_image]
-    raise ValueError(f"runtime {runtime!r}: one of {', '.join(RUNTIMES)}")
+    """The command that turns the team's Docker image into what the runtime runs, on the build host
+    (runtimes.RUNTIMES: each runtime's build). archive: a `docker save` archive of it, for the
+    builds that take one (Apptainer); fakeroot: Apptainer's build without root."""
+    return runtimes.runtime(runtime)["build"](source_image, out, archive, fakeroot)
 
 
 def submitted_id(text: str):
