@@ -123,7 +123,7 @@ def test_every_entry_says_everything_a_runtime_differs_in(name):
     words += [w for key in ("create", "remove", "stop", "remove_on_exit") for w in entry[key] or []]
     words += [w for argv in entry["load"] or () for w in argv] + [entry["container"] or ""]
     words += [entry["rc"]["option"], entry["rc"]["script"]] if entry["rc"] else []
-    named = {field for word in words for _, field, _, _ in string.Formatter().parse(word) if field}
+    named = {field for word in words for _text, field, _spec, _conv in string.Formatter().parse(word) if field}
     assert named <= FIELDS, named - FIELDS
 
 
