@@ -336,16 +336,9 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{K_STOP_TIMEOUT}={settings['stop_timeout']}",
         f"{K_HEALTH_INTERVAL}={settings['health_interval']}",
         f"{K_UNHEALTHY_RESTART}={settings['unhealthy_restart']}",
-        f"{K_DOCKER_ARGS}={quote(join_args(instance['docker_args']))}",
-        f"{K_APP_ARGS}={quote(join_args(instance['app_args']))}",
     ]
-    # only when set: an instance on the host's network keeps the env file it had
-    if instance.get("address"):
-        lines.append(f"{K_ADDRESS}={quote(instance['address'])}")
-    lines.append("# Container environment (passed by name with docker run --env NAME)")
-    lines += [f"{name}={quote(value)}" for name, value in instance["container_env"].items()]
-    lines += [f"{name}={quote(value)}" for name, value in (secret_env or {}).items()]
-    return "\n".join(lines) + "\n"
+    env = list(instance["container_env"].items()) + list((secret_env or {}).items())
+    return "\n".join(lines + _container_lines(instance, env)) + "\n"
 
 
 def render_companion_env(companion: dict, plan: dict, managed: str) -> str:
@@ -369,15 +362,23 @@ def render_companion_env(companion: dict, plan: dict, managed: str) -> str:
         f"{K_STOP_TIMEOUT}={companion['stop_timeout']}",
         f"{K_HEALTH_INTERVAL}={companion['health_interval']}",
         f"{K_UNHEALTHY_RESTART}={settings['unhealthy_restart'] if companion['health_interval'] else 0}",
-        f"{K_DOCKER_ARGS}={quote(join_args(companion['docker_args']))}",
-        f"{K_APP_ARGS}={quote(join_args(companion['app_args']))}",
     ]
-    # in its instance's network namespace: isaac-sim-ports has no host port to check
-    if companion.get("address"):
-        lines.append(f"{K_ADDRESS}={quote(companion['address'])}")
+    return "\n".join(lines + _container_lines(companion, list(companion["container_env"].items()))) + "\n"
+
+
+def _container_lines(planned: dict, env: list) -> list:
+    """The end of an instance's or a companion's env file: its docker and app arguments, its address,
+    then the container's environment ([(name, value)])."""
+    lines = [
+        f"{K_DOCKER_ARGS}={quote(join_args(planned['docker_args']))}",
+        f"{K_APP_ARGS}={quote(join_args(planned['app_args']))}",
+    ]
+    # only when set: an instance on the host's network keeps the env file it had; a companion with an
+    # address is in its instance's network namespace (isaac-sim-ports has no host port to check)
+    if planned.get("address"):
+        lines.append(f"{K_ADDRESS}={quote(planned['address'])}")
     lines.append("# Container environment (passed by name with docker run --env NAME)")
-    lines += [f"{key}={quote(value)}" for key, value in companion["container_env"].items()]
-    return "\n".join(lines) + "\n"
+    return lines + [f"{name}={quote(value)}" for name, value in env]
 
 
 def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout) -> list:

@@ -12,6 +12,7 @@ the controller's host name, the ansible-playbook process and its start time.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
@@ -109,14 +110,22 @@ def acquire(
         return True, holder, said
 
 
-def renew(me: dict, now: float, path: str = LOCK, guard: str = GUARD) -> bool:
-    """The controller's heartbeat: renews the lock when `me` holds it, never takes it."""
+@contextlib.contextmanager
+def _held_by(me: dict, path: str, guard: str):
+    """The lock's record, under the guard, while `me` holds it; None when it does not (or no lock)."""
     if not os.path.exists(path):
-        return False
+        yield None
+        return
     with open(guard, "a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         current = read(path)
-        if not current or current.get("id") != me["id"]:
+        yield current if current and current.get("id") == me["id"] else None
+
+
+def renew(me: dict, now: float, path: str = LOCK, guard: str = GUARD) -> bool:
+    """The controller's heartbeat: renews the lock when `me` holds it, never takes it."""
+    with _held_by(me, path, guard) as current:
+        if current is None:
             return False
         current["renewed"] = now
         _write(path, current, 0o644)
@@ -153,12 +162,8 @@ def recorded_text(entry, run_id: str) -> str:
 
 def release(me: dict, path: str = LOCK, guard: str = GUARD) -> bool:
     """Give the lock back when `me` holds it; a lock another run took over is left to it."""
-    if not os.path.exists(path):
-        return False
-    with open(guard, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        current = read(path)
-        if not current or current.get("id") != me["id"]:
+    with _held_by(me, path, guard) as current:
+        if current is None:
             return False
         os.unlink(path)
         return True
