@@ -188,7 +188,7 @@ ARGUMENT_SPEC = dict(
     image_id=dict(type="str", default="unknown"),
     secret_env=dict(type="dict", default={}, no_log=True),
     scripts=dict(type="dict", default={}),
-    managed=dict(type="str", default="Ansible managed (isaacsim.fleet)"),
+    managed=dict(type="str", default=layout.MANAGED),
     soak_seconds=dict(type="float", default=0),
     defer_running=dict(type="bool", default=False),
     remove_others=dict(type="bool", default=True),

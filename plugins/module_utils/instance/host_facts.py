@@ -94,7 +94,7 @@ def _images(probe: Probe, p: dict, host: dict, docker) -> None:
 
 
 def _units(probe: Probe, p: dict, host: dict) -> None:
-    host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], "isaac-sim-metrics.timer"))
+    host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], layout.METRICS_TIMER))
     host["status_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.STATUS_UNIT))
     host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
     # instances serving now: a Docker restart on this host waits for the canary batches

@@ -210,6 +210,14 @@ def _taken(blocks, comp_specs, stride) -> dict:
     return taken
 
 
+def _foreign(held: dict, port: int) -> str:
+    """Who holds TCP `port` on the host when it is not one of ours; "" when free or ours."""
+    owner = held.get(("tcp", port))
+    if not owner or owner.get("ours"):
+        return ""
+    return owner.get("process") or "another process"
+
+
 def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
     """(the host's status endpoint as the role installs it, errors). Off: {"enabled": False}."""
     want = cfg.get("status_server") or {}
@@ -234,10 +242,10 @@ def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
             f"isaac_sim_status_server_port: {port} is also {taken[port]}'s port. Fix: choose a port outside every "
             "instance's block."
         )
-    elif ("tcp", port) in held and not held[("tcp", port)].get("ours"):
+    elif _foreign(held, port):
         errors.append(
-            f"isaac_sim_status_server_port: {port}/tcp is already held on this host by "
-            f"{held[('tcp', port)].get('process') or 'another process'}. Fix: stop it, or choose another port."
+            f"isaac_sim_status_server_port: {port}/tcp is already held on this host by {_foreign(held, port)}. "
+            "Fix: stop it, or choose another port."
         )
     # every address by default: the public address may be a name, or a NAT address the host does
     # not have; who may read is the allow list's business
@@ -339,16 +347,16 @@ def _hub_cache(cfg, release, taken, held) -> tuple[dict, list]:
             f"isaac_sim_hub_cache_enabled: the Hub cache listens on {port}, which is also {taken[port]}'s port. "
             "Fix: move that base (isaac_sim_port_bases)."
         )
-    elif ("tcp", port) in held and not held[("tcp", port)].get("ours"):
+    elif _foreign(held, port):
         errors.append(
             f"isaac_sim_hub_cache_enabled: {port}/tcp, the Hub cache's port, is already held on this host by "
-            f"{held[('tcp', port)].get('process') or 'another process'} (a Hub cache started by hand?). "
-            "Fix: stop it; the collection runs the host's one Hub cache."
+            f"{_foreign(held, port)} (a Hub cache started by hand?). Fix: stop it; the collection runs the host's "
+            "one Hub cache."
         )
     hub = {"enabled": True, "image": image, "dir": directory, "port": port}
     # rendered here, so the role writes exactly what the layout defines
-    hub["unit"] = layout.render_hub_unit(hub, "Ansible managed (isaacsim.fleet)")
-    hub["dropin"] = layout.render_hub_dropin("Ansible managed (isaacsim.fleet)")
+    hub["unit"] = layout.render_hub_unit(hub, layout.MANAGED)
+    hub["dropin"] = layout.render_hub_dropin(layout.MANAGED)
     return hub, errors
 
 
