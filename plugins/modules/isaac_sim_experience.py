@@ -216,7 +216,6 @@ simulator_slot:
 """
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import runner
 
 
@@ -234,10 +233,7 @@ def main():
             "simulator": {"type": "str", "default": "borrow", "choices": ["borrow", "dedicated"]},
             "simulator_image": {"type": "str"},
             "simulator_release": {"type": "str"},
-            "gpus": {"type": "list", "elements": "str", "default": []},
-            "data_root": {"type": "path", "default": layout.DATA_ROOT},
-            "unfetched_after": {"type": "float", "default": 600},
-            "keep_days": {"type": "float", "default": 14},
+            **runner.HOST_OPTIONS,
             "pull": {"type": "bool", "default": True},
             "poll": {"type": "float", "default": 0.5},
             "metrics_interval": {"type": "float", "default": 2},

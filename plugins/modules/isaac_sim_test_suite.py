@@ -105,7 +105,6 @@ expired:
 """
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import runner
 
 
@@ -115,10 +114,7 @@ def main():
             "runs": {"type": "list", "elements": "dict", "required": True},
             "parallel": {"type": "int", "default": 2},
             "instances": {"type": "list", "elements": "int", "default": []},
-            "gpus": {"type": "list", "elements": "str", "default": []},
-            "data_root": {"type": "path", "default": layout.DATA_ROOT},
-            "unfetched_after": {"type": "float", "default": 600},
-            "keep_days": {"type": "float", "default": 14},
+            **runner.HOST_OPTIONS,
         },
         supports_check_mode=True,
     )

@@ -98,16 +98,25 @@ def parse_env_file(text: str) -> dict:
 def read_env_files(config_dir: str) -> tuple:
     """({id: env}, [errors]) for every instance-N.env the role wrote."""
     found, errors = {}, []
-    for path in glob.glob(os.path.join(config_dir, "instance-*.env")):
-        i = layout.instance_id(layout.ENV_FILE_RE, path)
+    for i, path, text in _instance_files(config_dir, "instance-*.env", layout.ENV_FILE_RE):
+        if isinstance(text, OSError):
+            errors.append(f"cannot read {path}: {text.strerror} (the module needs root: become: true)")
+        else:
+            found[i] = parse_env_file(text)
+    return found, errors
+
+
+def _instance_files(directory: str, name_glob: str, pattern: re.Pattern):
+    """(instance id, path, text) of each instance's file in `directory`; the OSError as text when unreadable."""
+    for path in glob.glob(os.path.join(directory, name_glob)):
+        i = layout.instance_id(pattern, path)
         if i is None:
             continue
         try:
             with open(path) as fh:
-                found[i] = parse_env_file(fh.read())
+                yield i, path, fh.read()
         except OSError as exc:
-            errors.append(f"cannot read {path}: {exc.strerror} (the module needs root: become: true)")
-    return found, errors
+            yield i, path, exc
 
 
 def read_companion_env_files(config_dir: str) -> dict:
@@ -138,14 +147,11 @@ def read_companion_markers(run_dir: str) -> set:
 def read_ready_markers(run_dir: str) -> dict:
     """{id: epoch seconds} of the gate's markers: the instance printed its ready line then."""
     markers = {}
-    for path in glob.glob(os.path.join(run_dir, "instance-*.ready")):
-        i = layout.instance_id(layout.MARKER_RE, path)
-        if i is None:
+    for i, path, text in _instance_files(run_dir, "instance-*.ready", layout.MARKER_RE):
+        if isinstance(text, OSError):
             continue
         try:
-            with open(path) as fh:
-                text = fh.read().strip()
-            markers[i] = int(text) if text.isdigit() else int(os.path.getmtime(path))
+            markers[i] = int(text.strip()) if text.strip().isdigit() else int(os.path.getmtime(path))
         except OSError:
             continue
     return markers

@@ -29,6 +29,13 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import experie
 
 # what a suite's result keeps of its run, whatever became of it
 KEEP = ("title", "key", "experience", "timeout")
+# the options a run and a suite share: the host's GPUs to reserve from and where runs keep their directories
+HOST_OPTIONS = {
+    "gpus": {"type": "list", "elements": "str", "default": []},
+    "data_root": {"type": "path", "default": layout.DATA_ROOT},
+    "unfetched_after": {"type": "float", "default": 600},
+    "keep_days": {"type": "float", "default": 14},
+}
 
 
 class _FailError(Exception):

@@ -71,6 +71,16 @@ def _ms(seconds) -> str:
     return f"{max(int(round(float(seconds) * 1000)), 0)}ms"
 
 
+# a compose key given a value: docker run's flag, and the word it takes (in this order on the line)
+_SET_FLAGS = (
+    ("working_dir", "workdir", str),
+    ("user", "user", str),
+    ("shm_size", "shm-size", parse.docker_size),
+    ("memory", "memory", parse.docker_size),
+    ("cpus", "cpus", str),
+)
+
+
 def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, simulator=None, gpus=()) -> list:
     """The `docker run` of one service (foreground: the unit's main process is the container).
 
@@ -98,16 +108,7 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
     if simulator and simulator.get("address") and name != simulator["service"]:
         argv.append(f"--add-host={simulator['service']}:{simulator['address']}")
     argv.append(f"--env-file={env_file}")
-    if svc.get("working_dir"):
-        argv.append(f"--workdir={svc['working_dir']}")
-    if svc.get("user"):
-        argv.append(f"--user={svc['user']}")
-    if svc.get("shm_size"):
-        argv.append(f"--shm-size={parse.docker_size(svc['shm_size'])}")
-    if svc.get("memory"):
-        argv.append(f"--memory={parse.docker_size(svc['memory'])}")
-    if svc.get("cpus"):
-        argv.append(f"--cpus={svc['cpus']}")
+    argv += [f"--{flag}={word(svc[key])}" for key, flag, word in _SET_FLAGS if svc.get(key)]
     if svc.get("init"):
         argv.append("--init")
     if svc.get("stop_signal"):
