@@ -176,142 +176,39 @@ errors:
   elements: str
 """
 
-import os
-import secrets
-import time
-
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.train import slurm
+from ansible_collections.isaacsim.fleet.plugins.module_utils.train import job
 
-# what the request check names each job key after (playbooks/train.yml's variables)
-_IMAGE_VARIABLE = "train_image"
-
-
-def _run(module, argv, check_rc=True):
-    rc, out, err = module.run_command(argv)
-    if check_rc and rc != 0:
-        module.fail_json(msg=f"{' '.join(argv)} failed ({rc}): {(err or out).strip()}", rc=rc)
-    return rc, out, err
-
-
-def request_errors(module, job):
-    _rc, out, _err = _run(module, ["sinfo", "-h", "-e", "-o", slurm.SINFO_FORMAT])
-    errors = slurm.check_request(job, slurm.parse_sinfo(out))
-    if job.get("runtime") not in slurm.RUNTIMES:
-        errors.append(f"train_runtime: {job.get('runtime')!r}. Fix: one of {', '.join(slurm.RUNTIMES)}.")
-    return errors
-
-
-def image_errors(module, job):
-    """The image the nodes read must be on the shared path before anything is submitted (in check
-    mode it is not copied, so only named)."""
-    path = slurm.image_path(job)
-    if not path or not (module.check_mode or os.path.isfile(path)):
-        return [
-            f"{_IMAGE_VARIABLE}: the job's image is not on the cluster ({path or 'no path'}). "
-            "Fix: submit with playbooks/train.yml, which builds and copies it, or copy it there."
-        ]
-    return []
-
-
-def submit(module, job, job_dir):
-    errors = request_errors(module, job) + image_errors(module, job)
-    if errors:
-        module.fail_json(msg=" ".join(errors), errors=errors)
-    where = os.path.join(job_dir, slurm.run_dir(job["name"], time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)))
-    synced = job["code_dir"].rstrip("/")
-    # the job runs a snapshot of the code; its logs/ is the shared one, which comes back
-    run = dict(job, code_dir=os.path.join(where, "code"), logs_dir=os.path.join(synced, "logs"))
-    scripts = {"batch": os.path.join(where, "batch.sh"), "node": os.path.join(where, "node.sh")}
-    texts = {"node": slurm.node_script(run), "batch": slurm.batch_script(run, scripts["node"])}
-    diff = [{"before": "", "after": texts[k], "before_header": scripts[k], "after_header": scripts[k]} for k in texts]
-    if module.check_mode:
-        module.exit_json(changed=True, job_id=None, scripts=scripts, diff=diff)
-    # Slurm does not make the output's directory
-    for path in (run["logs_dir"], job["log_dir"], os.path.join(run["code_dir"], "logs")):
-        os.makedirs(path, exist_ok=True)
-    # hard links to the synced files: a later sync writes new files and never changes these
-    _run(module, ["rsync", "-a", "--exclude=/logs/", f"--link-dest={synced}", f"{synced}/", f"{run['code_dir']}/"])
-    for key, path in scripts.items():
-        with open(path, "w", encoding="utf-8") as handle:
-            handle.write(texts[key])
-        os.chmod(path, 0o755)
-    _rc, out, _err = _run(module, ["sbatch", "--parsable", f"--chdir={run['code_dir']}", scripts["batch"]])
-    job_id = slurm.submitted_id(out)
-    if not job_id:
-        module.fail_json(msg=f"sbatch printed no job id: {out.strip()}")
-    module.exit_json(changed=True, job_id=job_id, scripts=scripts, diff=diff)
-
-
-def query(module, job_id):
-    rc, live, err = _run(module, ["scontrol", "show", "job", "-o", job_id], False)
-    down = ""
-    if slurm.controller_down(rc, err):
-        down = ((err or live).strip().splitlines() or [f"scontrol exited {rc}"])[-1]
-    done = ""
-    if not slurm.parse_scontrol_job(live):
-        # slurmctld has forgotten it (MinJobAge): accounting, or the job completion log
-        fields = ["-n", "-P", "-o", slurm.SACCT_FIELDS, "-j", job_id]
-        rc, done, _err = _run(module, ["sacct", "-X"] + fields, False)
-        if rc != 0 or not slurm.parse_sacct(done, job_id):
-            _rc, done, _err = _run(module, ["sacct", "-c"] + fields, False)
-    status = slurm.status_of(job_id, live, done, down)
-    if status is None:
-        module.fail_json(
-            msg=f"train_job_id: Slurm knows no job {job_id} (neither slurmctld nor accounting nor the job completion "
-            "log). Fix: the id sbatch printed."
-        )
-    if status["state"] in ("RUNNING", slurm.COMPLETING) and status["nodes"] and not status.get("controller_down"):
-        # whether slurmctld hears from the job's nodes (a node that refuses its messages keeps a job COMPLETING)
-        rc, text, _err = _run(module, ["scontrol", "show", "node", "-o", status["nodes"]], False)
-        nodes = slurm.parse_nodes(text) if rc == 0 else {}
-        status.update(node_states=nodes, not_responding=slurm.not_responding(nodes))
-    submitted = status.pop("submitted", "")
-    if submitted:
-        status["submitted_at"] = slurm.epoch(submitted)
-    return status
+ARGUMENT_SPEC = {
+    "state": {
+        "type": "str",
+        "default": "submitted",
+        "choices": ["checked", "submitted", "query", "finished", "cancelled"],
+    },
+    "job": {"type": "dict"},
+    "job_dir": {"type": "path"},
+    "job_id": {"type": "str"},
+    "wait_timeout": {"type": "int", "default": 0},
+    "poll_interval": {"type": "int", "default": 10},
+    "outage_timeout": {"type": "int", "default": 600},
+    "completing_timeout": {"type": "int", "default": 300},
+}
+REQUIRED_IF = [
+    ("state", "checked", ["job"]),
+    ("state", "submitted", ["job", "job_dir"]),
+    ("state", "query", ["job_id"]),
+    ("state", "finished", ["job_id"]),
+    ("state", "cancelled", ["job_id"]),
+]
 
 
 def main():
-    module = AnsibleModule(
-        argument_spec={
-            "state": {
-                "type": "str",
-                "default": "submitted",
-                "choices": ["checked", "submitted", "query", "finished", "cancelled"],
-            },
-            "job": {"type": "dict"},
-            "job_dir": {"type": "path"},
-            "job_id": {"type": "str"},
-            "wait_timeout": {"type": "int", "default": 0},
-            "poll_interval": {"type": "int", "default": 10},
-            "outage_timeout": {"type": "int", "default": 600},
-            "completing_timeout": {"type": "int", "default": 300},
-        },
-        required_if=[
-            ("state", "checked", ["job"]),
-            ("state", "submitted", ["job", "job_dir"]),
-            ("state", "query", ["job_id"]),
-            ("state", "finished", ["job_id"]),
-            ("state", "cancelled", ["job_id"]),
-        ],
-        supports_check_mode=True,
-    )
-    p = module.params
-    if p["state"] == "checked":
-        errors = request_errors(module, p["job"])
-        if errors:
-            module.fail_json(msg=" ".join(errors), errors=errors)
-        module.exit_json(changed=False)
-    if p["state"] == "submitted":
-        submit(module, slurm.complete(p["job"]), p["job_dir"])
-    status = query(module, p["job_id"])
-    if p["state"] == "cancelled" and not status["finished"]:
-        if not module.check_mode:
-            _run(module, ["scancel", p["job_id"]])
-        module.exit_json(changed=True, job_id=p["job_id"], **status)
-    # query, and finished when the action plugin is not in front (it polls query)
-    module.exit_json(changed=False, job_id=p["job_id"], **status)
+    module = AnsibleModule(argument_spec=ARGUMENT_SPEC, required_if=REQUIRED_IF, supports_check_mode=True)
+    try:
+        result = job.LoginNode(module.run_command, module.check_mode).act(module.params)
+    except job.JobError as exc:
+        module.fail_json(msg=str(exc), **exc.result)
+    module.exit_json(**result)
 
 
 if __name__ == "__main__":
