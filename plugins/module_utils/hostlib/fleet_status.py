@@ -53,19 +53,58 @@ unit_name = layout.unit
 
 
 COMPANION_UNIT_GLOB = "isaac-sim-*@*.service"
+_UNIT_PREFIX, _UNIT_SUFFIX = UNIT_GLOB.split("*")
+_COMPANION_PREFIX = COMPANION_UNIT_GLOB.split("*")[0]
 
 
 def systemctl_show_argv(ids, companions=()) -> list:
-    """One call: the configured units by name (loaded or not), every loaded instance, and the
-    companions' units ([(id, name)] configured, and every loaded one)."""
+    """One call: the configured units by name (loaded or not), every other loaded instance, and the
+    companions' units ([(id, name)] configured, and every other loaded one).
+
+    The others are asked for by patterns that leave out the named units: a unit both named and
+    matched by a pattern is shown twice, and each unit shown costs round trips to systemd (the
+    plain globs doubled the call's time)."""
     named = [layout.companion_unit(i, name) for i, name in companions]
+    names = sorted({name for _i, name in companions})
+    patterns = [_UNIT_PREFIX + p + _UNIT_SUFFIX for p in others([str(i) for i in ids])]
+    # a companion of another name; then each name's other instances
+    patterns += [f"{_COMPANION_PREFIX}{p}@*{_UNIT_SUFFIX}" for p in others(names, end="@")]
+    for name in names:
+        mine = [str(i) for i, n in companions if n == name]
+        patterns += [f"{_COMPANION_PREFIX}{name}@{p}{_UNIT_SUFFIX}" for p in others(mine)]
     return (
         ["systemctl", "show", "--no-pager", "-p", ",".join(UNIT_PROPERTIES)]
         + [unit_name(i) for i in ids]
-        + [UNIT_GLOB]
         + named
-        + [COMPANION_UNIT_GLOB]
+        + patterns
     )
+
+
+def others(words, end="") -> list:
+    """Shell patterns that, each followed by a tail, match every non-empty word but those given
+    (`end`: the characters a tail may begin with, which no word contains). Each one is a glob:
+    systemctl shows a plain name even when it is not loaded. Built over the words' prefix tree:
+    after each prefix, any character no word goes on with (nor a tail, after a whole word); after
+    a whole word that no other word goes on from, any character more; a prefix that is no word, itself."""
+    tree = {}
+    for word in words:
+        node = tree
+        for char in word:
+            node = node.setdefault(char, {})
+        node[""] = {}
+    patterns = []
+    stack = [("", tree)]
+    while stack:
+        prefix, node = stack.pop()
+        nexts = sorted(c for c in node if c)
+        banned = nexts + (sorted(end) if "" in node else [])
+        # '-' last in a class is itself, not a range
+        banned.sort(key=lambda c: c == "-")
+        patterns.append(prefix + ("[!" + "".join(banned) + "]*" if banned else "?*"))
+        if prefix and "" not in node:
+            patterns.append(f"{prefix[:-1]}[{prefix[-1]}]")
+        stack += [(prefix + c, node[c]) for c in reversed(nexts)]
+    return patterns
 
 
 def parse_companion_units(text: str) -> dict:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import fnmatch
 import json
+import random
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.filter.systemd_env_quote import systemd_env_quote
@@ -32,17 +34,42 @@ def test_systemctl_show_one_block_per_unit():
 def test_systemctl_show_asks_once_for_configured_and_loaded_units():
     argv = fleet_status.systemctl_show_argv([0, 1, 7])
     assert argv[:2] == ["systemctl", "show"]
-    assert argv[-5:] == [
-        "isaac-sim@0.service",
-        "isaac-sim@1.service",
-        "isaac-sim@7.service",
-        "isaac-sim@*.service",
-        "isaac-sim-*@*.service",
-    ]
-    # the companions' units in the same call, by name and by pattern
-    argv = fleet_status.systemctl_show_argv([2], [(2, "viewer")])
-    assert argv[-3:] == ["isaac-sim@*.service", "isaac-sim-viewer@2.service", "isaac-sim-*@*.service"]
     assert "NRestarts" in argv[argv.index("-p") + 1]
+    assert argv[5:8] == ["isaac-sim@0.service", "isaac-sim@1.service", "isaac-sim@7.service"]
+    # every other loaded instance by patterns that leave the named ones out
+    assert argv[8:] == [
+        "isaac-sim@[!017]*.service",
+        "isaac-sim@0?*.service",
+        "isaac-sim@1?*.service",
+        "isaac-sim@7?*.service",
+        "isaac-sim-?*@*.service",
+    ]
+    # the companions' units in the same call, by name and by patterns
+    argv = fleet_status.systemctl_show_argv([2], [(2, "viewer")])
+    assert argv[5:7] == ["isaac-sim@2.service", "isaac-sim-viewer@2.service"]
+    assert "isaac-sim-viewer[!@]*@*.service" in argv and "isaac-sim-viewer@[!2]*.service" in argv
+
+
+UNITS = [f"isaac-sim@{i}.service" for i in (0, 1, 2, 7, 10, 11, 12, 70, 100)] + [
+    f"isaac-sim-{name}@{i}.service"
+    for name in ("v", "vi", "viewer", "viewer2", "v-x", "w", "a-b", "zz", "vie")
+    for i in (0, 1, 2, 10, 12, 100)
+]
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_systemctl_show_names_each_unit_once(seed):
+    """Each instance or companion unit is asked for once: by its name when configured, else by
+    exactly one pattern (systemctl shows a unit once per argument that names or matches it); the
+    host's other units by none."""
+    rng = random.Random(seed)
+    ids = sorted(rng.sample([0, 1, 2, 7, 10, 11, 70], rng.randint(0, 5)))
+    names = ["v", "vi", "viewer", "viewer2", "v-x", "w", "a-b"]
+    companions = sorted({(rng.choice([0, 1, 2, 10]), rng.choice(names)) for _n in range(rng.randint(0, 5))})
+    asked = fleet_status.systemctl_show_argv(ids, companions)[5:]
+    for unit in UNITS + ["isaac-sim-status.service", "isaac-sim.target", "isaac-sim-hub-cache.service"]:
+        hits = [a for a in asked if (fnmatch.fnmatchcase(unit, a) if set(a) & set("*?[") else unit == a)]
+        assert len(hits) == (1 if "@" in unit else 0), (unit, hits)
 
 
 def test_containers_carry_digest_state_and_uptime():
