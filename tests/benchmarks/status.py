@@ -11,7 +11,7 @@ runs ansible.builtin.systemd_service and community.docker.docker_container_info
 once per instance. Then where the module's own time goes, per N: the imports it
 pays beyond the ping module's (python -X importtime, the collection's own
 module_utils apart), and each part of the status read as the module reports it
-(timings_ms: env files, systemd, Docker, GPU, building records, the journal's
+(timings_ms: env files, Docker, GPU, systemd, building records, the journal's
 events, log tails), medians over the runs.
 
 A script, not a test: timings on shared machines are noisy. Needs strace and
@@ -95,7 +95,7 @@ for name, path in paths.items():
 print(json.dumps(res))
 """
 
-PARTS = ("files", "systemd", "docker", "gpu", "build", "events", "logs")
+PARTS = ("files", "docker", "gpu", "systemd", "build", "events", "logs")
 
 
 def sh(cmd):

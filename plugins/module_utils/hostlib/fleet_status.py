@@ -6,8 +6,10 @@ Whatever the number of instances, one status costs:
   - one `systemctl show` for all units,
   - two Docker API calls (containers, images),
   - one GPU query (NVML in-process, or one nvidia-smi),
-  - one `journalctl`, only when log lines are asked for (bounded to the lines
+  - one `journalctl` for the last day's session ends and crashes,
+  - one more `journalctl` only when log lines are asked for (bounded to the lines
     asked; read again only for units a chattier one crowded out).
+The two first commands run while the rest is read (see start()).
 Everything else is read from files: the env files the role writes
 (/etc/isaac-sim/instance-N.env), the ready markers of the readiness gate
 (/run/isaac-sim/instance-N.ready) and /proc.
@@ -21,7 +23,9 @@ import glob
 import json
 import os
 import re
+import shutil
 import socket
+import subprocess
 import time
 
 try:
@@ -612,27 +616,28 @@ def gather(
     gpu_source="auto",
     log_lines=0,
     only=None,
+    start=None,
 ) -> dict:
     """The whole status of this host. run(argv) -> (rc, out, err) runs a command.
 
     docker is a DockerSocket (or anything with containers(prefix) and images()).
+    start(argv) -> wait, where wait() -> (rc, out, err): a command begun at once and read later
+    (start() below; by default run(argv) when it is read): `systemctl show` and the journal's
+    events run while the files, Docker and the GPU are read.
     `stream` is not used (the journal is read through run); it stays in the signature while
     roles/isaac_sim/files/isaac-sim-metrics passes None in its place.
     """
+    start = start or (lambda argv: lambda: run(argv))
     lap = _Laps()
     errors = []
+    events_read = start(events_argv())
     envs, env_errors = read_env_files(config_dir)
     errors += env_errors
     deployed = bool(envs) or os.path.exists(unit_path)
 
     companion_envs = read_companion_env_files(config_dir)
     lap("files")
-    rc, out, err = run(systemctl_show_argv(sorted(envs), sorted(companion_envs)))
-    units = parse_systemctl_show(out) if rc == 0 else {}
-    companion_units = parse_companion_units(out) if rc == 0 else {}
-    if rc != 0:
-        errors.append(f"systemctl show failed: {err.strip()}")
-    lap("systemd")
+    systemd_read = start(systemctl_show_argv(sorted(envs), sorted(companion_envs)))
 
     containers, docker_ok = {}, True
     try:
@@ -646,6 +651,12 @@ def gather(
     usage, gpu_error = gpu_usage.read(gpu_source, run, import_nvml)
     pid_containers = {p["pid"]: gpu_usage.container_of_pid(p["pid"], proc) for p in (usage or {}).get("processes", [])}
     lap("gpu")
+    rc, out, err = systemd_read()
+    units = parse_systemctl_show(out) if rc == 0 else {}
+    companion_units = parse_companion_units(out) if rc == 0 else {}
+    if rc != 0:
+        errors.append(f"systemctl show failed: {err.strip()}")
+    lap("systemd")
 
     address = public_address or default_ipv4()
     records = build(
@@ -663,7 +674,7 @@ def gather(
         companion_markers=read_companion_markers(run_dir),
     )
     lap("build")
-    rc, out, err = run(events_argv())
+    rc, out, err = events_read()
     if rc != 0:
         errors.append(f"journalctl -t {EVENTS_TAG} failed: {(err or out).strip()}")
     events = parse_events(out) if rc == 0 else {}
@@ -709,6 +720,56 @@ def gather(
         # where this call spent its time, so a slower status shows which part grew
         "timings_ms": lap.parts,
     }
+
+
+def start(argv, timeout=60):
+    """Begins a command now, in the C locale; the Command returned reads it when called.
+
+    Two commands read one after the other never wait on each other: each writes to pipes of its
+    own. A command that is not installed, cannot start or outlasts `timeout` seconds reads as
+    rc 127 with why.
+    """
+    path = argv[0] if "/" in argv[0] else shutil.which(argv[0], path=os.environ.get("PATH", "") + _SBIN)
+    if not path:
+        return Command(argv[0], why=f"{argv[0]} is not installed")
+    try:
+        proc = subprocess.Popen(
+            [path] + list(argv[1:]),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=dict(os.environ, LC_ALL="C"),
+            text=True,
+        )
+    except OSError as exc:
+        return Command(argv[0], why=f"{argv[0]}: {exc.strerror}")
+    return Command(argv[0], proc, timeout=timeout)
+
+
+class Command:
+    """A command begun by start(): calling it waits for it and gives (rc, out, err)."""
+
+    def __init__(self, name, proc=None, why="", timeout=60):
+        self.name, self.proc, self.why, self.timeout = name, proc, why, timeout
+
+    @property
+    def spawned(self) -> bool:
+        return self.proc is not None
+
+    def __call__(self):
+        if self.proc is None:
+            return 127, "", self.why
+        try:
+            out, err = self.proc.communicate(timeout=self.timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.communicate()
+            return 127, "", f"{self.name} did not answer within {self.timeout} s"
+        return self.proc.returncode, out, err
+
+
+# where Ansible's modules look for a command beyond PATH
+_SBIN = ":/sbin:/usr/sbin:/usr/local/sbin:/bin:/usr/bin"
 
 
 class _Laps:
