@@ -23,8 +23,9 @@ def load(path: str):
     return yaml.safe_load((ROOT / path).read_text())
 
 
-def find_task(path: str, name: str) -> dict:
-    """The one task (or block) called `name` in a task file or playbook, at any depth."""
+def find_task(path: str, name: str, within: str | None = None) -> dict:
+    """The one task (or block) called `name` in a task file or playbook, at any depth; inside the
+    block called `within` when the name is not unique in the file."""
     found = []
 
     def walk(items):
@@ -34,7 +35,7 @@ def find_task(path: str, name: str) -> dict:
             for part in _PARTS:
                 walk(item.get(part))
 
-    walk(load(path))
+    walk([find_task(path, within)] if within else load(path))
     assert len(found) == 1, f"{len(found)} tasks named {name!r} in {path}"
     return found[0]
 
