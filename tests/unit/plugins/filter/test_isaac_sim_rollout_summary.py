@@ -5,6 +5,7 @@ or the lock's failure, or {} for a host not reached."""
 
 from __future__ import annotations
 
+import json
 import os
 
 from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_rollout_summary import FilterModule
@@ -192,3 +193,29 @@ def test_the_deploy_names_new_instances_started_and_serving_ones_rolled(render, 
         "untouched: none",
         "completed: every host rolled",
     ]
+
+
+def test_a_rollout_interrupted_on_a_host_says_why_and_is_not_complete(render, tmp_path):
+    first = lifecycle_result(ScriptedHost(4), tmp_path, ids=[0, 1, 2, 3])
+    # this run holds gpu-2's lock and stops renewing it: the lifecycle stops before the next instance
+    h = ScriptedHost(4)
+    run = "ctl-1:4242:1795000000"
+    (tmp_path / "lock.json").write_text(json.dumps({"id": run, "since": h.host.wall(), "renewed": h.host.wall()}))
+    cut = lifecycle_result(h, tmp_path, ids=[0, 1, 2, 3], soak_seconds=30, controller_run=run)
+    assert cut["failed"] and cut["failed_instance"] is None and [d["id"] for d in cut["done"]] == [0]
+    assert cut["interrupted"].startswith("its controller stopped renewing its hold on the host")
+    assert cut["msg"] == (
+        f"rollout interrupted: {cut['interrupted']}; it stopped before isaac-sim-1, isaac-sim-2, isaac-sim-3, "
+        "which are as they were"
+    )
+    outcomes = {"gpu-1": first, "gpu-2": cut, "gpu-3": None}
+    expected = [
+        "rolled: gpu-1: isaac-sim-0, isaac-sim-1, isaac-sim-2, isaac-sim-3; gpu-2: isaac-sim-0",
+        "reverted: none",
+        "untouched: gpu-2: isaac-sim-1, isaac-sim-2, isaac-sim-3; gpu-3: every instance (not reached)",
+        f"stopped: gpu-2: {cut['msg']}",
+    ]
+    assert rescue_summary(render, outcomes, "gpu-2") == expected
+    # the summary at the end of playbooks/rollout.yml (a rollout that goes on past a failed host)
+    task = find_task("playbooks/rollout.yml", "Show what was rolled")
+    assert render(task["ansible.builtin.debug"]["msg"], play(outcomes)) == expected
