@@ -189,3 +189,13 @@ def test_check_mode_runs_the_module_in_the_task_without_a_job(run, tmp_path):
     result, task, _removed, sleeps = run(host, RESTART, check_mode=True)
     assert host.calls == [(None, dict(RESTART, controller_run=this_run(PLAY)["id"]), False, 0)]
     assert result == DONE and sleeps == [] and task.args == RESTART
+
+
+def test_a_task_s_own_async_is_left_to_ansible(run, tmp_path):
+    host = Host(tmp_path)
+    result, task, removed, sleeps = run(host, RESTART, async_val=3600)
+    # Ansible polls the job itself (or leaves it running, poll: 0), by the job id it gets back; no
+    # heartbeat comes while it does, so the job is not tied to this run's hold on the host
+    assert host.calls == [(None, RESTART, True, 3600)]
+    assert result["ansible_job_id"] == "j4711" and result["started"] == 1
+    assert sleeps == [] and removed == [] and task.args == RESTART and task.async_val == 3600
