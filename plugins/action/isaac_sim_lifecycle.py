@@ -4,7 +4,8 @@
 renewing this run's hold on the host (the lock) every few seconds: the heartbeat that tells
 the host the controller is still there. When the controller goes away (Ctrl-C, killed, its
 connection lost) the renewals stop, and the lifecycle stops before its next instance instead
-of rolling the rest of the host unwatched (isaac_sim_lifecycle's controller_run)."""
+of rolling the rest of the host unwatched (isaac_sim_lifecycle's controller_run). A task with
+its own async is run as Ansible runs any module with it, not tied to the lock."""
 
 import time
 
@@ -26,9 +27,17 @@ class ActionModule(ActionBase):
     def run(self, tmp=None, task_vars=None):
         result = super().run(tmp, task_vars)
         args = dict(self._task.args)
+        if self._task.async_val:
+            # the task's own async: Ansible polls the job by its id (or leaves it, poll: 0), as for any
+            # module. No renewals come from here meanwhile, so the job is not tied to this run's lock.
+            wrap_async = not self._connection.has_native_async
+            result.update(self._execute_module(module_args=args, task_vars=task_vars, wrap_async=wrap_async))
+            if not wrap_async:
+                self._remove_tmp_path(self._connection._shell.tmpdir)
+            return result
         me = this_run(task_vars.get("ansible_play_name", ""))
         args["controller_run"] = me["id"]
-        if self._task.check_mode or self._task.async_val:
+        if self._task.check_mode:
             result.update(self._execute_module(module_args=args, task_vars=task_vars))
             return result
         self._task.async_val = JOB_LIMIT_S

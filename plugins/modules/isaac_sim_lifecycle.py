@@ -104,6 +104,7 @@ options:
         lock not renewed for 30 s means the controller is gone (Ctrl-C, killed); the rollout stops before
         the next instance, the one in hand left ready or reverted, and says so in the journal
         (C(journalctl -t isaac-sim-lifecycle)); the next run's lock note repeats it.
+      - Left empty for a task with its own C(async), which Ansible polls without renewing the lock.
     type: str
     default: ""
 notes:

@@ -921,7 +921,9 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
                 state = f"REVERT FAILED: {failed.get('revert_error')}"
             reverted.append(f"{host}: {layout.container(failed['id'])} ({failed.get('reason')}) - {state}")
             why = f"{layout.container(failed['id'])} on {host}: {failed.get('reason')}"
-        elif out.get("failed") and not out.get("done"):
+        elif out.get("failed"):
+            # a failure of no one instance: the lock, the host's files, or a rollout interrupted
+            # after some instances were done (their names are in rolled)
             why = why or f"{host}: {out.get('msg')}"
         if out.get("untouched"):
             untouched.append(f"{host}: " + ", ".join(layout.container(i) for i in out["untouched"]))
