@@ -12,6 +12,8 @@ import re
 import socket
 import traceback
 
+import pytest
+from ansible.errors import AnsibleActionFail
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_results_lock
 from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import this_run
 
@@ -38,6 +40,7 @@ class Connection:
 
 def lock(args: dict, play: str = PLAN, check_mode: bool = False) -> dict:
     plugin = isaac_sim_results_lock.ActionModule(Task(args, check_mode), Connection(), None, None, None, None)
+    plugin._load_name = Task.action  # as Ansible's plugin loader names it
     return plugin.run(task_vars={"ansible_play_name": play, "inventory_hostname": "gpu-1"})
 
 
@@ -155,3 +158,30 @@ def test_check_mode_makes_no_directory(tmp_path):
 def test_an_empty_directory_is_an_error_naming_the_variable(tmp_path):
     assert hold("") == {"failed": True, "msg": "test_suite_dir is empty. Fix: give the results directory."}
     assert lock({"path": ""})["msg"] == "path is empty. Fix: give the results directory."
+
+
+def test_the_options_are_checked_as_documented_so_a_misspelt_state_takes_nothing(tmp_path):
+    runs = tmp_path / "test-runs"
+    with pytest.raises(AnsibleActionFail) as refused:
+        lock({"path": str(runs), "state": "released"})
+    assert refused.value.message == "value of state must be one of: held, absent, got: released"
+    with pytest.raises(AnsibleActionFail) as refused:
+        lock({"path": str(runs), "wait": 600})
+    assert refused.value.message == (
+        "Unsupported parameters for (isaacsim.fleet.isaac_sim_results_lock) module: wait. "
+        "Supported parameters include: path, state, variable."
+    )
+    with pytest.raises(AnsibleActionFail) as refused:
+        lock({"state": "absent"})
+    assert refused.value.message == "missing required arguments: path"
+    assert not runs.exists()
+
+
+def test_a_directory_under_home_is_the_one_the_suite_writes(tmp_path, monkeypatch):
+    # the copy and fetch tasks that write the results expand ~ (their paths are of type path)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    assert hold("~/test-runs")["acquired"] is True
+    assert holder(tmp_path / "home" / "test-runs")["id"] == this_run(PLAN)["id"]
+    assert not (tmp_path / "~").exists()
+    assert give_back("~/test-runs")["released"] is True
