@@ -4,7 +4,11 @@ result of the async isaac_sim_experience task | isaac_sim_run_summary, printed b
 from __future__ import annotations
 
 from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_run_summary import FilterModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle
 from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.runs.test_runner import (
+    INSTANCE_ENV,
+    SIM,
     Host,
     experience_params,
     make,
@@ -56,3 +60,19 @@ def test_exit_codes_restarts_and_peaks_as_a_person_reads_them():
         "planner              service      not started        0         -            -",
         "robot                service          -        2      250%    200.0 MiB",
     ]
+
+
+def test_a_borrowed_instance_that_did_not_come_back_is_said(tmp_path, monkeypatch):
+    def give_back(host, i, run, companions=None):
+        """The instance's restart through systemd, which ends without it ready."""
+        host.remove(layout.lent_marker(i))
+        return "not ready within 300 s"
+
+    monkeypatch.setattr(lifecycle, "give_back", give_back)
+    host = Host(tmp_path)
+    host.files[layout.env_file(0)] = INSTANCE_ENV
+    host.files[layout.marker(0)] = ""
+    result = make(host)[0].experience(experience_params(tmp_path, compose=SIM, name="sim", instance=0))
+    lines = summary(result)
+    assert lines[0].startswith("sim on h1 (sim-20261124-0000-ab12): PASSED - ")
+    assert lines[-1] == "after the run, isaac-sim@0 did not come back: not ready within 300 s"
