@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from ansible.errors import AnsibleFilterError
 from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_suite_plan import FilterModule
 from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_suite_report import suite_report
 
@@ -125,6 +126,21 @@ def test_one_bad_file_stops_the_suite_before_any_run_is_planned(suite_dir):
     ]
 
 
+def test_a_suite_file_that_cannot_be_read_names_test_suite_file(suite_dir):
+    gone = suite_dir / "nightly.yml"
+    with pytest.raises(AnsibleFilterError) as failed:
+        plan(gone, {"gpu-1": caps()})
+    assert failed.value.message == (
+        f"test_suite_file: {gone} cannot be read ([Errno 2] No such file or directory: '{gone}'). "
+        "Fix: give the suite's path."
+    )
+    write(gone, "experiences: [pass.yml\n")
+    with pytest.raises(AnsibleFilterError) as failed:
+        plan(gone, {"gpu-1": caps()})
+    assert failed.value.message.startswith(f"test_suite_file: {gone} cannot be read (not YAML: ")
+    assert failed.value.message.endswith("). Fix: give the suite's path.")
+
+
 def test_a_re_run_plans_only_the_runs_that_did_not_pass_in_the_previous_suite_json(suite_dir):
     suite = write(suite_dir / "nightly.yml", NIGHTLY)
     hosts = {"gpu-1": caps(instances=1), "gpu-2": caps(gpus=2)}
@@ -157,3 +173,28 @@ def test_a_re_run_plans_only_the_runs_that_did_not_pass_in_the_previous_suite_js
         "pass#2",
         "pass#3",
     ]
+
+
+def test_previous_results_that_cannot_be_read_name_test_suite_rerun_failed(suite_dir):
+    suite = write(suite_dir / "nightly.yml", NIGHTLY)
+    previous = suite_dir / "test-runs" / "suite.json"
+    reasons = {
+        # the first re-run asked for before any suite wrote there
+        None: f"[Errno 2] No such file or directory: '{previous}'",
+        "": "Expecting value: line 1 column 1 (char 0)",
+        "[]": "not a suite's results: a list of runs, each with its title, under results",
+        '{"results": null}': "not a suite's results: a list of runs, each with its title, under results",
+        '{"results": [{"verdict": {"result": "passed"}}]}': (
+            "not a suite's results: a list of runs, each with its title, under results"
+        ),
+    }
+    for text, reason in reasons.items():
+        if text is not None:
+            previous.parent.mkdir(exist_ok=True)
+            previous.write_text(text)
+        with pytest.raises(AnsibleFilterError) as failed:
+            plan(suite, {"gpu-1": caps()}, str(previous))
+        assert failed.value.message == (
+            f"test_suite_rerun_failed: the previous results {previous} cannot be read ({reason}). "
+            "Fix: run the whole suite."
+        ), text
