@@ -198,3 +198,24 @@ def test_previous_results_that_cannot_be_read_name_test_suite_rerun_failed(suite
             f"test_suite_rerun_failed: the previous results {previous} cannot be read ({reason}). "
             "Fix: run the whole suite."
         ), text
+
+
+def test_a_wrong_timeout_is_named_where_it_is_set(suite_dir):
+    def errors(suite: dict) -> list:
+        found = plan(write(suite_dir / "timeouts.yml", suite), {"gpu-1": caps(instances=1)})
+        assert found["plan"] == {"gpu-1": []}
+        return found["errors"]
+
+    entries = ["experiences/pass.yml", {"file": "experiences/sim.yml", "timeout": 30}]
+    env = {"IMAGE": "reg/standin:1"}
+    # the suite's own, which every entry without one of its own takes: said once, of the suite
+    assert errors({"environment": env, "timeout": "soon", "experiences": entries}) == [
+        "test_suite.timeout: 'soon'. Fix: a number of seconds above 0."
+    ]
+    assert errors({"environment": env, "timeout": 0, "experiences": entries}) == [
+        "test_suite.timeout: 0. Fix: a number of seconds above 0."
+    ]
+    entries[1]["timeout"] = -5
+    assert errors({"environment": env, "experiences": entries}) == [
+        "test_suite.experiences[1].timeout: -5. Fix: a number of seconds above 0."
+    ]
