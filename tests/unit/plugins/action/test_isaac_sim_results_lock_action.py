@@ -13,9 +13,11 @@ import socket
 import traceback
 
 import pytest
+import yaml
 from ansible.errors import AnsibleActionFail
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_results_lock
 from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import this_run
+from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_results_lock as module
 
 # the two tasks of playbooks/test_suite.yml, in its two plays
 PLAN, REPORT = "Plan the suite, then run each host's share", "Report the suite"
@@ -185,3 +187,17 @@ def test_a_directory_under_home_is_the_one_the_suite_writes(tmp_path, monkeypatc
     assert holder(tmp_path / "home" / "test-runs")["id"] == this_run(PLAN)["id"]
     assert not (tmp_path / "~").exists()
     assert give_back("~/test-runs")["released"] is True
+
+
+def test_it_checks_the_options_the_module_documents_and_returns_what_it_documents(tmp_path):
+    doc = yaml.safe_load(module.DOCUMENTATION)
+    documented = {
+        name: {k: v for k, v in option.items() if k in ("type", "required", "choices", "default")}
+        for name, option in doc["options"].items()
+    }
+    assert documented == isaac_sim_results_lock.ARGUMENT_SPEC
+    assert sorted(yaml.safe_load(module.RETURN)) == ["acquired", "released"]
+    held = lock({"path": str(tmp_path)})
+    assert held["acquired"] is True and "released" not in held
+    back = lock({"path": str(tmp_path), "state": "absent"})
+    assert back["released"] is True and "acquired" not in back

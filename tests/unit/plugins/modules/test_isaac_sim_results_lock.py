@@ -1,15 +1,14 @@
 """The module isaac_sim_results_lock is its documentation only: the action plugin of the same name
-does the work on the controller. What it documents is what the plugin takes and returns, and
-what playbooks/test_suite.yml passes it."""
+does the work on the controller (tests/unit/plugins/action/test_isaac_sim_results_lock_action.py
+checks that it takes and returns what is documented here). What playbooks/test_suite.yml and the
+examples pass it is documented, and the playbook gives back the directory it held."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import yaml
-from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_results_lock as action
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_results_lock as module
-from ansible_collections.isaacsim.fleet.tests.unit.plugins.action.test_isaac_sim_results_lock_action import lock
 
 ROOT = Path(__file__).resolve().parents[4]
 NAME = "isaacsim.fleet.isaac_sim_results_lock"
@@ -27,13 +26,19 @@ def calls(tasks) -> list:
     return found
 
 
-def test_the_documented_options_are_the_ones_the_action_plugin_checks():
+def test_it_documents_a_directory_held_or_given_back_and_the_variable_named_in_errors():
     assert DOC["module"] == "isaac_sim_results_lock"
-    documented = {
-        name: {k: v for k, v in option.items() if k in ("type", "required", "choices", "default")}
-        for name, option in DOC["options"].items()
+    assert {name: (o["type"], o.get("required", False), o.get("default")) for name, o in DOC["options"].items()} == {
+        "path": ("path", True, None),
+        "state": ("str", False, "held"),
+        "variable": ("str", False, "path"),
     }
-    assert documented == action.ARGUMENT_SPEC
+    assert DOC["options"]["state"]["choices"] == ["held", "absent"]
+    returned = yaml.safe_load(module.RETURN)
+    assert {name: (r["type"], r["returned"]) for name, r in returned.items()} == {
+        "acquired": ("bool", "when O(state=held)"),
+        "released": ("bool", "when O(state=absent)"),
+    }
 
 
 def test_the_suite_playbook_holds_and_gives_back_one_directory_with_documented_options():
@@ -49,18 +54,8 @@ def test_the_suite_playbook_holds_and_gives_back_one_directory_with_documented_o
     # one directory in both plays: the one given back is the one held
     assert found[0][1] == found[1][1] == "{{ lookup('ansible.builtin.env', 'PWD') }}/test-runs"
     examples = yaml.safe_load(module.EXAMPLES)
+    assert len(examples) == 1
     for task in [t for _play, _dir, t in found] + examples:
         args = task[NAME]
         assert set(args) <= set(DOC["options"]), args
         assert args.get("state", "held") in DOC["options"]["state"]["choices"]
-
-
-def test_it_returns_what_it_documents(tmp_path):
-    returned = yaml.safe_load(module.RETURN)
-    assert sorted(returned) == ["acquired", "released"]
-    held = lock({"path": str(tmp_path)})
-    back = lock({"path": str(tmp_path), "state": "absent"})
-    assert held["acquired"] is True and "released" not in held
-    assert back["released"] is True and "acquired" not in back
-    assert returned["acquired"]["returned"] == "when O(state=held)"
-    assert returned["released"]["returned"] == "when O(state=absent)"
