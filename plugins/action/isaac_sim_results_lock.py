@@ -12,6 +12,13 @@ from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import _al
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 
 LOCK_NAME = ".suite-lock.json"
+# the module's documented options (plugins/modules/isaac_sim_results_lock.py), checked as Ansible checks a
+# module's: a misspelt state never takes the directory it meant to give back, and ~ is the user's home
+ARGUMENT_SPEC = {
+    "path": {"type": "path", "required": True},
+    "state": {"type": "str", "choices": ["held", "absent"], "default": "held"},
+    "variable": {"type": "str", "default": "path"},
+}
 
 
 class ActionModule(ActionBase):
@@ -20,14 +27,14 @@ class ActionModule(ActionBase):
 
     def run(self, tmp=None, task_vars=None):
         result = super().run(tmp, task_vars)
-        args = self._task.args
+        _validation, args = self.validate_argument_spec(ARGUMENT_SPEC)
         directory = str(args.get("path") or "")
         variable = str(args.get("variable") or "path")
         if not directory:
             return dict(result, failed=True, msg=f"{variable} is empty. Fix: give the results directory.")
         me = this_run(task_vars.get("ansible_play_name", ""))
         path, guard = os.path.join(directory, LOCK_NAME), os.path.join(directory, ".suite-lock")
-        if args.get("state", "held") == "absent":
+        if args["state"] == "absent":
             released = os.path.isdir(directory) and runlock.release(me, path, guard)
             return dict(result, changed=False, released=released)
         if self._task.check_mode and not os.path.isdir(directory):

@@ -58,20 +58,28 @@ def _load(path):
 def _previous(path) -> list:
     try:
         with open(path) as fh:
-            return json.load(fh).get("results", [])
+            data = json.load(fh)
     except (OSError, ValueError) as exc:
-        raise AnsibleFilterError(
-            f"test_suite_rerun_failed: the previous results {path} cannot be read ({exc}). Fix: run the whole suite."
-        ) from exc
+        reason = str(exc)
+    else:
+        results = data.get("results") if isinstance(data, dict) else None
+        if isinstance(results, list) and all(isinstance(r, dict) and "title" in r for r in results):
+            return results
+        reason = "not a suite's results: a list of runs, each with its title, under results"
+    # the reason is in the message: Ansible 2.19 would append a chained cause to it
+    raise AnsibleFilterError(
+        f"test_suite_rerun_failed: the previous results {path} cannot be read ({reason}). Fix: run the whole suite."
+    )
 
 
 def suite_plan(path, hosts, previous=None):
     try:
         data = _load(path)
     except (OSError, ValueError) as exc:
+        # the reason is in the message: Ansible 2.19 would append a chained cause to it
         raise AnsibleFilterError(
             f"test_suite_file: {path} cannot be read ({exc}). Fix: give the suite's path."
-        ) from exc
+        ) from None
     timeout = (data or {}).get("timeout", 600) if isinstance(data, dict) else 600
     runs, errors = suite.expand(data, os.path.dirname(os.path.abspath(path)), _load, timeout)
     if previous:

@@ -34,6 +34,14 @@ def expand(suite, base_dir: str, load, default_timeout: float = 600) -> tuple:
         return [], ["test_suite: no experiences. Fix: give a list under experiences, each with a file."]
     for key in sorted(set(suite) - {"experiences", "environment", "timeout"}):
         errors.append(f"test_suite: {key} is not a setting of a suite. Fix: experiences, environment or timeout.")
+    given_timeout = default_timeout
+    try:
+        default_timeout = float(default_timeout)
+    except (TypeError, ValueError):
+        default_timeout = 0
+    if default_timeout <= 0:
+        # said once, here: not as a wrong timeout of each entry that has none of its own
+        errors.append(f"test_suite.timeout: {given_timeout!r}. Fix: a number of seconds above 0.")
     names = set()
     for n, entry in enumerate(entries):
         where = f"test_suite.experiences[{n}]"
@@ -64,7 +72,8 @@ def expand(suite, base_dir: str, load, default_timeout: float = 600) -> tuple:
         except (TypeError, ValueError):
             timeout = 0
         if timeout <= 0:
-            errors.append(f"{where}.timeout: {entry.get('timeout')!r}. Fix: a number of seconds above 0.")
+            if "timeout" in entry:
+                errors.append(f"{where}.timeout: {entry['timeout']!r}. Fix: a number of seconds above 0.")
             continue
         mode = entry.get("simulator", "borrow")
         if mode not in SIMULATOR_MODES:

@@ -685,7 +685,7 @@ def _bytes(n) -> str:
 
 
 def summary_lines(result: dict) -> list:
-    """A run for a person: its verdict, then one row per service."""
+    """A run for a person: its verdict, one row per service, and a borrowed instance that did not come back."""
     verdict = result.get("verdict") or {}
     lines = [
         f"{result.get('experience')} on {result.get('host')} ({result.get('run')}): "
@@ -702,6 +702,9 @@ def summary_lines(result: dict) -> list:
         mem = _bytes(m["memory_peak_bytes"]) if m.get("samples") else "-"
         role = "orchestrator" if svc.get("orchestrator") else "service"
         lines.append(f"{name:<20} {role:<12} {exit_text:>5} {svc.get('restarts', 0):>8} {cpu:>9} {mem:>12}")
+    if result.get("restart_error"):
+        # the instance is not lent again until it is ready; nothing else of the run says so
+        lines.append(f"after the run, {result['restart_error']}")
     return lines
 
 
