@@ -1,5 +1,8 @@
 """The host-layout contract: names, paths and the env-file quote/parse pair."""
 
+import random
+import shlex
+
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan
@@ -103,3 +106,22 @@ def test_unit_numbers_are_numbers_whatever_was_given():
     # a stop while dockerd is down (systemd restarting it) must not wait on Docker's socket
     assert "ExecStop=-/bin/sh -c 'systemctl -q is-active docker.service || exit 0; exec /usr/bin/docker stop" in unit
     assert "EnvironmentFile=/etc/isaac-sim/instance-%i.env\n" in unit
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_split_args_reads_as_shlex_does(seed):
+    """The regular-expression reader gives shlex.split's words, or its refusal, on any text, and
+    join_args' own output back exactly."""
+    rng = random.Random(seed)
+    alphabet = " \t\n'\"\\$a-=b,`;#"
+    for _n in range(4000):
+        text = "".join(rng.choice(alphabet) for _m in range(rng.randint(0, 14)))
+        try:
+            want = shlex.split(text)
+        except ValueError:
+            with pytest.raises(ValueError):
+                layout.split_args(text)
+        else:
+            assert layout.split_args(text) == want, text
+        args = ["".join(rng.choice(alphabet) for _m in range(rng.randint(0, 8))) for _k in range(rng.randint(0, 5))]
+        assert layout.split_args(layout.join_args(args)) == args
