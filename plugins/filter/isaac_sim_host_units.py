@@ -1,11 +1,12 @@
 # Copyright: isaacsim.fleet contributors
 # Apache-2.0
-"""The units of the collection's host services, written the one way every unit is (module_utils/hostlib/units.py)."""
+"""The units of the collection's host services, written the one way every unit is (module_utils/common/units.py)."""
 
 from __future__ import annotations
 
 from ansible.errors import AnsibleFilterError
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import unit_files
 
 DOCUMENTATION = r"""
 name: isaac_sim_host_units
@@ -53,8 +54,8 @@ def isaac_sim_host_units(settings: dict, service: str) -> dict:
     if missing:
         raise AnsibleFilterError(f"isaac_sim_host_units({service!r}): settings lack {', '.join(missing)}")
     if service == "status":
-        return {layout.STATUS_UNIT: layout.render_status_unit(settings)}
-    return layout.render_metrics_units(settings)
+        return {layout.STATUS_UNIT: unit_files.render_status_unit(settings)}
+    return unit_files.render_metrics_units(settings)
 
 
 class FilterModule:

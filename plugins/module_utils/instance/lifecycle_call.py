@@ -17,7 +17,13 @@ import os
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import dirs
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, network, runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
+    hostprobe,
+    lifecycle,
+    network,
+    runlock,
+    unit_files,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.lifecycle import Host
 
 # the target's links: every instance enabled on this host
@@ -38,10 +44,10 @@ def _want(host: Host, p: dict, found: dict) -> dict:
     env_mode = 0o600 if p["secret_env"] else 0o644
     files = {
         os.path.join(layout.UNIT_DIR, layout.UNIT_TEMPLATE): (
-            layout.render_unit(plan["settings"], p["managed"]),
+            unit_files.render_unit(plan["settings"], p["managed"]),
             0o644,
         ),
-        os.path.join(layout.UNIT_DIR, layout.TARGET): (layout.render_target(p["managed"]), 0o644),
+        os.path.join(layout.UNIT_DIR, layout.TARGET): (unit_files.render_target(p["managed"]), 0o644),
     }
     for name in layout.SCRIPTS:
         if name not in p["scripts"]:
@@ -50,18 +56,20 @@ def _want(host: Host, p: dict, found: dict) -> dict:
         files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o755)
     for unit in plan.get("companion_units", []):
         files[os.path.join(layout.UNIT_DIR, layout.companion_template(unit["name"]))] = (
-            layout.render_companion_unit(unit, plan["settings"], p["managed"]),
+            unit_files.render_companion_unit(unit, plan["settings"], p["managed"]),
             0o644,
         )
     # templates of companions the plan no longer has: removed once their units are gone
     for name in hostprobe.companion_templates(layout.UNIT_DIR, host.find):
         files.setdefault(os.path.join(layout.UNIT_DIR, layout.companion_template(name)), (None, None))
     instances = {
-        inst["id"]: layout.render_env(inst, plan, p["image_id"], p["secret_env"], p["managed"])
+        inst["id"]: unit_files.render_env(inst, plan, p["image_id"], p["secret_env"], p["managed"])
         for inst in plan["instances"]
     }
     companions = {
-        inst["id"]: {c["name"]: layout.render_companion_env(c, plan, p["managed"]) for c in inst.get("companions", [])}
+        inst["id"]: {
+            c["name"]: unit_files.render_companion_env(c, plan, p["managed"]) for c in inst.get("companions", [])
+        }
         for inst in plan["instances"]
     }
     gone = []

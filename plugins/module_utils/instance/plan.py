@@ -20,7 +20,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import
     parse_size,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, status_server
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, network
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, network, unit_files
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import (
     ENV,
     KIT,
@@ -355,8 +355,8 @@ def _hub_cache(cfg, release, taken, held) -> tuple[dict, list]:
         )
     hub = {"enabled": True, "image": image, "dir": directory, "port": port}
     # rendered here, so the role writes exactly what the layout defines
-    hub["unit"] = layout.render_hub_unit(hub, layout.MANAGED)
-    hub["dropin"] = layout.render_hub_dropin(layout.MANAGED)
+    hub["unit"] = unit_files.render_hub_unit(hub, layout.MANAGED)
+    hub["dropin"] = unit_files.render_hub_dropin(layout.MANAGED)
     return hub, errors
 
 

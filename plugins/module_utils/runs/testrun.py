@@ -22,8 +22,8 @@ import math
 import re
 import signal
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout, units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse, units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, releases
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import judge
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import junit as junit_xml

@@ -6,6 +6,7 @@ import pytest
 from ansible.errors import AnsibleFilterError
 from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_host_units import FilterModule, isaac_sim_host_units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import unit_files
 
 STATUS = {
     "name": "gpu host 1",
@@ -33,7 +34,7 @@ def test_status_unit_runs_the_server_with_its_settings_sandboxed():
         " --name 'gpu host 1' --address 0.0.0.0 --port 8290 --allow 10.0.0.0/8 --allow 127.0.0.1/32"
         " --origin http://dash:8080 --gpu-source auto"
     )
-    for key, value in layout.SANDBOX:
+    for key, value in unit_files.SANDBOX:
         assert f"{key}={value}" in text
     assert text[-2:] == ["[Install]", "WantedBy=multi-user.target"]
 

@@ -2,7 +2,7 @@
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import endpoints, layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan, unit_files
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 
 VIEWER = {
@@ -120,7 +120,7 @@ def test_companion_ports_may_not_land_on_another_port_or_one_held_by_another_pro
 
 def test_the_companion_unit_starts_after_its_instance_and_stops_and_restarts_with_it():
     result = build([VIEWER])
-    text = layout.render_companion_unit(result["companion_units"][0], result["settings"], "managed")
+    text = unit_files.render_companion_unit(result["companion_units"][0], result["settings"], "managed")
     for line in (
         "BindsTo=isaac-sim@%i.service",
         "After=isaac-sim@%i.service",
@@ -139,7 +139,7 @@ def test_the_companion_unit_starts_after_its_instance_and_stops_and_restarts_wit
 def test_the_companion_env_file_reads_back_exactly():
     result = build([BRIDGE])
     comp = result["instances"][3]["companions"][0]
-    env = layout.parse(layout.render_companion_env(comp, result, "managed"))
+    env = layout.parse(unit_files.render_companion_env(comp, result, "managed"))
     assert (
         env[layout.K_CONTAINER] == "isaac-sim-3-ros-bridge" and env[layout.K_UNIT] == "isaac-sim-ros-bridge@3.service"
     )

@@ -10,7 +10,7 @@ import fnmatch
 import os
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle, reserved_ports
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle, reserved_ports, unit_files
 
 UNIT_FILE = "/etc/systemd/system/isaac-sim@.service"
 GATE = "/usr/local/libexec/isaac-sim/isaac-sim-ready"
@@ -271,7 +271,7 @@ def test_a_target_enabled_before_docker_wanted_it_is_enabled_again_and_nothing_r
 
 
 def test_the_target_is_started_by_docker_and_stops_with_it():
-    text = layout.render_target("managed")
+    text = unit_files.render_target("managed")
     assert "Requires=docker.service" in text and "WantedBy=multi-user.target docker.service" in text
 
 

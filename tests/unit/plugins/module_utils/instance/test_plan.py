@@ -1,6 +1,5 @@
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan, unit_files
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, release_of_tag
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 
@@ -449,11 +448,11 @@ def test_own_addresses_keep_the_release_ports_and_companions_share_the_instance_
         bridge = inst["companions"][0]
         assert bridge["docker_args"][0] == f"--network=container:isaac-sim-{i}"
         assert bridge["ports"] == {"dds": 7400} and bridge["container_env"]["SIM"] == address
-    env = layout.render_env(result["instances"][2], result, "sha256:x", {}, "managed")
+    env = unit_files.render_env(result["instances"][2], result, "sha256:x", {}, "managed")
     assert 'ISAAC_SIM_ADDRESS="10.0.0.52"' in env and 'ISAAC_SIM_PUBLIC_ADDRESS="10.0.0.52"' in env
     # on the host's network the env file has no address line: deployed hosts keep their files
     shared = plan.build(cfg(), HOST)
-    assert "ISAAC_SIM_ADDRESS" not in layout.render_env(shared["instances"][0], shared, "sha256:x", {}, "m")
+    assert "ISAAC_SIM_ADDRESS" not in unit_files.render_env(shared["instances"][0], shared, "sha256:x", {}, "m")
     assert shared["network"] == {"mode": "host", "found": False}
 
 
@@ -484,9 +483,11 @@ def test_companions_of_instances_with_own_addresses_check_no_host_port_and_take_
     c = cfg(web_viewer_image="reg.lab/viewer:1", **OWN)
     result = plan.build(c, LAN_HOST)
     viewer = result["instances"][0]["companions"][0]
-    assert 'ISAAC_SIM_ADDRESS="10.0.0.50"' in layout.render_companion_env(viewer, result, "m")
+    assert 'ISAAC_SIM_ADDRESS="10.0.0.50"' in unit_files.render_companion_env(viewer, result, "m")
     shared = plan.build(cfg(web_viewer_image="reg.lab/viewer:1"), HOST)
-    assert "ISAAC_SIM_ADDRESS" not in layout.render_companion_env(shared["instances"][0]["companions"][0], shared, "m")
+    assert "ISAAC_SIM_ADDRESS" not in unit_files.render_companion_env(
+        shared["instances"][0]["companions"][0], shared, "m"
+    )
     bad = [{"name": "bridge", "image": "reg/bridge:1", "docker_args": ["-p", "7400:7400", "--hostname=robot"]}]
     errors = errors_of(cfg(companions=bad, **OWN), LAN_HOST)
     assert [e.split(":")[0] for e in errors] == ["isaac_sim_companions[bridge].docker_args"] * 2

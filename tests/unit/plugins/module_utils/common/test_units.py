@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import units
 
 
 def test_sections_are_a_blank_line_apart_under_the_header():
