@@ -928,8 +928,9 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
             rolled.append(f"{host}: " + ", ".join(layout.container(i) for i in moved))
         elif not out.get("failed"):
             unchanged.append(host)
-        failed = out.get("failed_instance")
-        if failed:
+        # every instance that failed (several where they started together); older results name one
+        failures = out.get("failed_instances") or ([out["failed_instance"]] if out.get("failed_instance") else [])
+        for failed in failures:
             if failed.get("reverted") is None:
                 state = "not started, stopped" if failed.get("left") == "stopped" else "not changed"
             elif failed.get("reverted"):
@@ -937,7 +938,8 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
             else:
                 state = f"REVERT FAILED: {failed.get('revert_error')}"
             reverted.append(f"{host}: {layout.container(failed['id'])} ({failed.get('reason')}) - {state}")
-            why = f"{layout.container(failed['id'])} on {host}: {failed.get('reason')}"
+        if failures:
+            why = "; ".join(f"{layout.container(f['id'])} on {host}: {f.get('reason')}" for f in failures)
         elif out.get("failed"):
             # a failure of no one instance: the lock, the host's files, or a rollout interrupted
             # after some instances were done (their names are in rolled)

@@ -140,3 +140,49 @@ def test_a_created_network_is_reported_and_check_mode_only_says_it(tmp_path):
     assert checked["network"] == "create" and [x for x in h.log if x.startswith("docker network")] == []
     out = lifecycle_call.call(h.host, p)
     assert out["network"] == "create" and h.log.count(" ".join(network.create_argv(LAN))) == 1
+
+
+def never_ready(tmp_path, count: int) -> dict:
+    """The module's parameters for a first deploy of `count` instances whose image never gets ready."""
+    built = plan.build(
+        plan_config(instance_count=count, data_root=str(tmp_path / "data"), image="reg/isaac-sim:never-ready"), {}
+    )
+    built.update(uid=os.getuid(), gid=os.getgid())
+    return params(tmp_path, plan=built)
+
+
+STOPPED = "it was stopped (there are no earlier settings to go back to)"
+
+
+def gate(i: int) -> str:
+    """The scripted gate's reason for instance i."""
+    return f"isaac-sim-{i} was not ready within 20 s (last lines: loading scene)"
+
+
+def test_a_new_instance_that_does_not_start_fails_the_call_naming_it_as_before(tmp_path):
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(scripted(1, running=False).host, never_ready(tmp_path, 1))
+    assert exc.value.msg == f"isaac-sim-0: {gate(0)}; {STOPPED}"
+    fields = exc.value.fields
+    assert fields["failed_instance"]["id"] == 0 and fields["failed_instances"] == [fields["failed_instance"]]
+
+
+def test_every_new_instance_that_does_not_start_is_named_in_the_failure(tmp_path):
+    h = scripted(3, running=False)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, never_ready(tmp_path, 3))
+    # the first as a single failure says it, then each other one the same way
+    assert exc.value.msg == (
+        f"isaac-sim-0: {gate(0)}; {STOPPED}; also isaac-sim-1: {gate(1)}; {STOPPED}; "
+        f"also isaac-sim-2: {gate(2)}; {STOPPED}"
+    )
+    fields = exc.value.fields
+    assert [f["id"] for f in fields["failed_instances"]] == [0, 1, 2]
+    assert fields["failed_instance"] == fields["failed_instances"][0] and fields["done"] == []
+    assert all(f["left"] == "stopped" and f["reverted"] is None for f in fields["failed_instances"])
+    assert not any(layout.env_file(i) in h.files for i in range(3))
+
+
+def test_a_call_that_succeeds_has_no_failed_instances(tmp_path):
+    out = lifecycle_call.call(scripted(2, running=False).host, params(tmp_path))
+    assert out["failed_instance"] is None and out["failed_instances"] == []
