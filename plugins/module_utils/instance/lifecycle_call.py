@@ -201,13 +201,14 @@ def _apply(host: Host, p: dict, out: dict, found: dict, check: bool, diff: bool)
 
 
 def _start(host: Host, ids, found: dict) -> dict:
-    """action=start: the instances started together, the first that failed reported."""
-    result = {"done": [], "failed": None, "untouched": []}
+    """action=start: the instances started together, each that failed reported (left as systemd has it)."""
+    result = {"done": [], "failed": None, "failures": [], "untouched": []}
     for i, (ok, reason) in lifecycle.start(host, ids, companions=found).items():
         if ok:
             result["done"].append({"id": i, "action": "start"})
-        elif result["failed"] is None:
-            result["failed"] = {"id": i, "reason": reason, "reverted": None, "left": "failed"}
+        else:
+            result["failures"].append({"id": i, "reason": reason, "reverted": None, "left": "failed"})
+    result["failed"] = result["failures"][0] if result["failures"] else None
     return result
 
 

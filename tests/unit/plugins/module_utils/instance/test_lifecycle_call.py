@@ -11,7 +11,11 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layo
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle_call, network, plan
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
-from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import OLD, ScriptedHost
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import (
+    NEVER,
+    OLD,
+    ScriptedHost,
+)
 
 LAN = {"mode": "macvlan", "driver": "macvlan", "parent": "eth0", "subnet": "10.0.0.0/24", "gateway": "10.0.0.1"}
 RM = " ".join(network.remove_argv())
@@ -186,3 +190,17 @@ def test_every_new_instance_that_does_not_start_is_named_in_the_failure(tmp_path
 def test_a_call_that_succeeds_has_no_failed_instances(tmp_path):
     out = lifecycle_call.call(scripted(2, running=False).host, params(tmp_path))
     assert out["failed_instance"] is None and out["failed_instances"] == []
+
+
+def test_a_day_2_start_names_every_instance_that_did_not_start(tmp_path):
+    h = scripted(3, running=False)
+    for i in (0, 2):
+        h.files[layout.env_file(i)] = (NEVER, 0o644)
+    h.files[layout.env_file(1)] = (OLD, 0o644)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, params(tmp_path, action="start", ids=[0, 1, 2]))
+    assert exc.value.msg == f"isaac-sim-0: {gate(0)}; also isaac-sim-2: {gate(2)}"
+    fields = exc.value.fields
+    assert [f["id"] for f in fields["failed_instances"]] == [0, 2] and fields["failed_instance"]["id"] == 0
+    assert all(f["left"] == "failed" for f in fields["failed_instances"])
+    assert [d["id"] for d in fields["done"]] == [1]
