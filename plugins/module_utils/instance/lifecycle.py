@@ -619,16 +619,20 @@ def apply(host: Host, want: dict, check=False) -> dict:
     def put_back(*ids):
         """Previous settings of the instances `ids` and their companions (and the shared files, once),
         pinned to the previous image. Companions that came with the change leave while their unit
-        file is there."""
+        file is there. A shared file that had no previous version is kept when an instance done
+        in this apply runs on it."""
         for i in ids:
             old = {
                 path: (pinned(host, text) if path == main_env[i] and text else text)
                 for path, text in current[i].items()
             }
             put(i, old, lambda path: files.before.get(path, (None, want["env_mode"]))[1] or want["env_mode"])
-        if shared:
-            files.restore(sorted(shared))
-            if units_changed:
+        # a shared file new in this apply stays once an instance done in it runs on it (the ready
+        # instances of a first deploy): no instance runs on its absence
+        back = sorted(p for p in shared if files.before.get(p, (None, None))[0] is not None or not result["done"])
+        if back:
+            files.restore(back)
+            if any(p.endswith((".service", ".target")) for p in back):
                 host.run(["systemctl", "daemon-reload"])
 
     stopped = []  # serving instances stopped to free ports, not started again yet
@@ -680,6 +684,14 @@ def apply(host: Host, want: dict, check=False) -> dict:
                 continue
             stop(host, failing)
             put_back(*failing)
+            # the ready ones serve: enabled as a start that completes leaves them, so a reboot brings them back
+            ready = [i for i in what if i not in failing and i in to_enable]
+            if ready:
+                host.run(
+                    ["systemctl", "enable"]
+                    + ([] if target_enabled else [layout.TARGET])
+                    + [layout.unit(i) for i in ready]
+                )
             failures = []
             for i in failing:
                 was_new = current[i][main_env[i]] is None

@@ -432,6 +432,31 @@ def test_of_three_new_instances_the_middle_one_fails_and_the_others_are_done():
     assert h.files[layout.env_file(3)][0] == NEW and h.files[layout.env_file(0)][0] == OLD
 
 
+def test_a_first_deploy_that_fails_in_part_keeps_the_files_its_ready_instances_run_on_and_enables_them():
+    h = ScriptedHost(2, running=False)
+    result = lifecycle.apply(h.host, want({0: NEVER, 1: NEW}))
+    assert [d["id"] for d in result["done"]] == [1] and result["failed"]["id"] == 0
+    # the unit and the scripts instance 1 runs on had no earlier version: they stay, and so does it
+    assert h.files[UNIT_FILE] == ("unit v1\n", 0o644) and h.files[GATE] == ("gate v1\n", 0o755)
+    assert f"rm {UNIT_FILE}" not in h.log and h.log.count("systemctl daemon-reload") == 1
+    # enabled, as a deploy that completes leaves it: a reboot brings it back
+    assert h.units[1]["UnitFileState"] == "enabled" and h.target == "enabled"
+    assert stopped_and_forgotten(h, 0)
+    # with none ready, nothing runs on them: they go, as before
+    h = ScriptedHost(2, running=False)
+    lifecycle.apply(h.host, want({0: NEVER, 1: NEVER}))
+    assert UNIT_FILE not in h.files and GATE not in h.files and h.commands("enable") == []
+
+
+def test_new_instances_that_fail_beside_serving_ones_put_the_changed_unit_back():
+    h = ScriptedHost(1)
+    result = lifecycle.apply(h.host, want({0: OLD, 1: NEW, 2: NEVER}, files={UNIT_FILE: ("unit v2\n", 0o644)}))
+    assert [d["id"] for d in result["done"]] == [1] and result["failed"]["id"] == 2 and result["untouched"] == [0]
+    # instance 0 still runs on unit v1, and was not rolled: the unit goes back to v1
+    assert h.files[UNIT_FILE] == ("unit v1\n", 0o644) and h.units[0]["ActiveState"] == "active"
+    assert h.units[1]["ActiveState"] == "active" and stopped_and_forgotten(h, 2)
+
+
 def test_scale_down_goes_first_and_keeps_data_unless_purge():
     h = ScriptedHost(4)
     result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, remove=[2, 3]))
