@@ -150,11 +150,23 @@ done:
   elements: dict
   sample: [{"id": 0, "action": "apply", "restart_s": 6.2, "soak_s": 30.0}]
 failed_instance:
-  description: The instance that failed, why, and whether it went back to its previous settings.
+  description:
+    - The instance that failed, why, and whether it went back to its previous settings; the first of
+      RV(failed_instances) when more than one failed.
   returned: always
   type: dict
   sample: {"id": 0, "reason": "isaac-sim-0 was not ready within 20 s", "reverted": true,
            "reverted_to": "nvcr.io/nvidia/isaac-sim:5.0.0", "revert_error": null, "left": "running"}
+failed_instances:
+  description:
+    - Every instance that failed, each as RV(failed_instance) says it. More than one only where instances
+      started together (new, stopped or failed ones) and several failed; each of those was stopped and a
+      new one forgotten, one that had settings before went back to them. Empty when none failed.
+  returned: always
+  type: list
+  elements: dict
+  sample: [{"id": 2, "reason": "isaac-sim-2 was not ready within 20 s", "reverted": null, "left": "stopped"},
+           {"id": 3, "reason": "isaac-sim-3 was not ready within 20 s", "reverted": null, "left": "stopped"}]
 untouched:
   description: Instances not reached because of the failure.
   returned: always

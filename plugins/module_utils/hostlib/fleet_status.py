@@ -58,7 +58,7 @@ unit_name = layout.unit
 
 COMPANION_UNIT_GLOB = "isaac-sim-*@*.service"
 _UNIT_PREFIX, _UNIT_SUFFIX = UNIT_GLOB.split("*")
-_COMPANION_PREFIX = COMPANION_UNIT_GLOB.split("*")[0]
+_COMPANION_PREFIX = COMPANION_UNIT_GLOB.split("*", maxsplit=1)[0]
 
 
 def systemctl_show_argv(ids, companions=()) -> list:

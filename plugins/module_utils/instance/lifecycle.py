@@ -13,7 +13,9 @@ restart and an upgrade. The steps are the same everywhere:
   soak; so a host of N keeps N-1 serving;
 - on the first failure the instance goes back to its previous settings (and
   image), the files shared by all instances too, everything after it is left
-  as it is, and the failure is reported with the instance and the reason.
+  as it is, and the failure is reported with the instance and the reason;
+  instances started together end together: each one that failed goes back
+  (a new one is stopped), each is reported, and the ready ones are done.
 
 The host is reached through a small interface (run, read, write, remove,
 mode, exists, sleep, now, wall, find, network) that the module binds to the
@@ -494,6 +496,10 @@ def apply(host: Host, want: dict, check=False) -> dict:
     An instance changes when its env file or one of its companions' does; it changes with its
     companions, as one. With defer_running, a host where a serving instance would restart or be
     removed is left as it is (deferred=True): the caller rolls it later, in canary batches.
+
+    Returns {"plan", "done", "failed", "untouched", "deferred", "changed", ...}; when the apply
+    stops at instances that failed, "failures" has one entry for each (more than one only where
+    they started together) and "failed" is the first of them.
     """
     desired = {i: _instance_files(i, want) for i in sorted(want["instances"])}
     found = want.get("companions_found") or {}
@@ -610,16 +616,23 @@ def apply(host: Host, want: dict, check=False) -> dict:
     def write_new(i):
         put(i, desired[i], lambda _path: want["env_mode"])
 
-    def put_back(i):
-        """Previous settings of instance i and its companions (and the shared files), pinned to the
-        previous image. Companions that came with the change leave while their unit file is there."""
-        old = {
-            path: (pinned(host, text) if path == main_env[i] and text else text) for path, text in current[i].items()
-        }
-        put(i, old, lambda path: files.before.get(path, (None, want["env_mode"]))[1] or want["env_mode"])
-        if shared:
-            files.restore(sorted(shared))
-            if units_changed:
+    def put_back(*ids):
+        """Previous settings of the instances `ids` and their companions (and the shared files, once),
+        pinned to the previous image. Companions that came with the change leave while their unit
+        file is there. A shared file that had no previous version is kept when an instance done
+        in this apply runs on it."""
+        for i in ids:
+            old = {
+                path: (pinned(host, text) if path == main_env[i] and text else text)
+                for path, text in current[i].items()
+            }
+            put(i, old, lambda path: files.before.get(path, (None, want["env_mode"]))[1] or want["env_mode"])
+        # a shared file new in this apply stays once an instance done in it runs on it (the ready
+        # instances of a first deploy): no instance runs on its absence
+        back = sorted(p for p in shared if files.before.get(p, (None, None))[0] is not None or not result["done"])
+        if back:
+            files.restore(back)
+            if any(p.endswith((".service", ".target")) for p in back):
                 host.run(["systemctl", "daemon-reload"])
 
     stopped = []  # serving instances stopped to free ports, not started again yet
@@ -640,9 +653,10 @@ def apply(host: Host, want: dict, check=False) -> dict:
         later = [w for kind, w in steps[first:] if kind == "roll"]
         return [i for i in later if i not in stopped] + stopped
 
-    def stop_here(failed, n):
-        """The failure ends the apply."""
-        result.update(failed=failed, untouched=wind_down(n + 1), changed=True)
+    def stop_here(failures, n):
+        """The failure ends the apply: `failures`, one for each instance that failed (more than one
+        only where instances started together), the first of them `failed`."""
+        result.update(failed=failures[0], failures=failures, untouched=wind_down(n + 1), changed=True)
         return result
 
     for n, (kind, what) in enumerate(steps):
@@ -660,26 +674,39 @@ def apply(host: Host, want: dict, check=False) -> dict:
             stopped[:] = [i for i in stopped if i not in what]
             renew = set(changed_ids) | (set(what) if shared else set())
             outcome = start(host, what, renew=renew, companions={i: wanted_companions[i] for i in what})
-            for i, (ok, reason) in outcome.items():
+            # started together, so each ends on its own: the ready ones are done and serve, and every
+            # one that failed is stopped and goes back (none is left restarting on its new settings)
+            failing = [i for i, (ok, _reason) in outcome.items() if not ok]
+            for i, (ok, _reason) in outcome.items():
                 if ok:
                     result["done"].append({"id": i, "action": "start", "restart_s": 0.0, "soak_s": 0.0})
-                    continue
-                stop(host, [i])
+            if not failing:
+                continue
+            stop(host, failing)
+            put_back(*failing)
+            # the ready ones serve: enabled as a start that completes leaves them, so a reboot brings them back
+            ready = [i for i in what if i not in failing and i in to_enable]
+            if ready:
+                host.run(
+                    ["systemctl", "enable"]
+                    + ([] if target_enabled else [layout.TARGET])
+                    + [layout.unit(i) for i in ready]
+                )
+            failures = []
+            for i in failing:
                 was_new = current[i][main_env[i]] is None
-                put_back(i)
-                return stop_here(
+                failures.append(
                     {
                         "id": i,
-                        "reason": reason,
+                        "reason": outcome[i][1],
                         # a new instance has nothing to go back to; it is stopped
                         "reverted": None if was_new else True,
                         "reverted_to": None if was_new else layout.parse(current[i][main_env[i]]).get(layout.K_IMAGE),
                         "revert_error": None,
                         "left": "stopped",
-                    },
-                    n,
+                    }
                 )
-            continue
+            return stop_here(failures, n)
         i = what
         why = host.interrupted()
         if why:
@@ -705,15 +732,17 @@ def apply(host: Host, want: dict, check=False) -> dict:
         put_back(i)
         back, back_reason, _seconds = restart(host, i, companions=_names(current[i], i))
         return stop_here(
-            {
-                "id": i,
-                "reason": reason,
-                "reverted": back,
-                "reverted_to": layout.parse(current[i][main_env[i]] or "").get(layout.K_IMAGE),
-                "revert_error": back_reason,
-                "restart_s": round(restart_s, 3),
-                "left": "running" if back else "failed",
-            },
+            [
+                {
+                    "id": i,
+                    "reason": reason,
+                    "reverted": back,
+                    "reverted_to": layout.parse(current[i][main_env[i]] or "").get(layout.K_IMAGE),
+                    "revert_error": back_reason,
+                    "restart_s": round(restart_s, 3),
+                    "left": "running" if back else "failed",
+                }
+            ],
             n,
         )
 
@@ -911,8 +940,9 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
             rolled.append(f"{host}: " + ", ".join(layout.container(i) for i in moved))
         elif not out.get("failed"):
             unchanged.append(host)
-        failed = out.get("failed_instance")
-        if failed:
+        # every instance that failed (several where they started together); older results name one
+        failures = out.get("failed_instances") or ([out["failed_instance"]] if out.get("failed_instance") else [])
+        for failed in failures:
             if failed.get("reverted") is None:
                 state = "not started, stopped" if failed.get("left") == "stopped" else "not changed"
             elif failed.get("reverted"):
@@ -920,7 +950,8 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
             else:
                 state = f"REVERT FAILED: {failed.get('revert_error')}"
             reverted.append(f"{host}: {layout.container(failed['id'])} ({failed.get('reason')}) - {state}")
-            why = f"{layout.container(failed['id'])} on {host}: {failed.get('reason')}"
+        if failures:
+            why = "; ".join(f"{layout.container(f['id'])} on {host}: {f.get('reason')}" for f in failures)
         elif out.get("failed"):
             # a failure of no one instance: the lock, the host's files, or a rollout interrupted
             # after some instances were done (their names are in rolled)

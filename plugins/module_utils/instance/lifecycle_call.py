@@ -209,13 +209,14 @@ def _apply(host: Host, p: dict, out: dict, found: dict, check: bool, diff: bool)
 
 
 def _start(host: Host, ids, found: dict) -> dict:
-    """action=start: the instances started together, the first that failed reported."""
-    result = {"done": [], "failed": None, "untouched": []}
+    """action=start: the instances started together, each that failed reported (left as systemd has it)."""
+    result = {"done": [], "failed": None, "failures": [], "untouched": []}
     for i, (ok, reason) in lifecycle.start(host, ids, companions=found).items():
         if ok:
             result["done"].append({"id": i, "action": "start"})
-        elif result["failed"] is None:
-            result["failed"] = {"id": i, "reason": reason, "reverted": None, "left": "failed"}
+        else:
+            result["failures"].append({"id": i, "reason": reason, "reverted": None, "left": "failed"})
+    result["failed"] = result["failures"][0] if result["failures"] else None
     return result
 
 
@@ -236,8 +237,16 @@ def _stop_or_remove(host: Host, p: dict, out: dict, found: dict, check: bool) ->
     return {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
 
 
-def _failure_text(failed: dict, untouched: list) -> str:
-    """The message of a failed instance: why, where it was left, and what was not reached."""
+def _failure_text(failures: list, untouched: list) -> str:
+    """The message of the instances that failed (more than one only where they started together):
+    each one, why and where it was left, the first as a single failure says it; then what was
+    not reached."""
+    rest = f"; not reached: {', '.join(layout.container(i) for i in untouched)}" if untouched else ""
+    return "; also ".join(_one_failure(failed) for failed in failures) + rest
+
+
+def _one_failure(failed: dict) -> str:
+    """One failed instance: why, and where it was left."""
     if failed.get("reverted") is None:
         back = "it was stopped (there are no earlier settings to go back to)" if failed.get("left") == "stopped" else ""
     elif failed.get("reverted"):
@@ -246,8 +255,7 @@ def _failure_text(failed: dict, untouched: list) -> str:
         )
     else:
         back = f"going back failed too: {failed.get('revert_error')}"
-    rest = f"; not reached: {', '.join(layout.container(i) for i in untouched)}" if untouched else ""
-    return f"{layout.container(failed['id'])}: {failed['reason']}" + (f"; {back}" if back else "") + rest
+    return f"{layout.container(failed['id'])}: {failed['reason']}" + (f"; {back}" if back else "")
 
 
 def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str = "", record: str = "") -> dict:
@@ -258,7 +266,7 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
     held = run and (runlock.read(lock) or {}).get("id") == run
     if held and not check:
         host.interrupted = lambda: runlock.gone(run, host.wall(), path=lock)
-    out = dict(changed=False, done=[], failed_instance=None, untouched=[])
+    out = dict(changed=False, done=[], failed_instance=None, failed_instances=[], untouched=[])
     found = hostprobe.existing_companions(layout.CONFIG_DIR, host.find)
 
     if p["action"] == "apply":
@@ -274,7 +282,11 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
     else:
         result = _stop_or_remove(host, p, out, found, check)
 
-    out.update(done=result["done"], failed_instance=result["failed"], untouched=result["untouched"])
+    # every instance that failed; more than one only where they started together
+    failures = result.get("failures") or ([result["failed"]] if result["failed"] else [])
+    out.update(
+        done=result["done"], failed_instance=result["failed"], failed_instances=failures, untouched=result["untouched"]
+    )
     if p["action"] == "restart":
         out["changed"] = result["changed"]
     if result.get("interrupted"):
@@ -296,5 +308,5 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
             **out,
         )
     if result["failed"]:
-        raise LifecycleError(_failure_text(result["failed"], result["untouched"]), **out)
+        raise LifecycleError(_failure_text(failures, result["untouched"]), **out)
     return out

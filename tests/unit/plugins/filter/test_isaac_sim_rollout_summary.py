@@ -138,6 +138,24 @@ def test_a_new_instance_that_never_gets_ready_is_left_stopped(tmp_path):
     ]
 
 
+def test_every_new_instance_that_never_gets_ready_is_named_left_stopped(tmp_path):
+    h = ScriptedHost(2, running=False)
+    built = plan.build(
+        plan_config(instance_count=2, data_root=str(tmp_path / "data"), image="reg/isaac-sim:never-ready"), {}
+    )
+    built.update(uid=os.getuid(), gid=os.getgid())
+    out = lifecycle_result(h, tmp_path, action="apply", plan=built)
+    assert out["failed"] and [f["id"] for f in out["failed_instances"]] == [0, 1]
+    first, second = (f["reason"] for f in out["failed_instances"])
+    assert FilterModule().filters()["isaac_sim_rollout_summary"]({"gpu-1": out}, ["gpu-1"], "gpu-1") == [
+        "rolled: none",
+        f"reverted: gpu-1: isaac-sim-0 ({first}) - not started, stopped; "
+        f"gpu-1: isaac-sim-1 ({second}) - not started, stopped",
+        "untouched: none",
+        f"stopped: isaac-sim-0 on gpu-1: {first}; isaac-sim-1 on gpu-1: {second}",
+    ]
+
+
 def test_a_host_that_fails_before_its_instances_stops_the_rollout_with_its_message(render, tmp_path):
     first = lifecycle_result(ScriptedHost(2), tmp_path, ids=[0, 1])
     # the rescue's ansible_failed_result when the lock task of the batch failed (lock.yml)

@@ -380,6 +380,83 @@ def test_a_new_instance_that_does_not_start_is_stopped_and_forgotten():
     assert h.commands("restart") == []
 
 
+def stopped_and_forgotten(h, i):
+    """A new instance that did not start, as the lifecycle leaves it: stopped (no restart pending),
+    never enabled, its env file gone."""
+    return (
+        layout.env_file(i) not in h.files
+        and h.units[i]["ActiveState"] == "inactive"
+        and h.units[i]["UnitFileState"] == "disabled"
+        and i not in h.markers
+    )
+
+
+def test_two_new_instances_that_do_not_start_are_both_stopped_and_both_reported():
+    # a scale-up from 2 to 4: the new ones start together and neither gets ready
+    h = ScriptedHost(2)
+    result = lifecycle.apply(h.host, want({0: OLD, 1: OLD, 2: NEVER, 3: NEVER}))
+    assert h.commands("start") == ["systemctl start isaac-sim@2.service isaac-sim@3.service"]
+    # the second is handled as the first: not left restarting on its new env file
+    assert stopped_and_forgotten(h, 2) and stopped_and_forgotten(h, 3)
+    assert h.commands("stop") == ["systemctl stop isaac-sim@2.service isaac-sim@3.service"]
+    failed = result["failures"]
+    assert [f["id"] for f in failed] == [2, 3] and result["failed"] == failed[0]
+    for f in failed:
+        assert f["reason"].startswith(f"isaac-sim-{f['id']} was not ready within 20 s")
+        assert f["reverted"] is None and f["left"] == "stopped"
+    assert result["done"] == [] and result["untouched"] == []
+    # the serving ones are never touched
+    assert all(h.units[i]["ActiveState"] == "active" and h.files[layout.env_file(i)][0] == OLD for i in (0, 1))
+    assert h.commands("restart") == []
+
+
+def test_a_new_instance_that_gets_ready_beside_one_that_does_not_is_done_and_left_serving():
+    # a first deploy: instance 0 never gets ready, instance 1 does
+    h = ScriptedHost(2, running=False)
+    result = lifecycle.apply(h.host, want({0: NEVER, 1: NEW}))
+    assert result["done"] == [{"id": 1, "action": "start", "restart_s": 0.0, "soak_s": 0.0}]
+    assert result["failed"]["id"] == 0 and result["failed"]["left"] == "stopped" and result["untouched"] == []
+    assert [f["id"] for f in result["failures"]] == [0]
+    assert stopped_and_forgotten(h, 0) and h.commands("stop") == [f"systemctl stop {layout.unit(0)}"]
+    assert h.units[1]["ActiveState"] == "active" and h.files[layout.env_file(1)][0] == NEW and 1 in h.markers
+
+
+def test_of_three_new_instances_the_middle_one_fails_and_the_others_are_done():
+    h = ScriptedHost(1)
+    result = lifecycle.apply(h.host, want({0: OLD, 1: NEW, 2: NEVER, 3: NEW}))
+    assert [d["id"] for d in result["done"]] == [1, 3] and all(d["action"] == "start" for d in result["done"])
+    assert result["failed"]["id"] == 2 and result["failed"]["reason"].startswith("isaac-sim-2 was not ready")
+    assert [f["id"] for f in result["failures"]] == [2] and result["untouched"] == []
+    assert stopped_and_forgotten(h, 2) and h.commands("stop") == [f"systemctl stop {layout.unit(2)}"]
+    assert all(h.units[i]["ActiveState"] == "active" for i in (0, 1, 3))
+    assert h.files[layout.env_file(3)][0] == NEW and h.files[layout.env_file(0)][0] == OLD
+
+
+def test_a_first_deploy_that_fails_in_part_keeps_the_files_its_ready_instances_run_on_and_enables_them():
+    h = ScriptedHost(2, running=False)
+    result = lifecycle.apply(h.host, want({0: NEVER, 1: NEW}))
+    assert [d["id"] for d in result["done"]] == [1] and result["failed"]["id"] == 0
+    # the unit and the scripts instance 1 runs on had no earlier version: they stay, and so does it
+    assert h.files[UNIT_FILE] == ("unit v1\n", 0o644) and h.files[GATE] == ("gate v1\n", 0o755)
+    assert f"rm {UNIT_FILE}" not in h.log and h.log.count("systemctl daemon-reload") == 1
+    # enabled, as a deploy that completes leaves it: a reboot brings it back
+    assert h.units[1]["UnitFileState"] == "enabled" and h.target == "enabled"
+    assert stopped_and_forgotten(h, 0)
+    # with none ready, nothing runs on them: they go, as before
+    h = ScriptedHost(2, running=False)
+    lifecycle.apply(h.host, want({0: NEVER, 1: NEVER}))
+    assert UNIT_FILE not in h.files and GATE not in h.files and h.commands("enable") == []
+
+
+def test_new_instances_that_fail_beside_serving_ones_put_the_changed_unit_back():
+    h = ScriptedHost(1)
+    result = lifecycle.apply(h.host, want({0: OLD, 1: NEW, 2: NEVER}, files={UNIT_FILE: ("unit v2\n", 0o644)}))
+    assert [d["id"] for d in result["done"]] == [1] and result["failed"]["id"] == 2 and result["untouched"] == [0]
+    # instance 0 still runs on unit v1, and was not rolled: the unit goes back to v1
+    assert h.files[UNIT_FILE] == ("unit v1\n", 0o644) and h.units[0]["ActiveState"] == "active"
+    assert h.units[1]["ActiveState"] == "active" and stopped_and_forgotten(h, 2)
+
+
 def test_scale_down_goes_first_and_keeps_data_unless_purge():
     h = ScriptedHost(4)
     result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, remove=[2, 3]))
@@ -560,6 +637,20 @@ def test_a_fresh_instance_starts_first_then_its_companions_all_together_enabled(
     # enabled before the start: the instance's unit wants it (WantedBy=), so a reboot brings it back
     assert h.log.index("systemctl enable isaac-sim-viewer@0.service") < h.log.index(starts[0])
     assert all(c["ActiveState"] == "active" and c["UnitFileState"] == "enabled" for c in h.comps.values())
+
+
+def test_new_instances_that_fail_together_each_take_their_companions_down_and_disabled():
+    # instance 0 never gets ready; instance 1 does, but its companion does not start
+    h = with_viewer(2, running=False)
+    result = lifecycle.apply(h.host, viewer_want({0: NEVER, 1: NEW}, {0: {"viewer": VIEWER}, 1: {"viewer": BROKEN}}))
+    for i in (0, 1):
+        assert stopped_and_forgotten(h, i) and layout.companion_env_file(i, "viewer") not in h.files
+        assert h.comp(i, "viewer")["UnitFileState"] == "disabled" and h.comp(i, "viewer")["ActiveState"] == "inactive"
+        assert f"systemctl disable --now isaac-sim-viewer@{i}.service" in h.log
+    assert [f["id"] for f in result["failures"]] == [0, 1] and result["done"] == []
+    assert "companion isaac-sim-1-viewer did not start" in result["failures"][1]["reason"]
+    # the shared files go back once, after both
+    assert VIEWER_UNIT not in h.files and h.log.count(f"rm {VIEWER_UNIT}") == 1
 
 
 def test_a_changed_companion_rolls_its_instance_and_nothing_is_done_when_all_is_current():

@@ -11,7 +11,11 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layo
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle_call, network, plan
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
-from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import OLD, ScriptedHost
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import (
+    NEVER,
+    OLD,
+    ScriptedHost,
+)
 
 LAN = {"mode": "macvlan", "driver": "macvlan", "parent": "eth0", "subnet": "10.0.0.0/24", "gateway": "10.0.0.1"}
 RM = " ".join(network.remove_argv())
@@ -140,3 +144,63 @@ def test_a_created_network_is_reported_and_check_mode_only_says_it(tmp_path):
     assert checked["network"] == "create" and [x for x in h.log if x.startswith("docker network")] == []
     out = lifecycle_call.call(h.host, p)
     assert out["network"] == "create" and h.log.count(" ".join(network.create_argv(LAN))) == 1
+
+
+def never_ready(tmp_path, count: int) -> dict:
+    """The module's parameters for a first deploy of `count` instances whose image never gets ready."""
+    built = plan.build(
+        plan_config(instance_count=count, data_root=str(tmp_path / "data"), image="reg/isaac-sim:never-ready"), {}
+    )
+    built.update(uid=os.getuid(), gid=os.getgid())
+    return params(tmp_path, plan=built)
+
+
+STOPPED = "it was stopped (there are no earlier settings to go back to)"
+
+
+def gate(i: int) -> str:
+    """The scripted gate's reason for instance i."""
+    return f"isaac-sim-{i} was not ready within 20 s (last lines: loading scene)"
+
+
+def test_a_new_instance_that_does_not_start_fails_the_call_naming_it_as_before(tmp_path):
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(scripted(1, running=False).host, never_ready(tmp_path, 1))
+    assert exc.value.msg == f"isaac-sim-0: {gate(0)}; {STOPPED}"
+    fields = exc.value.fields
+    assert fields["failed_instance"]["id"] == 0 and fields["failed_instances"] == [fields["failed_instance"]]
+
+
+def test_every_new_instance_that_does_not_start_is_named_in_the_failure(tmp_path):
+    h = scripted(3, running=False)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, never_ready(tmp_path, 3))
+    # the first as a single failure says it, then each other one the same way
+    assert exc.value.msg == (
+        f"isaac-sim-0: {gate(0)}; {STOPPED}; also isaac-sim-1: {gate(1)}; {STOPPED}; "
+        f"also isaac-sim-2: {gate(2)}; {STOPPED}"
+    )
+    fields = exc.value.fields
+    assert [f["id"] for f in fields["failed_instances"]] == [0, 1, 2]
+    assert fields["failed_instance"] == fields["failed_instances"][0] and fields["done"] == []
+    assert all(f["left"] == "stopped" and f["reverted"] is None for f in fields["failed_instances"])
+    assert not any(layout.env_file(i) in h.files for i in range(3))
+
+
+def test_a_call_that_succeeds_has_no_failed_instances(tmp_path):
+    out = lifecycle_call.call(scripted(2, running=False).host, params(tmp_path))
+    assert out["failed_instance"] is None and out["failed_instances"] == []
+
+
+def test_a_day_2_start_names_every_instance_that_did_not_start(tmp_path):
+    h = scripted(3, running=False)
+    for i in (0, 2):
+        h.files[layout.env_file(i)] = (NEVER, 0o644)
+    h.files[layout.env_file(1)] = (OLD, 0o644)
+    with pytest.raises(lifecycle_call.LifecycleError) as exc:
+        lifecycle_call.call(h.host, params(tmp_path, action="start", ids=[0, 1, 2]))
+    assert exc.value.msg == f"isaac-sim-0: {gate(0)}; also isaac-sim-2: {gate(2)}"
+    fields = exc.value.fields
+    assert [f["id"] for f in fields["failed_instances"]] == [0, 2] and fields["failed_instance"]["id"] == 0
+    assert all(f["left"] == "failed" for f in fields["failed_instances"])
+    assert [d["id"] for d in fields["done"]] == [1]
