@@ -195,7 +195,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layo
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle, lifecycle_call
 
 ARGUMENT_SPEC = dict(
-    action=dict(type="str", default="apply", choices=["apply", "start", "stop", "restart", "remove"]),
+    action=dict(type="str", default="apply", choices=["apply", *lifecycle_call.DAY2]),
     ids=dict(type="list", elements="int", default=[]),
     plan=dict(type="dict"),
     image_id=dict(type="str", default="unknown"),

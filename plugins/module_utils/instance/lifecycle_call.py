@@ -208,10 +208,26 @@ def _apply(host: Host, p: dict, out: dict, found: dict, check: bool, diff: bool)
     return result
 
 
-def _start(host: Host, ids, found: dict) -> dict:
+def _would(p: dict, out: dict) -> dict:
+    """Check mode of a day-2 start, stop or remove: each instance asked for would be acted on."""
+    out["changed"] = bool(p["ids"])
+    return {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
+
+
+def _restart(host: Host, p: dict, out: dict, found: dict, check: bool) -> dict:
+    """action=restart: one instance at a time, each ready (and soaked) before the next."""
+    result = lifecycle.restart_each(host, p["ids"], p["soak_seconds"], check=check, companions=found)
+    out["changed"] = result["changed"]
+    return result
+
+
+def _start(host: Host, p: dict, out: dict, found: dict, check: bool) -> dict:
     """action=start: the instances started together, each that failed reported (left as systemd has it)."""
+    if check:
+        return _would(p, out)
+    out["changed"] = bool(p["ids"])
     result = {"done": [], "failed": None, "failures": [], "untouched": []}
-    for i, (ok, reason) in lifecycle.start(host, ids, companions=found).items():
+    for i, (ok, reason) in lifecycle.start(host, p["ids"], companions=found).items():
         if ok:
             result["done"].append({"id": i, "action": "start"})
         else:
@@ -222,6 +238,8 @@ def _start(host: Host, ids, found: dict) -> dict:
 
 def _stop_or_remove(host: Host, p: dict, out: dict, found: dict, check: bool) -> dict:
     """action=stop or remove; the last instance removed takes the network and the reserved ports with it."""
+    if check:
+        return _would(p, out)
     if p["action"] == "stop":
         lifecycle.stop(host, p["ids"])
     else:
@@ -235,6 +253,12 @@ def _stop_or_remove(host: Host, p: dict, out: dict, found: dict, check: bool) ->
                 raise LifecycleError(str(exc)) from exc
     out["changed"] = bool(p["ids"]) or out.get("network") == "remove" or bool(out.get("reserved_ports"))
     return {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
+
+
+# The day-2 actions (playbooks/instance.yml, isaac_sim_action): what each does to the instances
+# asked for, through lifecycle.py. The module's and the role's choice lists are these
+# (tests/unit/test_day2_actions.py).
+DAY2 = {"start": _start, "stop": _stop_or_remove, "restart": _restart, "remove": _stop_or_remove}
 
 
 def _failure_text(failures: list, untouched: list) -> str:
@@ -271,24 +295,14 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
 
     if p["action"] == "apply":
         result = _apply(host, p, out, found, check, diff)
-    elif p["action"] == "restart":
-        result = lifecycle.restart_each(host, p["ids"], p["soak_seconds"], check=check, companions=found)
-    elif check:
-        result = {"done": [{"id": i, "action": p["action"]} for i in p["ids"]], "failed": None, "untouched": []}
-        out["changed"] = bool(p["ids"])
-    elif p["action"] == "start":
-        result = _start(host, p["ids"], found)
-        out["changed"] = bool(p["ids"])
     else:
-        result = _stop_or_remove(host, p, out, found, check)
+        result = DAY2[p["action"]](host, p, out, found, check)
 
     # every instance that failed; more than one only where they started together
     failures = result.get("failures") or ([result["failed"]] if result["failed"] else [])
     out.update(
         done=result["done"], failed_instance=result["failed"], failed_instances=failures, untouched=result["untouched"]
     )
-    if p["action"] == "restart":
-        out["changed"] = result["changed"]
     if result.get("interrupted"):
         runlock.record(
             {
