@@ -12,9 +12,12 @@ import time
 from ansible.plugins.action import ActionBase
 from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import this_run
 
-# well inside runlock.HEARTBEAT_LIMIT_S (30 s), with room for a slow connection
-POLL_S = (1, 1, 2, 2, 3)
+# soon at first: most calls (an idempotent deploy, a stop) end within a second
+POLL_S = (0.25, 0.25, 0.5, 1, 1, 2, 2, 3)
 POLL_MAX_S = 5
+# the lock renewed once this many seconds of waiting have passed since the last renewal: well
+# inside runlock.HEARTBEAT_LIMIT_S (30 s), with room for a slow connection and the polls' own time
+RENEW_S = 5
 # the background job's own limit; the lifecycle's steps have their own deadlines
 JOB_LIMIT_S = 24 * 3600
 _JOB_KEYS = ("ansible_job_id", "started", "finished", "results_file", "stdout_lines", "stderr_lines")
@@ -50,15 +53,18 @@ class ActionModule(ActionBase):
             return result
         jid = started["ansible_job_id"]
         async_dir = self._remote_expand_user(self.get_shell_option("async_dir", default="~/.ansible_async"))
-        polls = 0
+        polls, waited = 0, 0.0
         while True:
-            time.sleep(POLL_S[polls] if polls < len(POLL_S) else POLL_MAX_S)
-            polls += 1
-            self._execute_module(
-                module_name="isaacsim.fleet.isaac_sim_lock",
-                module_args={"holder": me, "state": "renewed"},
-                task_vars=task_vars,
-            )
+            wait = POLL_S[polls] if polls < len(POLL_S) else POLL_MAX_S
+            time.sleep(wait)
+            polls, waited = polls + 1, waited + wait
+            if waited >= RENEW_S:
+                waited = 0.0
+                self._execute_module(
+                    module_name="isaacsim.fleet.isaac_sim_lock",
+                    module_args={"holder": me, "state": "renewed"},
+                    task_vars=task_vars,
+                )
             status = self._execute_module(
                 module_name="ansible.legacy.async_status",
                 module_args={"jid": jid, "_async_dir": async_dir},

@@ -120,18 +120,28 @@ def test_the_module_runs_as_a_job_while_the_lock_is_renewed_every_few_seconds(ru
     assert args == dict(RESTART, controller_run=me["id"])
     assert valid(lifecycle_module.ARGUMENT_SPEC, args)["controller_run"] == me["id"]
     assert task.async_val == 0 and task.args == RESTART
-    # the polls: 1, 1, 2, 2, 3, then every 5 s until the job ends; each renews the lock, then asks
-    assert sleeps[:7] == [1, 1, 2, 2, 3, 5, 5] and set(sleeps[5:]) == {5} and sum(sleeps) >= 120
-    assert max(sleeps) < runlock.HEARTBEAT_LIMIT_S
+    # the polls: soon at first, then every 5 s until the job ends; each asks for the job, and the
+    # lock is renewed before the ask once 5 s of waiting have passed since the last renewal
+    assert sleeps[:10] == [0.25, 0.25, 0.5, 1, 1, 2, 2, 3, 5, 5] and set(sleeps[8:]) == {5} and sum(sleeps) >= 120
+    expected, waited = [], 0.0
+    for wait in sleeps:
+        waited += wait
+        if waited >= plugin.RENEW_S:
+            expected.append("isaacsim.fleet.isaac_sim_lock")
+            waited = 0.0
+        expected.append("ansible.legacy.async_status")
     names = [c[0] for c in host.calls[1:]]
-    assert names == ["isaacsim.fleet.isaac_sim_lock", "ansible.legacy.async_status"] * len(sleeps) + [
+    assert names == expected + ["ansible.legacy.async_status"]
+    # the first renewal after 0.25 + 0.25 + 0.5 + 1 + 1 + 2 = 5 s, then every 5 s
+    assert names[:7] == ["ansible.legacy.async_status"] * 5 + ["isaacsim.fleet.isaac_sim_lock"] * 1 + [
         "ansible.legacy.async_status"
     ]
     renewals = host.called("isaacsim.fleet.isaac_sim_lock")
+    assert len(renewals) >= 120 // plugin.RENEW_S - 1
     assert all(c[1] == {"holder": me, "state": "renewed"} for c in renewals)
     valid(lock_module.ARGUMENT_SPEC, renewals[0][1])
-    # so the host never took the controller for gone, and the lock was renewed at the last poll
-    assert host.interrupted == "" and runlock.read(host.lock)["renewed"] == host.now
+    # so the host never took the controller for gone
+    assert host.interrupted == "" and host.now - runlock.read(host.lock)["renewed"] < plugin.RENEW_S + plugin.POLL_MAX_S
     statuses = host.called("ansible.legacy.async_status")
     assert statuses[0][1] == {"jid": "j4711", "_async_dir": ASYNC_DIR}
     assert statuses[-1][1] == {"jid": "j4711", "mode": "cleanup", "_async_dir": ASYNC_DIR}
@@ -180,7 +190,7 @@ def test_a_job_that_does_not_start_is_the_task_s_failure_with_no_polls(run, tmp_
 )
 def test_a_job_that_cannot_be_asked_for_ends_the_wait_with_the_answer(run, tmp_path, status):
     result, _task, removed, sleeps = run(Host(tmp_path, job_s=3600, status=status), RESTART)
-    assert sleeps == [1] and removed == ["/tmp/x"]
+    assert sleeps == [plugin.POLL_S[0]] and removed == ["/tmp/x"]
     assert result == {k: v for k, v in status.items() if k not in ("ansible_job_id", "started", "finished")}
 
 
