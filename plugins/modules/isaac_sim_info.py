@@ -346,10 +346,10 @@ def main():
 
     docker = DockerSocket(p["docker_host"])
     result = fleet_status.gather(
-        lambda argv: start(argv)(),
-        None,
-        docker,
-        gpu_usage.import_nvml,
+        run=None,
+        stream=None,
+        docker=docker,
+        import_nvml=gpu_usage.import_nvml,
         config_dir=p["config_dir"],
         run_dir=p["run_dir"],
         public_address=p["public_address"],

@@ -193,8 +193,9 @@ def read_ready_markers(run_dir: str) -> dict:
     for i, path, text in _instance_files(run_dir, "instance-*.ready", layout.MARKER_RE):
         if isinstance(text, OSError):
             continue
+        stamp = text.strip()
         try:
-            markers[i] = int(text.strip()) if text.strip().isdigit() else int(os.path.getmtime(path))
+            markers[i] = int(stamp) if stamp.isdigit() else int(os.path.getmtime(path))
         except OSError:
             continue
     return markers
@@ -622,12 +623,14 @@ def gather(
 
     docker is a DockerSocket (or anything with containers(prefix) and images()).
     start(argv) -> wait, where wait() -> (rc, out, err): a command begun at once and read later
-    (start() below; by default run(argv) when it is read): `systemctl show` and the journal's
-    events run while the files, Docker and the GPU are read.
+    (start() below): `systemctl show` and the journal's events run while the files, Docker and
+    the GPU are read. Either may be None: without start a command runs when it is read; without
+    run, it is started and read at once.
     `stream` is not used (the journal is read through run); it stays in the signature while
     roles/isaac_sim/files/isaac-sim-metrics passes None in its place.
     """
     start = start or (lambda argv: lambda: run(argv))
+    run = run or (lambda argv: start(argv)())
     lap = _Laps()
     errors = []
     events_read = start(events_argv())
