@@ -471,3 +471,12 @@ def test_the_last_days_session_ends_and_crashes_come_from_the_events_journal():
     assert counts["isaac-sim-3"] == {"session_ends": 2, "crashes": 2, "unhealthy_restarts": 0, "docker_away": 0}
     assert counts["isaac-sim-1"] == {"session_ends": 0, "crashes": 0, "unhealthy_restarts": 1, "docker_away": 1}
     assert fleet_status.events_argv()[:3] == ["journalctl", "-t", "isaac-sim-events"]
+
+
+def test_a_started_command_takes_its_words_literally_and_a_hung_or_missing_one_reads_as_127():
+    words = "$(touch /tmp/x); `id` | ; 'a' \"b\" \\n"
+    assert fleet_status.start(["printf", "%s", words])() == (0, words, "")
+    hung = fleet_status.start(["sleep", "30"], timeout=0.2)
+    assert hung.spawned and hung() == (127, "", "sleep did not answer within 0.2 s")
+    missing = fleet_status.start(["no-such-program-here"])
+    assert not missing.spawned and missing() == (127, "", "no-such-program-here is not installed")
