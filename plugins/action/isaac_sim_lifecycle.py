@@ -5,7 +5,12 @@ renewing this run's hold on the host (the lock) every few seconds: the heartbeat
 the host the controller is still there. When the controller goes away (Ctrl-C, killed, its
 connection lost) the renewals stop, and the lifecycle stops before its next instance instead
 of rolling the rest of the host unwatched (isaac_sim_lifecycle's controller_run). A task with
-its own async is run as Ansible runs any module with it, not tied to the lock."""
+its own async is run as Ansible runs any module with it, not tied to the lock.
+
+An apply first looks in check mode, in the task (one round trip): where it finds nothing to change,
+as on an idempotent deploy's re-run, that answer is the task's (lifecycle.apply returns the same
+result for a check and for a real call with nothing to do) and no job is started. A look that
+fails is the task's failure too: the real call fails the same way, before any change."""
 
 import time
 
@@ -43,6 +48,11 @@ class ActionModule(ActionBase):
         if self._task.check_mode:
             result.update(self._execute_module(module_args=args, task_vars=task_vars))
             return result
+        if args.get("action", "apply") == "apply":
+            looked = self._look(args, task_vars)
+            if looked.get("failed") or not looked.get("changed"):
+                result.update(looked)
+                return result
         self._task.async_val = JOB_LIMIT_S
         try:
             started = self._execute_module(module_args=args, task_vars=task_vars, wrap_async=True)
@@ -80,3 +90,11 @@ class ActionModule(ActionBase):
         self._remove_tmp_path(self._connection._shell.tmpdir)
         result.update({k: v for k, v in status.items() if k not in _JOB_KEYS})
         return result
+
+    def _look(self, args, task_vars):
+        """The module in check mode, in the task: what the call would change."""
+        self._task.check_mode = True
+        try:
+            return self._execute_module(module_args=args, task_vars=task_vars)
+        finally:
+            self._task.check_mode = False

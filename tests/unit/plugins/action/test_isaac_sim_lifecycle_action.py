@@ -31,15 +31,16 @@ ASYNC_DIR = "/home/ops/.ansible_async"
 class Host:
     """The host's side of _execute_module: the lifecycle job, the lock module and async_status."""
 
-    def __init__(self, tmp_path, job_s=120.0, outcome=None, start=None, status=None):
+    def __init__(self, tmp_path, job_s=120.0, outcome=None, start=None, status=None, look=None):
         """job_s: how long the job runs; outcome: the module's result; start: the answer to starting
-        the job instead of a job id; status: async_status's answer instead of the job's."""
+        the job instead of a job id; status: async_status's answer instead of the job's; look: the
+        module's answer in check mode (an apply's first look), the outcome when None."""
         self.now = 1000.0
         self.lock = str(tmp_path / "isaac-sim.json")
         self.guard = str(tmp_path / ".isaac-sim.guard")
-        self.job_s, self.start, self.status = job_s, start, status
+        self.job_s, self.start, self.status, self.look = job_s, start, status, look
         self.outcome = dict(DONE if outcome is None else outcome)
-        self.calls, self.job, self.interrupted = [], None, ""
+        self.calls, self.job, self.interrupted, self.check_modes = [], None, "", []
         # this run holds the host, as lock.yml left it
         runlock.acquire(this_run(PLAY), self.now, 3600, path=self.lock, guard=self.guard, record_path="")
 
@@ -51,9 +52,10 @@ class Host:
     def execute(self, task):
         def answer(module_name=None, module_args=None, task_vars=None, wrap_async=False):
             self.calls.append((module_name, dict(module_args), wrap_async, task.async_val))
+            self.check_modes.append(task.check_mode)
             if module_name is None:
                 if not wrap_async:  # the module itself, in the task
-                    return dict(self.outcome)
+                    return dict(self.outcome if self.look is None or not task.check_mode else self.look)
                 if self.start is not None:
                     return dict(self.start)
                 self.job = {"jid": "j4711", "run": module_args.get("controller_run"), "ends": self.now + self.job_s}
@@ -209,3 +211,35 @@ def test_a_task_s_own_async_is_left_to_ansible(run, tmp_path):
     assert host.calls == [(None, RESTART, True, 3600)]
     assert result["ansible_job_id"] == "j4711" and result["started"] == 1
     assert sleeps == [] and removed == [] and task.args == RESTART and task.async_val == 3600
+
+
+APPLY = {"action": "apply", "plan": {"release": "6.x", "instances": []}, "defer_running": True}
+NOTHING = {"changed": False, "done": [], "failed_instance": None, "untouched": [], "plan": {"files": [], "start": []}}
+
+
+def test_an_apply_with_nothing_to_change_is_answered_by_its_look_without_a_job(run, tmp_path):
+    # an idempotent deploy's re-run: one call in check mode, and its answer is the task's
+    host = Host(tmp_path, look=NOTHING)
+    result, task, removed, sleeps = run(host, APPLY)
+    assert host.calls == [(None, dict(APPLY, controller_run=this_run(PLAY)["id"]), False, 0)]
+    assert host.check_modes == [True] and task.check_mode is False
+    assert result == NOTHING and sleeps == [] and removed == []
+
+
+def test_an_apply_that_would_change_runs_as_a_job_after_its_look(run, tmp_path):
+    host = Host(tmp_path, job_s=3, look=dict(NOTHING, changed=True))
+    result, task, _removed, _sleeps = run(host, APPLY)
+    me = this_run(PLAY)["id"]
+    assert host.calls[0] == (None, dict(APPLY, controller_run=me), False, 0)
+    assert host.calls[1] == (None, dict(APPLY, controller_run=me), True, plugin.JOB_LIMIT_S)
+    # the look in check mode, the job for real
+    assert host.check_modes[:2] == [True, False] and task.check_mode is False
+    assert result == DONE
+
+
+def test_an_apply_whose_look_fails_fails_with_it_and_starts_no_job(run, tmp_path):
+    # the real call would fail the same way before any change (a network changed since the plan)
+    refused = {"failed": True, "msg": "the network isaac-sim-lan differs from the plan's and is in use"}
+    host = Host(tmp_path, look=refused)
+    result, _task, _removed, sleeps = run(host, APPLY)
+    assert result == refused and len(host.calls) == 1 and sleeps == []
