@@ -15,6 +15,9 @@ description:
   - Writes only when the merged content differs from the file's content, so formatting alone never
     causes a change (and never a Docker restart).
   - Refuses to touch a file that is not valid JSON.
+  - With O(packages), also says which of them are not installed and, with O(service), the service's
+    state, so a role learns what of Docker is on the host in the same call. While a package is missing
+    the merge waits (nothing is written) and the role installs Docker and calls again.
   - Supports check mode and diff.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
@@ -30,6 +33,21 @@ options:
     description: A file that notes a Docker restart still to do; the module says whether it exists
       (RV(restart_noted)), so a role needs no second task to look.
     type: path
+  packages:
+    description: Packages to look for with O(installed_query); while any is missing nothing is merged
+      (RV(missing)).
+    type: list
+    elements: str
+    default: []
+  installed_query:
+    description: The package manager's query, run with O(packages) appended; it prints C(NAME ii) for
+      each installed package, as C(dpkg-query --show) with the format C(${Package} ${db:Status-Abbrev}) does.
+    type: list
+    elements: str
+    default: []
+  service:
+    description: A systemd unit whose C(ActiveState) and C(UnitFileState) are returned (RV(service_state)).
+    type: str
 """
 
 EXAMPLES = r"""
@@ -53,6 +71,17 @@ restart_noted:
   description: Whether O(restart_marker) exists.
   returned: when O(restart_marker) is given
   type: bool
+missing:
+  description: The packages of O(packages) that are not installed; nothing was merged when any is.
+  returned: always
+  type: list
+  elements: str
+  sample: ["docker.io"]
+service_state:
+  description: The C(ActiveState) and C(UnitFileState) of O(service).
+  returned: when O(service) is given
+  type: dict
+  sample: {"ActiveState": "active", "UnitFileState": "enabled"}
 """
 
 import json
@@ -60,7 +89,7 @@ import os
 import tempfile
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.host import daemon_json
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import daemon_json, docker_engine
 
 
 def main():
@@ -69,10 +98,17 @@ def main():
             path=dict(type="path", default="/etc/docker/daemon.json"),
             settings=dict(type="dict", required=True),
             restart_marker=dict(type="path"),
+            packages=dict(type="list", elements="str", default=[]),
+            installed_query=dict(type="list", elements="str", default=[]),
+            service=dict(type="str"),
         ),
         supports_check_mode=True,
     )
-    path = module.params["path"]
+    p = module.params
+    found = docker_engine.probe(module.run_command, p["packages"], p["installed_query"], p["service"])
+    if found["missing"]:
+        module.exit_json(changed=False, config={}, **found, **_marker(p))
+    path = p["path"]
     text = None
     if os.path.exists(path):
         with open(path) as fh:
@@ -94,12 +130,14 @@ def main():
         os.chmod(tmp, 0o644)
         module.atomic_move(tmp, path)
 
-    result = dict(changed=changed, config=json.loads(after))
-    if module.params["restart_marker"]:
-        result["restart_noted"] = os.path.exists(module.params["restart_marker"])
+    result = dict(changed=changed, config=json.loads(after), **found, **_marker(p))
     if module._diff:
         result["diff"] = dict(before=before, after=after, before_header=path, after_header=path)
     module.exit_json(**result)
+
+
+def _marker(p: dict) -> dict:
+    return {"restart_noted": os.path.exists(p["restart_marker"])} if p["restart_marker"] else {}
 
 
 if __name__ == "__main__":

@@ -48,3 +48,18 @@ def test_no_settings_write_no_file_and_the_restart_marker_is_reported(tmp_path, 
     assert run_module(docker_daemon_config.main, args, capsys)["restart_noted"] is True
     # without the option the module says nothing about it
     assert "restart_noted" not in run_module(docker_daemon_config.main, {"path": str(path), "settings": {}}, capsys)
+
+
+# a package query that knows docker.io only, as vars/<OS family>.yml's query prints it
+QUERY = ["sh", "-c", 'for p; do [ "$p" = docker.io ] && echo "$p ii"; done; exit 0', "query"]
+
+
+def test_a_missing_package_holds_the_merge_and_says_what_is_missing(tmp_path, capsys):
+    path = tmp_path / "daemon.json"
+    args = {"path": str(path), "settings": RUNTIME, "packages": ["docker.io", "docker-ce"], "installed_query": QUERY}
+    result = run_module(docker_daemon_config.main, args, capsys)
+    # the role installs them and calls again: nothing is written before Docker is there
+    assert result["missing"] == ["docker-ce"] and result["changed"] is False and not path.exists()
+    args["packages"] = ["docker.io"]
+    result = run_module(docker_daemon_config.main, args, capsys)
+    assert result["missing"] == [] and result["changed"] and path.exists()
