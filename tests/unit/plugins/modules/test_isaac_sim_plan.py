@@ -26,8 +26,8 @@ TCP = (
     "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
     "   1: 00000000:BFCD 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 41002 1 0 100 0\n"
 )
-# read-only queries: what the module may run on a host
-QUERIES = ("nvidia-smi", "docker image inspect", "docker ps", "systemctl list-units", "ip -j -4")
+# read-only queries: what the module may run on a host (Docker it asks through its API)
+QUERIES = ("nvidia-smi", "systemctl list-units", "ip -j -4")
 
 
 @pytest.fixture()
@@ -54,12 +54,25 @@ def host(tmp_path, monkeypatch):
         commands.append(line)
         if line.startswith("nvidia-smi"):
             return 0, recorded("h100-nvidia-smi-query-gpu.csv"), ""
-        if line.startswith("docker image inspect"):
-            return (0, images[args[-1]] + "\n", "") if args[-1] in images else (1, "", "No such image")
         if line.startswith("systemctl list-units"):
             return 0, SERVING, ""
         return 0, "", ""
 
+    class Docker:
+        """Docker's API: GET /images/REF/json answers from `images`; no container, no network of ours."""
+
+        def image(self, ref):
+            commands.append(f"GET /images/{ref}/json")
+            return {"Id": images[ref]} if ref in images else None
+
+        def containers(self, name_prefix):
+            commands.append(f"GET /containers/json name={name_prefix}")
+            return []
+
+        def network(self, name):
+            return None
+
+    monkeypatch.setattr(host_facts, "DockerSocket", Docker)
     installed = {"nvidia-smi", "docker", "systemctl", "ip"}
     # where a warning goes depends on whether controller code was imported in this process
     warned = []
@@ -111,7 +124,7 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
     # the plan's warnings reach the play as the module's
     assert any("isaac_sim_memory_limit" in w for w in plan["warnings"])
     assert dirs["warned"] == plan["warnings"]
-    assert all(c.startswith(QUERIES) for c in commands), commands
+    assert all(c.startswith((*QUERIES, "GET ")) for c in commands), commands
 
 
 def test_a_bad_option_fails_with_the_plan_s_message_and_changes_nothing(host, capsys):
@@ -123,7 +136,7 @@ def test_a_bad_option_fails_with_the_plan_s_message_and_changes_nothing(host, ca
     assert "- " + result["errors"][-1] in result["msg"]
     assert "plan" not in result and "argument_spec" not in result
     assert sorted(os.listdir(args["config_dir"])) == before
-    assert all(c.startswith(QUERIES) for c in commands), commands
+    assert all(c.startswith((*QUERIES, "GET ")) for c in commands), commands
 
 
 def test_check_mode_plans_the_same_and_runs_only_queries(host, capsys):
@@ -132,7 +145,7 @@ def test_check_mode_plans_the_same_and_runs_only_queries(host, capsys):
     checked = run_module(isaac_sim_plan.main, dict(args, _ansible_check_mode=True), capsys)
     assert checked["plan"] == normal["plan"] and checked["host"] == normal["host"]
     assert checked["changed"] is False
-    assert all(c.startswith(QUERIES) for c in commands), commands
+    assert all(c.startswith((*QUERIES, "GET ")) for c in commands), commands
 
 
 def test_a_port_held_by_a_foreign_process_is_refused_naming_port_and_process(host, capsys):
@@ -178,8 +191,10 @@ def test_macvlan_reads_the_lan_and_a_docker_that_does_not_answer_is_an_error(hos
     args, commands, _dirs = host
 
     class NoDocker:
-        def network(self, name):
+        def image(self, ref):
             raise DockerError("cannot reach the Docker daemon")
+
+        containers = network = image
 
     monkeypatch.setattr(host_facts, "DockerSocket", NoDocker)
     macvlan = dict(args, network_mode="macvlan", address_pool=["10.0.0.50-10.0.0.57"])
