@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.network import clashes
-
 DOCUMENTATION = r"""
 name: isaac_sim_address_clashes
 short_description: Errors for an instance address planned on two hosts
@@ -43,6 +41,9 @@ _value:
 
 
 def address_clashes(plans, hosts) -> list:
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.network import clashes
+
     by_host = {}
     for host, plan in zip(hosts, plans):
         if isinstance(plan, dict):

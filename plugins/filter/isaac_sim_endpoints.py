@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.endpoints import summary_lines
-
 DOCUMENTATION = r"""
 name: isaac_sim_endpoints
 short_description: One line per instance with its GPU and stream addresses
@@ -37,6 +35,13 @@ _value:
 """
 
 
+def isaac_sim_endpoints(*args, **kwargs):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.endpoints import summary_lines
+
+    return summary_lines(*args, **kwargs)
+
+
 class FilterModule:
     def filters(self):
-        return {"isaac_sim_endpoints": summary_lines}
+        return {"isaac_sim_endpoints": isaac_sim_endpoints}

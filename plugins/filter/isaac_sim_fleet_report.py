@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import build
-
 DOCUMENTATION = r"""
 name: isaac_sim_fleet_report
 short_description: Fold the isaac_sim_info results of many hosts into one fleet report
@@ -43,6 +41,13 @@ _value:
 """
 
 
+def isaac_sim_fleet_report(*args, **kwargs):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import build
+
+    return build(*args, **kwargs)
+
+
 class FilterModule:
     def filters(self):
-        return {"isaac_sim_fleet_report": build}
+        return {"isaac_sim_fleet_report": isaac_sim_fleet_report}

@@ -5,8 +5,6 @@
 from __future__ import annotations
 
 from ansible.errors import AnsibleFilterError
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import unit_files
 
 DOCUMENTATION = r"""
 name: isaac_sim_host_units
@@ -48,6 +46,10 @@ _NEEDS = {
 
 
 def isaac_sim_host_units(settings: dict, service: str) -> dict:
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import unit_files
+
     if service not in _NEEDS:
         raise AnsibleFilterError(f"isaac_sim_host_units: no host service {service!r}; one of {sorted(_NEEDS)}")
     missing = [key for key in _NEEDS[service] if key not in (settings or {})]

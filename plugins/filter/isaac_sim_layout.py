@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-
 DOCUMENTATION = r"""
 name: isaac_sim_layout
 short_description: The host layout of isaacsim.fleet (directories, unit and container names)
@@ -34,6 +32,9 @@ _value:
 
 
 def isaac_sim_layout(data_root):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
     return layout.as_dict(str(data_root))
 
 

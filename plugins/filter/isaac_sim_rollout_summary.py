@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.lifecycle import summary
-
 DOCUMENTATION = r"""
 name: isaac_sim_rollout_summary
 short_description: What a rollout rolled, reverted and left untouched, and why it stopped
@@ -43,6 +41,13 @@ _value:
 """
 
 
+def isaac_sim_rollout_summary(*args, **kwargs):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.lifecycle import summary
+
+    return summary(*args, **kwargs)
+
+
 class FilterModule:
     def filters(self):
-        return {"isaac_sim_rollout_summary": summary}
+        return {"isaac_sim_rollout_summary": isaac_sim_rollout_summary}

@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.runs.testrun import summary_lines
-
 DOCUMENTATION = r"""
 name: isaac_sim_run_summary
 short_description: A test run's verdict and one row per service (exit code, restarts, CPU and memory peaks)
@@ -32,6 +30,13 @@ _value:
 """
 
 
+def isaac_sim_run_summary(*args, **kwargs):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.runs.testrun import summary_lines
+
+    return summary_lines(*args, **kwargs)
+
+
 class FilterModule:
     def filters(self):
-        return {"isaac_sim_run_summary": summary_lines}
+        return {"isaac_sim_run_summary": isaac_sim_run_summary}

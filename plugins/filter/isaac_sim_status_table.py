@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import table
-
 DOCUMENTATION = r"""
 name: isaac_sim_status_table
 short_description: The fleet report as an aligned text table
@@ -33,6 +31,13 @@ _value:
 """
 
 
+def isaac_sim_status_table(*args, **kwargs):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import table
+
+    return table(*args, **kwargs)
+
+
 class FilterModule:
     def filters(self):
-        return {"isaac_sim_status_table": table}
+        return {"isaac_sim_status_table": isaac_sim_status_table}

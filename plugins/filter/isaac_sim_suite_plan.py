@@ -10,7 +10,6 @@ import os
 import yaml
 from ansible.errors import AnsibleFilterError
 from ansible.utils.unsafe_proxy import wrap_var
-from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
 
 DOCUMENTATION = r"""
 name: isaac_sim_suite_plan
@@ -73,6 +72,9 @@ def _previous(path) -> list:
 
 
 def suite_plan(path, hosts, previous=None):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
+
     try:
         data = _load(path)
     except (OSError, ValueError) as exc:

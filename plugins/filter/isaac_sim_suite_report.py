@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
-
 DOCUMENTATION = r"""
 name: isaac_sim_suite_report
 short_description: A test suite's results as lines for a person and one JUnit file
@@ -47,6 +45,9 @@ _value:
 
 
 def suite_report(results, wall=None, previous=None, plan=None, why=None):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
+
     results = suite.with_missing(results, plan or {}, why or {})
     if previous:
         results = suite.merge(previous, results)

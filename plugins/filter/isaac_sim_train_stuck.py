@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.train.slurm import stuck_message
-
 DOCUMENTATION = r"""
 name: isaac_sim_train_stuck
 short_description: Why a training job stays COMPLETING, naming its nodes and what their journal says
@@ -51,6 +49,9 @@ def _read(result: dict) -> dict:
 
 
 def train_stuck(job: dict, journals: list) -> str:
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.train.slurm import stuck_message
+
     read = {str(r["item"]): _read(r) for r in journals or [] if "item" in r and not r.get("skipped")}
     return stuck_message(job, read)
 

@@ -4,8 +4,6 @@
 
 from __future__ import annotations
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.layout import quote
-
 DOCUMENTATION = r"""
 name: systemd_env_quote
 short_description: Quote a value for a systemd EnvironmentFile
@@ -33,6 +31,9 @@ _value:
 
 
 def systemd_env_quote(value):
+    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.layout import quote
+
     return quote(value)
 
 
