@@ -95,7 +95,18 @@ options:
     elements: str
     default: []
   docker_args:
-    description: Extra C(docker run) arguments, one per item.
+    description:
+      - Extra C(docker run) arguments, one per item.
+      - Arguments that take a container out of its confinement (C(--privileged), C(--cap-add), the host's PID,
+        IPC, UTS, user or cgroup namespace, a confinement turned off with C(--security-opt), a host device,
+        Docker's socket mounted) are refused here and in each companion's C(docker_args) unless
+        O(allowed_docker_args) names them.
+    type: list
+    elements: str
+    default: []
+  allowed_docker_args:
+    description: Arguments of O(docker_args) and of the companions' C(docker_args) that loosen a container's
+      confinement and are allowed all the same, each named exactly (C(--cap-add=SYS_PTRACE)).
     type: list
     elements: str
     default: []
@@ -290,6 +301,7 @@ ARGUMENT_SPEC = dict(
     env=dict(type="dict", default={}),
     secret_env_names=dict(type="list", elements="str", default=[], no_log=False),
     docker_args=dict(type="list", elements="str", default=[]),
+    allowed_docker_args=dict(type="list", elements="str", default=[]),
     app_args=dict(type="list", elements="str", default=[]),
     ready_timeout=dict(type="raw", default=300),
     stop_timeout=dict(type="raw", default=60),

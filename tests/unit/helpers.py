@@ -135,6 +135,7 @@ def plan_config(**over) -> dict:
         "env": {},
         "secret_env_names": [],
         "docker_args": [],
+        "allowed_docker_args": [],
         "app_args": [],
         "ready_timeout": 300,
         "stop_timeout": 60,

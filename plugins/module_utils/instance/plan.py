@@ -13,6 +13,7 @@ import ipaddress
 import os
 import re
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import (
     as_int,
     docker_size,
@@ -198,6 +199,30 @@ def _namespace_conflicts(specs) -> list:
                     "an instance with its own address (isaac_sim_network_mode: macvlan): it shares the instance's "
                     "network, address and name. Fix: remove it; the companion is reached at the instance's address."
                 )
+    return errors
+
+
+def _confinement(cfg, comp_specs, count) -> list:
+    """Errors for docker run arguments of the instances and of the companions that take a container
+    out of its confinement (common/hardening.py), unless isaac_sim_allowed_docker_args names them."""
+    allowed = cfg.get("allowed_docker_args") or []
+    ids = list(range(max(count, 0)))
+
+    def names(chosen):
+        return ", ".join(layout.container(i) for i in chosen) or "every instance this host will run"
+
+    errors = hardening.errors("isaac_sim_extra_docker_args", f"on {names(ids)}", cfg.get("docker_args"), allowed)
+    for spec in comp_specs:
+        if not isinstance(spec, dict):
+            continue
+        beside = f"the companion of {names([i for i in ids if companions.wanted_on(spec, i)])}"
+        for key, args in (
+            ("docker_args", spec.get("docker_args")),
+            # a host path in volumes is a bind mount: Docker's socket there is as much a way out
+            ("volumes", [f"--volume={v}" for v in spec.get("volumes") or [] if isinstance(v, str)]),
+        ):
+            if isinstance(args, list):
+                errors += hardening.errors(f"{companions.VAR}[{spec.get('name')}].{key}", beside, args, allowed)
     return errors
 
 
@@ -601,6 +626,7 @@ def build(cfg: dict, host: dict) -> dict:
     )
     if not shared:
         errors += _namespace_conflicts(comp_specs)
+    errors += _confinement(cfg, comp_specs, count)
     if not errors:
         errors += _check_companion_ports(comp_specs, blocks, stride, held, shared)
     # the host's own services (status endpoint, Hub) share its network with the instances, or not

@@ -48,6 +48,44 @@ def assert_rejected(host, extra_vars, *needles):
             {"isaac_sim_image": "nvcr.io/nvidia/isaac-sim:6.0.1", "isaac_sim_registry_password": ""},
             ["isaac_sim_registry_password: empty, but nvcr.io/nvidia/isaac-sim:6.0.1 is on NGC"],
         ),
+        # every way out of the container at once, each named with the containers it would reach;
+        # the one allowed by name passes
+        (
+            {
+                "isaac_sim_extra_docker_args": [
+                    "--privileged",
+                    "--cap-add",
+                    "SYS_ADMIN",
+                    "--pid=host",
+                    "-v",
+                    "/var/run/docker.sock:/var/run/docker.sock",
+                    "--device=/dev/fuse",
+                    "--cap-add=SYS_PTRACE",
+                ],
+                "isaac_sim_allowed_docker_args": ["--cap-add=SYS_PTRACE"],
+                "isaac_sim_companions": [
+                    {
+                        "name": "bridge",
+                        "image": "reg/bridge:1",
+                        "instances": [2],
+                        "volumes": ["/run:/host-run"],
+                        "docker_args": ["--security-opt=seccomp=unconfined"],
+                    }
+                ],
+            },
+            [
+                "isaac_sim_extra_docker_args: --privileged gives the container every capability and device "
+                "(on isaac-sim-0, isaac-sim-1, isaac-sim-2, isaac-sim-3). Fix: remove it;",
+                "isaac_sim_extra_docker_args: --cap-add=SYS_ADMIN adds the capability SYS_ADMIN",
+                "add '--cap-add=SYS_ADMIN' to isaac_sim_allowed_docker_args",
+                "isaac_sim_extra_docker_args: --pid=host shares the host's PID namespace",
+                "isaac_sim_extra_docker_args: --volume=/var/run/docker.sock:/var/run/docker.sock mounts Docker's",
+                "isaac_sim_extra_docker_args: --device=/dev/fuse gives the container a host device",
+                "isaac_sim_companions[bridge].volumes: --volume=/run:/host-run mounts Docker's",
+                "isaac_sim_companions[bridge].docker_args: --security-opt=seccomp=unconfined turns off the seccomp "
+                "filter (the companion of isaac-sim-2)",
+            ],
+        ),
     ],
     ids=[
         "overlap",
@@ -62,6 +100,7 @@ def assert_rejected(host, extra_vars, *needles):
         "port-base-type",
         "gpu-without-driver",
         "ngc-without-key",
+        "confinement",
     ],
 )
 def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
@@ -70,6 +109,8 @@ def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
     assert "Traceback" not in out and "invalid literal" not in out and "[Errno" not in out
     # a wrong type is refused before Ansible's own role argument validation, which prints the spec
     assert "argument_spec" not in out and "_AnsibleTagged" not in out
+    # an argument allowed by name is not refused (the confinement case allows --cap-add=SYS_PTRACE)
+    assert "--cap-add=SYS_PTRACE adds" not in out
 
 
 def test_more_instances_than_gpus(host):

@@ -495,3 +495,27 @@ def test_companions_of_instances_with_own_addresses_check_no_host_port_and_take_
     assert plan.build(cfg(companions=bad), HOST)["instances"][0]["companions"][0]["docker_args"][-1] == (
         "--hostname=robot"
     )
+
+
+def test_a_way_out_of_the_container_is_refused_for_instances_and_companions_unless_allowed():
+    bridge = {
+        "name": "bridge",
+        "image": "reg/bridge:1",
+        "instances": [1],
+        "docker_args": ["--cap-add=NET_ADMIN"],
+        "volumes": ["maps:/maps", "/var/run/docker.sock:/var/run/docker.sock"],
+    }
+    c = cfg(instance_count=2, docker_args=["--privileged", "--cpus=8"], companions=[bridge])
+    errors = errors_of(c)
+    assert [e.split(" (")[0] for e in errors if "isaac_sim_allowed_docker_args" in e] == [
+        "isaac_sim_extra_docker_args: --privileged gives the container every capability and device",
+        "isaac_sim_companions[bridge].docker_args: --cap-add=NET_ADMIN adds the capability NET_ADMIN to the container",
+        "isaac_sim_companions[bridge].volumes: --volume=/var/run/docker.sock:/var/run/docker.sock mounts Docker's "
+        "or containerd's socket into it, and that socket controls every container and the host",
+    ]
+    assert any("(on isaac-sim-0, isaac-sim-1)" in e for e in errors)
+    assert any("(the companion of isaac-sim-1)" in e for e in errors)
+    # allowed, each by its exact argument: the plan takes them, as given
+    allow = ["--privileged", "--cap-add", "NET_ADMIN", "--volume=/var/run/docker.sock:/var/run/docker.sock"]
+    allowed = plan.build(dict(c, allowed_docker_args=allow), HOST)
+    assert "--privileged" in allowed["instances"][0]["docker_args"]
