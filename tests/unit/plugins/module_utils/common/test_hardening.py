@@ -59,12 +59,12 @@ def test_arguments_that_keep_the_confinement_pass(args):
 
 def test_an_allowed_argument_passes_whichever_way_either_is_written():
     args = ["--cap-add", "SYS_PTRACE", "--privileged", "-v", "/var/run/docker.sock:/s"]
-    assert [t for t, _ in hardening.refused(args, ["--cap-add=SYS_PTRACE"])] == [
+    assert [text for text, _why in hardening.refused(args, ["--cap-add=SYS_PTRACE"])] == [
         "--privileged",
         "--volume=/var/run/docker.sock:/s",
     ]
     # the allowance names the exact argument: another capability stays refused
-    assert [t for t, _ in hardening.refused(["--cap-add=SYS_ADMIN"], ["--cap-add", "SYS_PTRACE"])] == [
+    assert [text for text, _why in hardening.refused(["--cap-add=SYS_ADMIN"], ["--cap-add", "SYS_PTRACE"])] == [
         "--cap-add=SYS_ADMIN"
     ]
     assert hardening.refused(args, ["--cap-add=SYS_PTRACE", "--privileged", "--volume=/var/run/docker.sock:/s"]) == []
