@@ -199,6 +199,38 @@ def test_a_refused_registry_login_names_the_registry_and_the_user_never_the_key(
     assert key not in out
 
 
+def test_a_pull_with_the_key_leaves_it_nowhere_on_the_host_nor_in_the_play_s_output(host, monkeypatch):
+    # a pull forced with the scenario's key, the play at -vvv: the key is on the host only while
+    # the pull runs, in a Docker config of its own under /run, removed at its end
+    key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+    monkeypatch.setenv("ANSIBLE_VERBOSITY", "3")
+    result = testbed.run_playbook(host, {"isaac_sim_image_pull": "always"})
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-3000:]
+    assert "Log in to the image's registry, into the pull's own config" in out and "Pull the Isaac Sim image" in out
+    assert key not in out
+    # the key is given to grep in a file on /dev/shm, never on a command line; every place it could stay
+    pattern = "/dev/shm/isaac-sim-test-key"
+    subprocess.run(
+        ["docker", "exec", "-i", testbed.name(host), "sh", "-c", f"cat > {pattern}"],
+        input=key + "\n",
+        text=True,
+        check=True,
+    )
+    try:
+        found = sh(
+            host,
+            f"grep -rIlsF -f {pattern} /etc /root /var/lib /run /tmp; "
+            f"journalctl --no-pager -o cat | grep -cF -f {pattern}; "
+            f"ps -eo args | grep -F -f {pattern}; true",
+        ).stdout.split()
+    finally:
+        sh(host, f"rm -f {pattern}")
+    # grep -c prints the journal's count (0); anything else is a file or a process holding the key
+    assert found == ["0"], found
+    assert not sh(host, "ls -d /run/isaac-sim-pull.* 2>/dev/null", check=False).stdout.strip()
+
+
 def test_check_mode_on_the_deployed_host_runs_and_changes_nothing(host):
     before = testbed.snapshot(host)
     result = testbed.run_playbook(host, check=True)
