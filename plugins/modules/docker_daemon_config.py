@@ -34,17 +34,15 @@ options:
       (RV(restart_noted)), so a role needs no second task to look.
     type: path
   packages:
-    description: Packages to look for with O(installed_query); while any is missing nothing is merged
-      (RV(missing)).
+    description: Packages to look for with O(installed_query) (given together); while any is missing
+      nothing is merged (RV(missing)).
     type: list
     elements: str
-    default: []
   installed_query:
     description: The package manager's query, run with O(packages) appended; it prints C(NAME ii) for
       each installed package, as C(dpkg-query --show) with the format C(${Package} ${db:Status-Abbrev}) does.
     type: list
     elements: str
-    default: []
   service:
     description: A systemd unit whose C(ActiveState) and C(UnitFileState) are returned (RV(service_state)).
     type: str
@@ -98,14 +96,16 @@ def main():
             path=dict(type="path", default="/etc/docker/daemon.json"),
             settings=dict(type="dict", required=True),
             restart_marker=dict(type="path"),
-            packages=dict(type="list", elements="str", default=[]),
-            installed_query=dict(type="list", elements="str", default=[]),
+            packages=dict(type="list", elements="str"),
+            installed_query=dict(type="list", elements="str"),
             service=dict(type="str"),
         ),
+        # packages without the query that finds them would all read as missing, and nothing would merge
+        required_together=[("packages", "installed_query")],
         supports_check_mode=True,
     )
     p = module.params
-    found = docker_engine.probe(module.run_command, p["packages"], p["installed_query"], p["service"])
+    found = docker_engine.probe(module.run_command, p["packages"] or [], p["installed_query"] or [], p["service"])
     if found["missing"]:
         module.exit_json(changed=False, config={}, **found, **_marker(p))
     path = p["path"]

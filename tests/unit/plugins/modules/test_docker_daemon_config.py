@@ -63,3 +63,9 @@ def test_a_missing_package_holds_the_merge_and_says_what_is_missing(tmp_path, ca
     args["packages"] = ["docker.io"]
     result = run_module(docker_daemon_config.main, args, capsys)
     assert result["missing"] == [] and result["changed"] and path.exists()
+
+
+def test_packages_without_their_query_are_refused_before_anything_is_read_or_written(tmp_path, capsys):
+    path = tmp_path / "daemon.json"
+    result = run_module(docker_daemon_config.main, {"path": str(path), "settings": RUNTIME, "packages": ["x"]}, capsys)
+    assert result["failed"] and "installed_query" in result["msg"] and not path.exists()
