@@ -203,6 +203,15 @@ def test_a_pull_with_the_key_leaves_it_nowhere_on_the_host_nor_in_the_play_s_out
     # a pull forced with the scenario's key, the play at -vvv: the key is on the host only while
     # the pull runs, in a Docker config of its own under /run, removed at its end
     key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+    # what a run killed during its pull leaves: its config, with the key, never removed by its `always`
+    left = "/run/isaac-sim-pull.killed"
+    sh(host, f"mkdir -m 0700 {left}")
+    subprocess.run(
+        ["docker", "exec", "-i", testbed.name(host), "sh", "-c", f"cat > {left}/config.json"],
+        input=key + "\n",
+        text=True,
+        check=True,
+    )
     monkeypatch.setenv("ANSIBLE_VERBOSITY", "3")
     result = testbed.run_playbook(host, {"isaac_sim_image_pull": "always"})
     out = result.stdout + result.stderr
