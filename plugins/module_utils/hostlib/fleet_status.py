@@ -629,6 +629,8 @@ def gather(
     `stream` is not used (the journal is read through run); it stays in the signature while
     roles/isaac_sim/files/isaac-sim-metrics passes None in its place.
     """
+    if run is None and start is None:  # each is made from the other: one is needed
+        raise TypeError("fleet_status.gather needs run or start")
     start = start or (lambda argv: lambda: run(argv))
     run = run or (lambda argv: start(argv)())
     lap = _Laps()

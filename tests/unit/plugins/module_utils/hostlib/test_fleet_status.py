@@ -480,3 +480,8 @@ def test_a_started_command_takes_its_words_literally_and_a_hung_or_missing_one_r
     assert hung.spawned and hung() == (127, "", "sleep did not answer within 0.2 s")
     missing = fleet_status.start(["no-such-program-here"])
     assert not missing.spawned and missing() == (127, "", "no-such-program-here is not installed")
+
+
+def test_gather_without_run_or_start_says_so_instead_of_recursing():
+    with pytest.raises(TypeError, match="needs run or start"):
+        fleet_status.gather(None, None, None, None)
