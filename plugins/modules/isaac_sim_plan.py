@@ -150,6 +150,22 @@ options:
         C(DATA_ROOT/hub-cache)). Its port (14090) is checked against the instances' blocks and the host's sockets.
     type: dict
     default: {enabled: false}
+  firewall:
+    description:
+      - Let the instances', companions' and host services' ports answer only O(allowed_networks) (nftables, see
+        the isaac_sim role's README). V(false) opens them to every network that routes to the host, with a warning.
+    type: bool
+    default: true
+  allowed_networks:
+    description: The networks (CIDR, or single addresses) that may reach the ports; required with O(firewall).
+    type: list
+    elements: str
+    default: []
+  allowed_networks_by_port:
+    description: Port kind (C(signal), C(stream), C(web_viewer), a companion's port name, C(status), C(hub_cache))
+      to the networks that may reach ports of that kind, instead of O(allowed_networks).
+    type: dict
+    default: {}
   web_viewer_image:
     description:
       - NVIDIA's web viewer image (built once by P(isaacsim.fleet.web_viewer_image#role)); for 6.x each instance
@@ -318,6 +334,9 @@ ARGUMENT_SPEC = dict(
     instance_profiles=dict(type="dict", default={}),
     status_server=dict(type="dict", default={"enabled": False}),
     hub_cache=dict(type="dict", default={"enabled": False}),
+    firewall=dict(type="bool", default=True),
+    allowed_networks=dict(type="list", elements="str", default=[]),
+    allowed_networks_by_port=dict(type="dict", default={}),
     web_viewer_image=dict(type="str", default=""),
     network_mode=dict(type="str", default="host"),
     macvlan_parent=dict(type="str", default=""),

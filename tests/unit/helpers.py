@@ -144,6 +144,9 @@ def plan_config(**over) -> dict:
         "health_interval": 30,
         "health_retries": 3,
         "unhealthy_restart": 300,
+        "firewall": True,
+        "allowed_networks": ["10.0.0.0/8"],
+        "allowed_networks_by_port": {},
     }
     base.update(over)
     return base

@@ -56,6 +56,11 @@ HUB_PORT = 14090
 HUB_DROPIN = "isaac-sim@.service.d/hub.conf"
 HUB_MOUNT = "/var/cache/hub"
 LABEL_HOST_SERVICE = "org.isaacsim.fleet.host-service"
+# the instances' firewall (instance/firewall.py): its unit, its rules and what they were made of
+FIREWALL_UNIT = "isaac-sim-firewall.service"
+FIREWALL_RULES = f"{CONFIG_DIR}/firewall.nft"
+FIREWALL_STATE = f"{CONFIG_DIR}/firewall.json"
+FIREWALL_SITE_DROPIN = f"{UNIT_DIR}/nftables.service.d/isaac-sim.conf"
 # the Docker network that gives instances addresses of their own (isaac_sim_network_mode: macvlan)
 NETWORK = "isaac-sim-macvlan"
 LABEL_NETWORK = "org.isaacsim.fleet.network"
@@ -207,6 +212,8 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "metrics_script": METRICS_SCRIPT,
         "metrics_file": METRICS_FILE,
         "hub_unit": HUB_UNIT,
+        "firewall_unit": FIREWALL_UNIT,
+        "firewall_site_dropin": FIREWALL_SITE_DROPIN,
         "hub_dropin": HUB_DROPIN,
         "hub_dir": f"{data_root}/hub-cache",
         "network": NETWORK,

@@ -32,7 +32,7 @@ import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import reserved_ports
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import firewall, reserved_ports
 
 _GATE_WORDS = re.compile(
     r"not ready within|stopped before it was ready|went away before it was ready|docker run exited"
@@ -560,7 +560,17 @@ def apply(host: Host, want: dict, check=False) -> dict:
     managed = want.get("managed", "")
     reserving = ports is not None and reserve(host, ports, managed, grow=False, check=True)
     plan["reserved_ports"] = reserving
-    changed = bool(shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared or reserving)
+    # the firewall (firewall.py): while instances change, the rules of before and after are loaded
+    # together; the planned ones alone once every instance runs as planned. Without the key, no firewall
+    # is managed at all (a call that is not a deploy's).
+    walls = "firewall" in want
+    wall = want.get("firewall")
+    wall_kept = firewall.state(host).get("model") if walls else None
+    wall_todo = walls and not firewall.in_sync(host, wall, managed)
+    plan["firewall"] = ("load" if wall else "remove") if wall_todo else None
+    changed = bool(
+        shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared or reserving or wall_todo
+    )
     if check or not changed:
         result["changed"] = changed
         return result
@@ -578,6 +588,9 @@ def apply(host: Host, want: dict, check=False) -> dict:
             return result
     if want.get("prepare"):
         want["prepare"]()
+    # before any instance opens a port: the rules of the ports to come, and of those still open
+    if wall_todo and wall:
+        firewall.load(host, firewall.merge(wall_kept, wall), managed)
     # before any instance binds a new port; the old ones stay reserved until the end
     if reserving:
         before = reserved_ports.parse(host.read(reserved_ports.PROC))
@@ -768,6 +781,12 @@ def apply(host: Host, want: dict, check=False) -> dict:
         host.run(["systemctl", "daemon-reload"])
     if reserving:
         reserve(host, ports, managed, grow=False)
+    # every instance runs as planned: the rules of ports no longer open go
+    if wall_todo:
+        if wall is None:
+            firewall.remove(host)
+        elif not firewall.in_sync(host, wall, managed):
+            firewall.load(host, wall, managed)
     result["changed"] = True
     return result
 

@@ -18,6 +18,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.host import dirs
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
+    firewall,
     hostprobe,
     lifecycle,
     network,
@@ -75,7 +76,7 @@ def _want(host: Host, p: dict, found: dict) -> dict:
     gone = []
     if p["remove_others"]:
         gone = [i for i in hostprobe.existing_instances(layout.CONFIG_DIR, _WANTS, host.find) if i not in instances]
-    return {
+    wanted = {
         "files": files,
         "instances": instances,
         "companions": companions,
@@ -89,6 +90,9 @@ def _want(host: Host, p: dict, found: dict) -> dict:
         "reserve": plan.get("reserved_ports", []),
         "managed": p["managed"],
     }
+    if "firewall" in plan:
+        wanted["firewall"] = plan["firewall"]
+    return wanted
 
 
 def _network(host: Host, needed: bool):
@@ -191,6 +195,8 @@ def _apply(host: Host, p: dict, out: dict, found: dict, check: bool, diff: bool)
             prepare()
     except OSError as exc:
         raise LifecycleError(f"could not write the host's files: {exc}", **out) from exc
+    except firewall.FirewallError as exc:
+        raise LifecycleError(str(exc), **out) from exc
     net_done = net_todo if creates else None
     # once every instance is off it (the plan moved them to the host's network)
     if net_todo == "remove" and not result["deferred"] and not result["failed"]:

@@ -21,7 +21,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import
     parse_size,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, status_server
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, network, unit_files
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, firewall, network, unit_files
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import (
     ENV,
     KIT,
@@ -637,13 +637,18 @@ def build(cfg: dict, host: dict) -> dict:
         taken[layout.HUB_PORT] = "the Hub cache"
     status, status_errors = _status_endpoint(cfg, taken, held)
     errors += status_errors
+    # the kinds a site may give networks of their own: any release's, the companions', the host services'
+    kinds = {k for r in RELEASES.values() for k in r["ports"]} | set(firewall.HOST_KINDS)
+    kinds |= {str(n) for spec in comp_specs if isinstance(spec, dict) for n in (spec.get("ports") or {})}
+    fw, fw_errors, fw_warnings = firewall.settings(cfg, kinds)
+    errors += fw_errors
 
     if errors:
         raise PlanError(errors)
 
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
     sized["hub_dir"] = hub.get("dir")
-    warnings = _needs(release, profile, memory, gpus, host)
+    warnings = _needs(release, profile, memory, gpus, host) + fw_warnings
     instances = [
         _instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i), addresses.get(i)) for i in range(count)
     ]
@@ -674,7 +679,7 @@ def build(cfg: dict, host: dict) -> dict:
     companion_units = [companions.timeouts(spec, errors) for spec in comp_specs]
     if errors:
         raise PlanError(sorted(set(errors), key=errors.index))
-    return {
+    planned = {
         "release": release,
         "image": image,
         "instances": instances,
@@ -696,6 +701,9 @@ def build(cfg: dict, host: dict) -> dict:
         "reserved_ports": sorted(taken),
         "warnings": warnings,
     }
+    # what isaac_sim_allowed_networks lets in, port by port (firewall.py); None: no firewall
+    planned["firewall"] = firewall.model(fw, planned)
+    return planned
 
 
 def _needs(release, profile, memory, gpus, host) -> list:

@@ -72,3 +72,43 @@ def playbook(name: str, extra: dict | None = None, limit: str | None = None) -> 
         stdin=subprocess.DEVNULL,
         check=False,
     )
+
+
+PROBE = r"""
+import json, socket, sys, threading
+target, wanted = sys.argv[1], json.loads(sys.argv[2])
+out = {}
+
+def one(proto, port, path):
+    key = f"{proto}/{port}"
+    try:
+        if proto == "udp":
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.settimeout(3)
+            s.sendto(b"probe", (target, port))
+            out[key] = s.recv(200).decode().strip()
+            return
+        s = socket.create_connection((target, port), timeout=3)
+        s.settimeout(3)
+        s.sendall(f"GET {path} HTTP/1.0\r\n\r\n".encode() if path else b"hello\r\n")
+        out[key] = s.recv(200).decode(errors="replace").splitlines()[0]
+    except socket.timeout:
+        out[key] = "timeout"
+    except OSError as exc:
+        out[key] = type(exc).__name__
+
+threads = [threading.Thread(target=one, args=w) for w in wanted]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+print(json.dumps(out))
+"""
+
+
+def probe(from_host: str, target: str, wanted: list) -> dict:
+    """{"tcp/49100": first line of the answer, or "timeout"} for [(proto, port, http path or "")],
+    every port probed at once from from_host (a dropped one costs its timeout, once)."""
+    script = PROBE.replace("'", "'\\''")
+    arg = json.dumps(wanted)
+    return json.loads(sh(from_host, f"python3 -c '{script}' {target} '{arg}'"))

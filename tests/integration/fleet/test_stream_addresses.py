@@ -16,7 +16,7 @@ import re
 
 import pytest
 import testbed
-from fleethosts import INSTANCES, SIGNAL, all_ready, containers, hosts, ip, playbook, sh, squash
+from fleethosts import INSTANCES, SIGNAL, all_ready, containers, hosts, ip, playbook, probe, sh, squash
 
 VIEWER = 8210
 
@@ -106,10 +106,13 @@ def test_bad_addresses_are_refused_on_every_host_before_anything_changes(fleet):
 
 
 def test_each_instance_answers_at_its_own_address_and_at_no_other(fleet):
-    first, second = fleet[0], fleet[1]
+    first, second, third = fleet
     addresses = pool(first)
     untouched = containers(second)
-    run = playbook("deploy.yml", own(first, addresses, isaac_sim_web_viewer_image=viewer_image(first)), limit=first)
+    # the second host alone may reach them: their traffic never passes the host's input chain, so the
+    # firewall filters it at the macvlan parent's ingress
+    extra = {"isaac_sim_web_viewer_image": viewer_image(first), "isaac_sim_allowed_networks": [f"{ip(second)}/32"]}
+    run = playbook("deploy.yml", own(first, addresses, **extra), limit=first)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     assert containers(second) == untouched
     # one instance at a time, through the lifecycle: each new container started only once the
@@ -137,6 +140,12 @@ def test_each_instance_answers_at_its_own_address_and_at_no_other(fleet):
         config = sh(second, f"curl -sf http://{address}:{VIEWER}/stream-config.js").strip()
         assert config == f'window.ISAACSIM_STREAM = {{"host": "{address}", "signalPort": 49100, "streamPort": 47998}};'
 
+    # from outside the allowed networks no instance answers at its address
+    for address in addresses:
+        refused = probe(third, address, [("tcp", SIGNAL, ""), ("udp", 47998, ""), ("tcp", VIEWER, "/")])
+        assert set(refused.values()) == {"timeout"}, (address, refused)
+    assert 'type filter hook ingress device "eth0"' in sh(first, "nft list table netdev isaac_sim")
+
     # nothing of the instances on the host's own address any more
     for port in range(SIGNAL, SIGNAL + INSTANCES):
         assert tcp(second, ip(first), port) == "refused"
@@ -157,5 +166,7 @@ def test_back_on_the_host_s_network_the_macvlan_network_goes(fleet):
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     assert no_network(first)
     assert "isaac-sim-0-viewer" not in sh(first, "docker ps --format '{{.Names}}'")
+    # no instance has an address of its own: no rule at the parent's ingress either
+    assert "netdev" not in sh(first, "nft list tables")
     for i in range(INSTANCES):
         assert tcp(second, ip(first), SIGNAL + i).startswith("isaac-sim-standin signal")

@@ -5,6 +5,7 @@ converge and idempotence. Tests run in file order; each leaves every
 instance ready again.
 """
 
+import json
 import socket
 import time
 
@@ -212,6 +213,12 @@ def test_instances_come_back_after_a_reboot(host, ip):
     assert "shader cache warm" in log
     # a new network namespace, whose reservation can only come from the role's sysctl.d file
     assert instance_ports(host) <= reserved(host)
+    # the firewall's unit loaded the rules at boot, before Docker: the kernel has them as the deploy left them
+    kept = json.loads(sh(host, "cat /etc/isaac-sim/firewall.json").stdout)["listing"]
+    assert "tcp dport 49100 jump allow-signal" in kept
+    loaded = sh(host, "nft list table inet isaac_sim; nft list table netdev isaac_sim 2>/dev/null; true").stdout
+    assert loaded == kept
+    assert sh(host, "systemctl is-active isaac-sim-firewall.service").stdout.strip() == "active"
 
 
 def test_stopping_the_target_stops_every_instance(host):

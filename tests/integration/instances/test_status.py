@@ -368,6 +368,10 @@ def test_remove_and_cleanup_keep_caches_and_foreign_containers(host):
         assert sh(host, f"cat {reserved}").stdout.strip() == "9999"
         assert sh(host, "ls /etc/sysctl.d/ | grep -c isaac-sim", check=False).stdout.strip() == "0"
         assert sh(host, "ls /etc/systemd/system/ | grep -c isaac-sim", check=False).stdout.strip() == "0"
+        assert sh(host, "find /etc/systemd/system -name 'isaac-sim*'", check=False).stdout.strip() == ""
+        # no rule of the collection's left; Docker's tables stay
+        tables = sh(host, "nft list tables").stdout
+        assert "isaac_sim" not in tables and "table ip filter" in tables
         assert sh(host, "docker ps -q --filter name=isaac-sim-", check=False).stdout.strip() == ""
         assert container_id(host, "not-ours")
         for i in range(INSTANCES):

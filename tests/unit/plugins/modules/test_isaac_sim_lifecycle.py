@@ -9,7 +9,7 @@ import os
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle, plan, runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import firewall, lifecycle, plan, runlock
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_lifecycle
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config, run_module
 from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import (
@@ -56,7 +56,11 @@ def test_a_fresh_host_gets_its_files_directories_and_instances(host, tmp_path, c
     assert result["changed"] is True and result["failed_instance"] is None and result["untouched"] == []
     assert [(d["id"], d["action"]) for d in result["done"]] == [(i, "start") for i in range(4)]
     assert result["plan"]["start"] == [0, 1, 2, 3] and result["network"] is None and result["deferred"] is False
-    assert h.commands("start") == ["systemctl start " + " ".join(layout.unit(i) for i in range(4))]
+    # the firewall's rules are loaded before any instance opens a port
+    assert h.commands("start") == [
+        f"systemctl start {firewall.UNIT}",
+        "systemctl start " + " ".join(layout.unit(i) for i in range(4)),
+    ]
     text, mode = h.files[layout.env_file(2)]
     assert mode == 0o644 and layout.parse(text)[layout.K_IMAGE_ID] == "sha256:a"
     assert h.files[os.path.join(layout.LIBEXEC_DIR, "isaac-sim-run")] == (SCRIPTS["isaac-sim-run"], 0o755)

@@ -93,6 +93,7 @@ def host(tmp_path, monkeypatch):
         "config_dir": str(config),
         "systemd_dir": str(systemd),
         "data_root": str(tmp_path / "data"),
+        "allowed_networks": ["10.0.0.0/8"],
     }
     return args, commands, {"proc": proc, "installed": installed, "images": images, "warned": warned}
 
@@ -117,6 +118,7 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
         "metrics_timer": True,
         "status_unit": False,
         "hub_unit": False,
+        "nft": False,
         "serving": 2,
     }
     # instances 4 and 5 were set up before and are no longer planned

@@ -10,7 +10,12 @@ import fnmatch
 import os
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import lifecycle, reserved_ports, unit_files
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
+    firewall,
+    lifecycle,
+    reserved_ports,
+    unit_files,
+)
 
 UNIT_FILE = "/etc/systemd/system/isaac-sim@.service"
 GATE = "/usr/local/libexec/isaac-sim/isaac-sim-ready"
@@ -54,6 +59,10 @@ class ScriptedHost:
         self.log = []
         self.journal = {}
         self.dirs = set()  # made with mkdir (a lent instance's marker)
+        # nftables: the text of the rules last loaded (None: no table of ours), the firewall unit enabled
+        self.nft = True
+        self.tables = None
+        self.wall_enabled = False
         self.host = lifecycle.Host(
             self.run,
             lambda p: self.files.get(p, (None, None))[0],
@@ -63,7 +72,8 @@ class ScriptedHost:
             lambda p: any(p == layout.marker(i) for i in self.markers)
             or any(p == layout.companion_marker(i, n) for i, n in self.comp_markers)
             or (p == layout.TARGET_DOCKER_WANT and self.docker_want)
-            or p in self.dirs,
+            or p in self.dirs
+            or (p == firewall.NFT and self.nft),
             self.sleep,
             lambda: self.clock,
             lambda: 1795000000 + self.clock,
@@ -146,6 +156,14 @@ class ScriptedHost:
 
     def run(self, argv):
         self.log.append(" ".join(argv))
+        if argv[0] == firewall.NFT:
+            return self._nft(argv)
+        if firewall.UNIT in argv:
+            if argv[1] == "is-enabled":
+                return (0, "enabled\n", "") if self.wall_enabled else (1, "disabled\n", "")
+            if argv[1] in ("enable", "disable"):
+                self.wall_enabled = argv[1] == "enable"
+            return 0, "", ""
         if argv[0] == "mkdir":
             if argv[1] in self.dirs:
                 return 1, "", f"mkdir: cannot create directory '{argv[1]}': File exists"
@@ -224,6 +242,20 @@ class ScriptedHost:
         if argv[:3] == ["docker", "image", "inspect"]:
             tag = argv[-1]
             return (0, self.tags[tag] + "\n", "") if tag in self.tags else (1, "", "No such image")
+        return 0, "", ""
+
+    def _nft(self, argv):
+        """nft -f RULES loads the file's tables; list answers what is loaded; the stop line drops them."""
+        if argv[1] == "-f":
+            self.tables = self.files[argv[2]][0]
+            return 0, "", ""
+        if argv[1] == "list":
+            family = argv[3]
+            if self.tables and f"table {family} {firewall.TABLE} {{" in self.tables:
+                part = self.tables.split(f"table {family} {firewall.TABLE} {{", 1)[1].split("\n}", 1)[0]
+                return 0, f"table {family} {firewall.TABLE} {{{part}\n}}\n", ""
+            return 1, "", "Error: No such file or directory"
+        self.tables = None
         return 0, "", ""
 
     def commands(self, verb):
