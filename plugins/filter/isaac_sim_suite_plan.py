@@ -20,7 +20,7 @@ description:
     before it starts), makes one run per parameter set and repeat, and spreads the runs over the hosts, the least
     loaded first, each to a host with the GPUs and the instance it needs.
   - Returns C(plan) ({host - [run]}), C(runs) (how many) and C(errors).
-positional: _input, hosts, previous
+positional: _input, hosts, previous, allowed
 options:
   _input:
     description: The suite file's path on the controller.
@@ -33,6 +33,10 @@ options:
   previous:
     description: The previous suite's C(suite.json); when given, only the runs that ran there and failed run again.
     type: path
+  allowed:
+    description: The confinement-loosening docker arguments a service may ask for (C(test_suite_allowed_docker_args)).
+    type: list
+    elements: str
 """
 
 EXAMPLES = r"""
@@ -71,7 +75,7 @@ def _previous(path) -> list:
     )
 
 
-def suite_plan(path, hosts, previous=None):
+def suite_plan(path, hosts, previous=None, allowed=None):
     # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
 
@@ -83,7 +87,7 @@ def suite_plan(path, hosts, previous=None):
             f"test_suite_file: {path} cannot be read ({exc}). Fix: give the suite's path."
         ) from None
     timeout = (data or {}).get("timeout", 600) if isinstance(data, dict) else 600
-    runs, errors = suite.expand(data, os.path.dirname(os.path.abspath(path)), _load, timeout)
+    runs, errors = suite.expand(data, os.path.dirname(os.path.abspath(path)), _load, timeout, allowed or ())
     if previous:
         runs = suite.select_failed(runs, _previous(previous))
     caps = {

@@ -105,6 +105,15 @@ options:
       - Days a run's directory stays on the host at most, fetched or not (RV(expired)); C(0) keeps them for ever.
     type: float
     default: 14
+  allowed_docker_args:
+    description:
+      - Arguments that take a service's container out of its confinement (C(privileged), C(cap_add), a
+        C(security_opt) that turns a confinement off, C(pid)/C(ipc)/C(userns_mode) C(host), C(devices)) and that
+        the operator allows all the same, each named exactly as docker run takes it (C(--cap-add=NET_ADMIN)). A
+        service that asks for one not named here is refused before the run starts.
+    type: list
+    elements: str
+    default: []
   pull:
     description:
       - Pull the services' images missing on the host, before anything starts; one that cannot be pulled is an error.

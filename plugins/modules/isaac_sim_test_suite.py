@@ -58,6 +58,12 @@ options:
     description: Days a run's directory stays on the host at most, fetched or not (RV(expired)); C(0) keeps them.
     type: float
     default: 14
+  allowed_docker_args:
+    description: The confinement-loosening docker arguments the runs' services may ask for (C(test_suite_allowed_docker_args)),
+      as O(isaacsim.fleet.isaac_sim_experience#module:allowed_docker_args) for a single run.
+    type: list
+    elements: str
+    default: []
 notes:
   - Check mode reads every file and checks the images; nothing starts.
 """

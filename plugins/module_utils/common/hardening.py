@@ -99,10 +99,10 @@ def refused(args, allowed=()) -> list:
     return [(text, why) for text, opt, value in _words(args) if (why := _why(opt, value)) and text not in allow]
 
 
-def errors(where: str, whose: str, args, allowed=()) -> list:
+def errors(where: str, whose: str, args, allowed=(), allow_var: str = ALLOW_VAR) -> list:
     """The plan's error for each refused argument: the variable, the argument, whose it is, the fix."""
     return [
         f"{where}: {text} {why} ({whose}). Fix: remove it; where this host must allow it, add {text!r} to "
-        f"{ALLOW_VAR} (the README's Security section says what that gives away)."
+        f"{allow_var} (the README's Security section says what that gives away)."
         for text, why in refused(args, allowed)
     ]

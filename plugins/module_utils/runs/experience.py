@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 import shlex
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening, parse
 
 ORCHESTRATOR_LABELS = ("isaacsim.fleet/test-orchestrator", "resim.ai/isTestOrchestrator")
 # a service with this image is the simulator: the run borrows an Isaac Sim instance of the fleet
@@ -48,15 +48,9 @@ REFUSED = {
     "env_file": "the file is not shipped with the experience; put the variables under environment",
     "extends": "resolve it first (docker compose config prints the file with it resolved)",
     "network_mode": "every run has one network of its own; remove it",
-    "pid": "a run does not share the host's processes; remove it",
-    "ipc": "a run does not share the host's IPC; remove it",
-    "privileged": "test runs never run privileged, and keep Docker's default capabilities (cap_add is ignored); "
-    "remove it",
-    "devices": "host devices are not given to test runs; GPUs go under deploy.resources.reservations.devices",
     "volumes_from": "share a named volume instead",
     "secrets": "give secrets at the experience level (environment), from a vault",
     "configs": "put the file in the image or in a named volume",
-    "userns_mode": "remove it",
     "cgroup_parent": "the run places its containers itself; remove it",
 }
 # ignored, with a warning saying why
@@ -72,9 +66,7 @@ IGNORED = {
     "stdin_open": "a run has no terminal",
     "platform": "the host's platform is used",
     "pull_policy": "images are pulled before the run, once per host",
-    "cap_add": "test runs keep Docker's default capabilities",
     "cap_drop": "test runs keep Docker's default capabilities",
-    "security_opt": "test runs run with no-new-privileges",
     "sysctls": "test runs keep the host's defaults",
     "ulimits": "test runs keep the host's defaults",
     "dns": "the run's network resolves service names",
@@ -83,6 +75,49 @@ IGNORED = {
     "cpus": "give limits under deploy.resources.limits",
 }
 TOP_LEVEL = {"services", "volumes", "name", "version", "networks", "x-"}
+# the variables that allow a confinement-loosening argument: a single run's, a suite's
+ALLOW_VAR = "experience_allowed_docker_args"
+SUITE_ALLOW_VAR = "test_suite_allowed_docker_args"
+# keys that take a container out of its confinement: refused (common/hardening.py's list, as the plan
+# refuses them for instances) unless the allow variable names the exact argument; then honoured
+CONFINEMENT = ("privileged", "cap_add", "security_opt", "pid", "ipc", "userns_mode", "devices")
+_SHARED = {"pid": "--pid", "ipc": "--ipc", "userns_mode": "--userns"}
+
+
+def _listed(value) -> list:
+    return [str(v) for v in (value if isinstance(value, list) else [value] if value is not None else [])]
+
+
+def _confinement(spec: dict, where: str, allowed, allow_var: str, errors: list, warnings: list) -> list:
+    """The docker run arguments of the service's confinement keys that its run honours: those the
+    allow variable names. Every other one that loosens the confinement is an error; one that does not
+    (a security_opt such as label=level:s0) is ignored with a warning."""
+    args = ["--privileged"] if spec.get("privileged") not in (None, False, "false") else []
+    args += [f"--cap-add={c}" for c in _listed(spec.get("cap_add"))]
+    args += [f"--security-opt={o}" for o in _listed(spec.get("security_opt"))]
+    for key, opt in _SHARED.items():
+        if spec.get(key) is None:
+            continue
+        if str(spec[key]) != "host":
+            errors.append(
+                f"{where}.{key}: {spec[key]!r} cannot be honoured on the fleet: a run's services share only their "
+                "network. Fix: remove it."
+            )
+            continue
+        args.append(f"{opt}=host")
+    args += [f"--device={d}" for d in _listed(spec.get("devices"))]
+    loosening = dict(hardening.refused(args))
+    allow = hardening.canonical(allowed)
+    honoured = []
+    for text in sorted(hardening.canonical(args)):
+        if text not in loosening:
+            warnings.append(f"{where}: {text} is ignored; test runs run with no-new-privileges and Docker's defaults.")
+        elif text in allow:
+            honoured.append(text)
+    errors += hardening.errors(where, "a test run's service", args, allowed, allow_var)
+    return sorted(honoured)
+
+
 _DURATION = re.compile(r"(\d+(?:\.\d+)?)(us|ms|s|m|h)")
 _UNITS = {"us": 1e-6, "ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0}
 _VAR = re.compile(r"\$(?:\$|\{([A-Za-z_][A-Za-z0-9_]*)(?:(:?[-?])([^}]*))?\}|([A-Za-z_][A-Za-z0-9_]*))")
@@ -365,13 +400,14 @@ def _cycle(graph: dict):
     return None
 
 
-def read(compose, env=None, profiles=(), name="experience", secret=None) -> tuple:
+def read(compose, env=None, profiles=(), name="experience", secret=None, allowed=(), allow_var=ALLOW_VAR) -> tuple:
     """(experience, errors, warnings) for one compose file (a parsed mapping).
 
     env: the experience's environment, which overrides every service's and is given to each;
     profiles: the compose profiles the experience runs; secret: {name: value} of the
     environment's secret part (also in env). The experience's `secret_keys` are the environment
-    keys that carry a secret's value.
+    keys that carry a secret's value. allowed: the confinement-loosening docker arguments the
+    operator allows (allow_var names the variable), which a service may then ask for.
     """
     errors, warnings = [], []
     env = {str(k): str(v) for k, v in (env or {}).items()}
@@ -420,7 +456,10 @@ def read(compose, env=None, profiles=(), name="experience", secret=None) -> tupl
         used = set()
         spec = interpolate(spec, env, where, errors, warnings, used)
         active = not spec.get("profiles") or bool(chosen & {str(p) for p in spec["profiles"]})
+        docker_args = _confinement(spec, where, allowed, allow_var, errors, warnings)
         for key in spec:
+            if key in CONFINEMENT:
+                continue
             if key in REFUSED:
                 errors.append(f"{where}.{key}: cannot be honoured on the fleet. Fix: {REFUSED[key]}.")
             elif key in IGNORED:
@@ -499,6 +538,7 @@ def read(compose, env=None, profiles=(), name="experience", secret=None) -> tupl
             "stop_grace_period": duration(spec.get("stop_grace_period"), f"{where}.stop_grace_period", errors, 10.0),
             "stop_signal": spec.get("stop_signal"),
             "init": bool(spec.get("init")),
+            "docker_args": docker_args,
         }
     active = {s: v for s, v in services.items() if v["active"]}
     for svc, spec in active.items():

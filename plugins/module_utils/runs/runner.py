@@ -35,6 +35,7 @@ HOST_OPTIONS = {
     "data_root": {"type": "path", "default": layout.DATA_ROOT},
     "unfetched_after": {"type": "float", "default": 600},
     "keep_days": {"type": "float", "default": 14},
+    "allowed_docker_args": {"type": "list", "elements": "str", "default": []},
 }
 
 
@@ -154,7 +155,14 @@ class Runner:
     def _checked(self, p: dict) -> tuple:
         """(experience as read, run name, result so far): what was given, checked; fails on an error."""
         env = dict(p["environment"], **p["secret_environment"])
-        exp, errors, warnings = experience.read(p["compose"], env, p["profiles"], p["name"], p["secret_environment"])
+        exp, errors, warnings = experience.read(
+            p["compose"],
+            env,
+            p["profiles"],
+            p["name"],
+            p["secret_environment"],
+            allowed=p.get("allowed_docker_args") or (),
+        )
         run = p["run"] or self.new_run(p["name"])
         if not layout.RUN_ID_RE.match(run):
             errors.append(f"run: {run!r} is not a run name. Fix: lower case letters, digits and dashes, 63 at most.")
@@ -283,7 +291,12 @@ class _Share:
         errors = []
         for run in p["runs"]:
             exp, exp_errors, _warnings = experience.read(
-                run["compose"], run.get("environment") or {}, run.get("profiles") or [], run["experience"]
+                run["compose"],
+                run.get("environment") or {},
+                run.get("profiles") or [],
+                run["experience"],
+                allowed=p.get("allowed_docker_args") or (),
+                allow_var=experience.SUITE_ALLOW_VAR,
             )
             errors += exp_errors
             self.read.append(exp)

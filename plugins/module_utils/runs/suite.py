@@ -23,7 +23,7 @@ SIMULATOR_MODES = ("borrow", "dedicated")
 _SLUG = re.compile(r"[^a-z0-9]+")
 
 
-def expand(suite, base_dir: str, load, default_timeout: float = 600) -> tuple:
+def expand(suite, base_dir: str, load, default_timeout: float = 600, allowed=()) -> tuple:
     """([run], errors) for a suite ({"experiences": [...], "environment": {...} for every run,
     "timeout": default seconds}, as parsed). load(path) -> parsed
     compose file, or raises OSError / ValueError. Every file is read as the fleet runs it, so
@@ -88,7 +88,9 @@ def expand(suite, base_dir: str, load, default_timeout: float = 600) -> tuple:
         profiles = [str(p) for p in entry.get("profiles") or []]
         for p_index, param in enumerate(params):
             env = dict(base_env, **{str(k): str(v) for k, v in param.items()})
-            exp, exp_errors, _warnings = experience.read(compose, env, profiles, name)
+            exp, exp_errors, _warnings = experience.read(
+                compose, env, profiles, name, allowed=allowed, allow_var=experience.SUITE_ALLOW_VAR
+            )
             if exp_errors:
                 errors += [f"{where} ({path}): {e}" for e in exp_errors]
                 break

@@ -98,11 +98,16 @@ def docker_argv(run: str, name: str, svc: dict, *, outputs: str, env_file: str, 
         f"--network-alias={name}",
         f"--hostname={name}",
         "--pull=never",
-        "--security-opt=no-new-privileges",
         f"--label={layout.LABEL_RUN}={run}",
         f"--label={layout.LABEL_RUN_SERVICE}={name}",
         f"--mount=type=bind,source={outputs},target={layout.RUN_OUTPUTS}",
     ]
+    # what the operator allowed the service (experience_allowed_docker_args); no-new-privileges unless
+    # that turns it off
+    allowed = list(svc.get("docker_args") or [])
+    if not any(a.startswith("--security-opt=no-new-privileges") for a in allowed):
+        argv.append("--security-opt=no-new-privileges")
+    argv += allowed
     for key, value in sorted((svc.get("labels") or {}).items()):
         argv.append(f"--label={key}={value}")
     if simulator and simulator.get("address") and name != simulator["service"]:

@@ -5,19 +5,24 @@ its only allowed network (and the third for the status endpoint alone): from the
 instance's signal port, stream port (a real UDP exchange with the stand-in) and web viewer answer;
 from the third, and from this machine, none does. The site's own nftables table and Docker's rules
 stay byte for byte; a Docker restart, a reboot and a restart of the site's nftables.service keep the
-rules. The third host (no web viewer there) scales 4 -> 2 and exactly the rules of instances 2 and 3 go.
+rules. playbooks/audit.yml finds the first host clean, probed from this machine and from the third,
+and names each finding planted on it (a container with an added capability and Docker's socket,
+a file with the registry key, a port opened by hand). The third host (no web viewer there) scales
+4 -> 2 and exactly the rules of instances 2 and 3 go.
 """
 
 from __future__ import annotations
 
 import difflib
+import json
 import re
 import socket
 
 import pytest
 import testbed
-from fleethosts import INSTANCES, SIGNAL, all_ready, hosts, ip, playbook, probe, sh
+from fleethosts import INSTANCES, SIGNAL, all_ready, hosts, ip, playbook, probe, sh, squash
 from test_stream_addresses import VIEWER, viewer_image
+from testbed import ROOT
 
 STREAM = 47998
 SITE_RULES = (
@@ -105,6 +110,58 @@ def test_ports_answer_the_allowed_networks_only_and_other_rules_stay_as_they_wer
     assert again.returncode == 0 and re.search(rf"{first}\s*:.*changed=0", again.stdout), again.stdout[-2000:]
 
 
+def audit(tmp_path, limit: str, **extra) -> tuple:
+    run = playbook("audit.yml", {"audit_report_dir": str(tmp_path), **extra}, limit=limit)
+    return run, json.loads((tmp_path / "audit.json").read_text())
+
+
+def test_the_audit_finds_the_host_clean_and_each_planted_finding(fleet, tmp_path):
+    first, third = fleet[0], fleet[2]
+    run, report = audit(tmp_path, first)
+    assert run.returncode == 0 and report["clean"], run.stdout[-3000:]
+    # knocked on from this machine, outside every allowed network: every port silent
+    mine = [r for r in report["probed"] if r["host"] == first]
+    assert len(mine) == 13 and {r["answer"] for r in mine} == {"silent"} and not any(r["inside"] for r in mine)
+    # from the third host, inside the status endpoint's network only: that one is not checked, the rest are
+    run, report = audit(tmp_path, first, audit_probe_host=third)
+    assert run.returncode == 0 and report["clean"], run.stdout[-3000:]
+    inside = {r["port"] for r in report["probed"] if r["inside"]}
+    assert inside == {8290} and "(not checked: 1 port(s)" in report["table"][-1]
+
+    key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+    image = sh(first, "docker inspect -f '{{.Config.Image}}' isaac-sim-0").strip()
+    sh(
+        first,
+        f"docker run -d --name planted --cap-add NET_ADMIN -v /var/run/docker.sock:/var/run/docker.sock "
+        f"--entrypoint sleep {image} 600 && printf %s '{key}' > /root/leak.txt && "
+        "nft insert rule inet isaac_sim isaac-sim-0 tcp dport 49100 accept",
+    )
+    try:
+        run, report = audit(tmp_path, first)
+    finally:
+        handle = sh(first, "nft -a list chain inet isaac_sim isaac-sim-0 | awk '/accept # handle/ {print $NF}'")
+        sh(
+            first,
+            f"docker rm -f planted; rm -f /root/leak.txt; nft delete rule inet isaac_sim isaac-sim-0 handle {handle}",
+        )
+    assert run.returncode != 0 and "5 finding(s) on " + first in squash(run.stdout + run.stderr)
+    found = {(f["check"], f["what"], f["why"].split(":", 1)[0]) for f in report["hosts"][0]["findings"]}
+    assert found == {
+        ("container", "planted", "--cap-add=NET_ADMIN"),
+        ("container", "planted", "--volume=/var/run/docker.sock"),
+        ("registry key", "/root/leak.txt", "holds the registry key (isaac_sim_registry_password)"),
+        ("firewall", "isaac_sim", "the loaded rules differ from those the last deploy loaded"),
+        (
+            "port",
+            f"{first} tcp/{ip(first)}:{SIGNAL} (signal)",
+            f"answers {report['probed'][0]['source']}, which is outside the allowed networks",
+        ),
+    }
+    assert key not in run.stdout + run.stderr + (tmp_path / "audit.json").read_text()
+    run, report = audit(tmp_path, first)
+    assert run.returncode == 0 and report["clean"]
+
+
 def test_rules_survive_a_docker_restart_a_reboot_and_the_site_s_nftables_restart(fleet):
     first, second, third = fleet
     listing = ours(first)
@@ -128,6 +185,10 @@ def test_rules_survive_a_docker_restart_a_reboot_and_the_site_s_nftables_restart
     sh(first, "systemctl restart nftables && systemctl reload nftables")
     assert ours(first) == listing
     assert probe(third, ip(first), block(0)) == dict.fromkeys(["tcp/49100", "udp/47998", "tcp/8210"], "timeout")
+    # the flush took Docker's rules too (the site's doing): Docker puts them back when it starts
+    sh(first, "systemctl restart docker")
+    testbed.wait_for(lambda: all_ready(first), timeout=240, what=f"{first} ready after Docker's restart")
+    assert ours(first) == listing
 
 
 def test_a_scale_down_removes_exactly_the_rules_of_the_instances_that_go(fleet):

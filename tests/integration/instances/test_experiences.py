@@ -254,3 +254,19 @@ def test_bad_experiences_are_refused_before_any_container_starts(host, tmp_path)
     assert result.returncode != 0 and outcome is None
     assert "simulator_release: not given, and the tag of registry.local/sim:v1 names no release" in text
     assert left_behind(host) == ""
+
+
+def test_an_added_capability_is_refused_until_the_operator_names_it_and_then_the_container_has_it(host, tmp_path):
+    result, outcome, _directory = run(host, tmp_path, "caps")
+    text = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode != 0 and outcome is None
+    assert (
+        "caps: services.check: --cap-add=NET_ADMIN adds the capability NET_ADMIN to the container (a test run's "
+        "service). Fix: remove it; where this host must allow it, add '--cap-add=NET_ADMIN' to "
+        "experience_allowed_docker_args"
+    ) in text
+    assert left_behind(host) == ""
+    result, outcome, _directory = run(host, tmp_path, "caps", experience_allowed_docker_args=["--cap-add=NET_ADMIN"])
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert outcome["verdict"]["result"] == "passed", outcome
+    assert left_behind(host) == ""

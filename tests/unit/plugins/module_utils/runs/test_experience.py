@@ -104,7 +104,10 @@ services:
     _e, errors, _w = experience.read(compose, name="x")
     text = "\n".join(errors)
     assert "services.t.build: cannot be honoured on the fleet. Fix: the fleet does not build images" in text
-    assert "services.t.privileged: cannot be honoured" in text
+    assert (
+        "x: services.t: --privileged gives the container every capability and device (a test run's service). "
+        "Fix: remove it; where this host must allow it, add '--privileged' to experience_allowed_docker_args"
+    ) in text
     assert "services.t.env_file: cannot be honoured" in text
     assert "./data is a path on the machine the file was written on" in text
     assert "'/tmp' is an anonymous volume" in text
@@ -205,8 +208,7 @@ def test_a_volume_driver_is_said_to_be_ignored_and_privileged_names_no_ignored_k
     assert errors == [] and any("volume maps: driver and driver_opts are ignored" in w for w in warnings)
     compose["services"]["check"]["privileged"] = True
     _exp, errors, _warnings = experience.read(compose, name="v")
-    assert len(errors) == 1 and "privileged" in errors[0] and "cap_add is ignored" in errors[0]
-    assert "with cap_add" not in errors[0]
+    assert len(errors) == 1 and "--privileged" in errors[0] and "experience_allowed_docker_args" in errors[0]
 
 
 def test_a_size_docker_cannot_read_is_refused_before_the_run():
@@ -250,3 +252,46 @@ def test_a_secret_substituted_into_another_variable_is_masked_and_never_reaches_
     assert len(errors) == 2 and all("${TOKEN} is a secret (experience_secret_environment)" in e for e in errors)
     assert errors[0].startswith("leak: services.check.entrypoint:") and "$$TOKEN" in errors[0]
     assert errors[1].startswith("leak: services.check.healthcheck.test:")
+
+
+def orchestrated(**service):
+    spec = {"image": "reg/check:1", "labels": {"isaacsim.fleet/test-orchestrator": "true"}, **service}
+    return {"services": {"check": spec}}
+
+
+def test_a_service_out_of_its_confinement_is_refused_unless_the_operator_names_each_argument():
+    compose = orchestrated(
+        cap_add=["NET_ADMIN"],
+        security_opt=["seccomp:unconfined", "label=level:s0"],
+        pid="host",
+        devices=["/dev/fuse"],
+    )
+    _exp, errors, warnings = experience.read(compose, name="x")
+    assert [e.split(" (a test run's service)", maxsplit=1)[0] for e in errors] == [
+        "x: services.check: --cap-add=NET_ADMIN adds the capability NET_ADMIN to the container",
+        "x: services.check: --security-opt=seccomp:unconfined turns off the seccomp filter",
+        "x: services.check: --pid=host shares the host's PID namespace with the container",
+        "x: services.check: --device=/dev/fuse gives the container a host device beyond the GPU the plan gives each "
+        "instance (isaac_sim_gpu_map)",
+    ]
+    assert "x: services.check: --security-opt=label=level:s0 is ignored" in warnings[0]
+    allowed = ["--cap-add", "NET_ADMIN", "--security-opt=seccomp:unconfined", "--pid=host", "--device=/dev/fuse"]
+    exp, errors, _w = experience.read(compose, name="x", allowed=allowed, allow_var="test_suite_allowed_docker_args")
+    assert errors == []
+    assert exp["services"]["check"]["docker_args"] == [
+        "--cap-add=NET_ADMIN",
+        "--device=/dev/fuse",
+        "--pid=host",
+        "--security-opt=seccomp:unconfined",
+    ]
+    # one argument allowed is not another: the operator names each
+    _exp, errors, _w = experience.read(compose, name="x", allowed=["--cap-add=SYS_ADMIN"], allow_var="test_suite_x")
+    assert len(errors) == 4 and "add '--cap-add=NET_ADMIN' to test_suite_x" in errors[0]
+
+
+def test_sharing_another_service_s_namespace_is_refused_and_privileged_false_is_nothing():
+    _exp, errors, _w = experience.read(orchestrated(ipc="service:db", privileged=False), name="x")
+    assert errors == [
+        "x: services.check.ipc: 'service:db' cannot be honoured on the fleet: a run's services share only their "
+        "network. Fix: remove it."
+    ]

@@ -86,6 +86,15 @@ def test_docker_run_of_a_service_carries_what_compose_says_and_what_the_run_adds
     assert check[-4:] == ["--entrypoint=sh", "reg/check:1", "-c", "exit 0"]
 
 
+def test_what_the_operator_allowed_a_service_reaches_docker_run_and_no_new_privileges_stays_unless_allowed_off():
+    svc = dict(read()["services"]["check"], docker_args=["--cap-add=NET_ADMIN"])
+    argv = testrun.docker_argv("r1", "check", svc, outputs="/o", env_file="/e")
+    assert "--cap-add=NET_ADMIN" in argv and "--security-opt=no-new-privileges" in argv
+    svc["docker_args"] = ["--security-opt=no-new-privileges=false"]
+    argv = testrun.docker_argv("r1", "check", svc, outputs="/o", env_file="/e")
+    assert [w for w in argv if "no-new-privileges" in w] == ["--security-opt=no-new-privileges=false"]
+
+
 def test_the_unit_restarts_by_the_compose_policy_and_never_after_a_zero_exit():
     exp = read()
     robot = testrun.unit_text("r1", "robot", exp["services"]["robot"], ["/usr/bin/docker", "run", "x"])

@@ -1,0 +1,318 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The security audit of a host (playbooks/audit.yml): what a host has that it should not.
+
+Findings, each {"check", "what", "why"}: containers that left their confinement (privileged, added
+capabilities, the host's namespaces, a confinement turned off, host devices, Docker's socket), files
+under /etc, /root, /var/lib and the journal that hold the registry key (never the key itself in
+the answer), env files and units whose mode is wider than they should be, and the firewall's
+tables missing or not as the lifecycle loaded them. The ports each host opens go to a probe
+(probe()), run from the controller or a named probe host outside the allowed networks.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import socket
+import stat
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
+
+KEY_ROOTS = ("/etc", "/root", "/var/lib")
+# image layers and content stores: tens of GB the key is never written to by a pull (a container's
+# own config, where an env variable would land, is under /var/lib/docker/containers and is read)
+SKIP = ("/var/lib/docker/overlay2", "/var/lib/docker/image", "/var/lib/docker/volumes", "/var/lib/containerd")
+MAX_FILE = 16 * 1024 * 1024
+_NAMESPACE_MODES = {"PidMode": "--pid", "IpcMode": "--ipc", "UTSMode": "--uts", "UsernsMode": "--userns"}
+
+
+def finding(check: str, what: str, why: str) -> dict:
+    return {"check": check, "what": what, "why": why}
+
+
+def container_args(inspected: dict) -> list:
+    """docker run arguments that would give a container what Docker says it has."""
+    hc = inspected.get("HostConfig") or {}
+    args = ["--privileged"] if hc.get("Privileged") else []
+    args += [f"--cap-add={cap}" for cap in hc.get("CapAdd") or []]
+    args += [f"{opt}={hc[key]}" for key, opt in _NAMESPACE_MODES.items() if hc.get(key) == "host"]
+    args += [f"--security-opt={opt}" for opt in hc.get("SecurityOpt") or []]
+    args += [f"--device={d.get('PathOnHost', '')}" for d in hc.get("Devices") or []]
+    args += [f"--volume={b}" for b in hc.get("Binds") or []]
+    args += [
+        f"--mount=type={m.get('Type', 'bind')},source={m.get('Source', '')},target={m.get('Target', '')}"
+        for m in hc.get("Mounts") or []
+    ]
+    return args
+
+
+def container_findings(containers: list) -> list:
+    """A finding per argument that takes a container out of its confinement (common/hardening.py's
+    list, the one the plan refuses), for every container of the host, ours or not."""
+    out = []
+    for inspected in containers:
+        name = str(inspected.get("Name", "")).lstrip("/")
+        for text, why in hardening.refused(container_args(inspected)):
+            out.append(finding("container", name, f"{text}: {why}"))
+    return out
+
+
+def key_files(key: str, roots=KEY_ROOTS, skip=SKIP, max_file=MAX_FILE) -> list:
+    """The regular files under roots that contain key (symlinks not followed, big files skipped)."""
+    if not key:
+        return []
+    needle = key.encode()
+    found = []
+    for root in roots:
+        for folder, dirs, names in os.walk(root):
+            dirs[:] = [d for d in dirs if os.path.join(folder, d) not in skip]
+            for name in names:
+                path = os.path.join(folder, name)
+                try:
+                    st = os.lstat(path)
+                    if not stat.S_ISREG(st.st_mode) or st.st_size > max_file:
+                        continue
+                    with open(path, "rb") as fh:
+                        if needle in fh.read():
+                            found.append(path)
+                except OSError:
+                    continue
+    return found
+
+
+def key_findings(key: str, files: list, journal: str) -> list:
+    out = [finding("registry key", path, "holds the registry key (isaac_sim_registry_password)") for path in files]
+    if key and key in journal:
+        out.append(finding("registry key", "journal", "the journal holds the registry key (journalctl)"))
+    return out
+
+
+def mode_findings(files: dict, secret_names) -> list:
+    """files: {path: (mode, text)} of our env files, units and scripts. Nothing of ours is writable by
+    group or others; an env file that holds a secret variable is readable by root only."""
+    out = []
+    for path, (mode, text) in sorted(files.items()):
+        if mode & 0o022:
+            out.append(finding("file mode", path, f"mode {mode:04o} lets group or others write it"))
+        secret = [n for n in secret_names if f"\n{n}=" in f"\n{text or ''}"]
+        if secret and mode & 0o077:
+            out.append(finding("file mode", path, f"mode {mode:04o} lets others than root read {', '.join(secret)}"))
+    return out
+
+
+def opened_ports(envs: dict, status_env: str | None, hub: bool) -> list:
+    """[{"proto", "port", "address", "kind"}] the host opens: each instance's and companion's listening
+    ports (K_PORTS, at its own address when it has one), the status endpoint's, the Hub cache's."""
+    out = []
+    for text in envs.values():
+        env = layout.parse(text or "")
+        owner = env.get(layout.K_CONTAINER, "")
+        for spec in env.get(layout.K_PORTS, "").split():
+            proto, _sep, port = spec.partition("/")
+            if port.isdigit():
+                out.append({"proto": proto, "port": int(port), "address": env.get(layout.K_ADDRESS, ""), "kind": owner})
+    if status_env:
+        url = layout.parse(status_env).get(layout.K_STATUS_URL, "")
+        port = url.rsplit(":", 1)[-1].split("/", 1)[0]
+        if port.isdigit():
+            out.append({"proto": "tcp", "port": int(port), "address": "", "kind": "status"})
+    if hub:
+        out.append({"proto": "tcp", "port": layout.HUB_PORT, "address": "", "kind": "hub_cache"})
+    return sorted(out, key=lambda p: (p["address"], p["port"], p["proto"]))
+
+
+def firewall_findings(state_text: str | None, listing: str | None, ports: list) -> list:
+    """The firewall as the lifecycle left it: loaded and unchanged, or nothing at all to guard."""
+    if not ports:
+        return []
+    if state_text is None:
+        return [finding("firewall", "isaac_sim", "no firewall guards the instances' ports (isaac_sim_firewall)")]
+    try:
+        kept = json.loads(state_text).get("listing")
+    except ValueError:
+        kept = None
+    if not listing:
+        return [finding("firewall", "isaac_sim", "the tables are not loaded (systemctl start isaac-sim-firewall)")]
+    if kept is not None and listing != kept:
+        return [finding("firewall", "isaac_sim", "the loaded rules differ from those the last deploy loaded")]
+    return []
+
+
+def probe(targets: list, timeout: float = 3.0) -> list:
+    """Run on the probe host. targets: [{"host", "address", "proto", "port", "kind", "networks"}].
+    Each gets "source" (this host's address towards it), "inside" (the source is in the networks
+    allowed for it: nothing to learn there) and "answer": "open" (TCP connected, UDP answered),
+    "closed" (refused), "silent" (dropped, or a UDP port that answers nothing)."""
+    out = []
+    for t in targets:
+        row = dict(t)
+        row["source"] = _source(t["address"])
+        nets = [ipaddress.ip_network(n) for n in t.get("networks") or []]
+        src = ipaddress.ip_address(row["source"]) if row["source"] else None
+        row["inside"] = bool(src) and any(src.version == n.version and src in n for n in nets)
+        row["answer"] = _knock(t["proto"], t["address"], int(t["port"]), timeout)
+        out.append(row)
+    return out
+
+
+def _source(address: str) -> str:
+    sock = socket.socket(socket.AF_INET6 if ":" in address else socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.connect((address, 9))
+        return sock.getsockname()[0]
+    except OSError:
+        return ""
+    finally:
+        sock.close()
+
+
+def _knock(proto: str, address: str, port: int, timeout: float) -> str:
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
+    try:
+        if proto == "udp":
+            with socket.socket(family, socket.SOCK_DGRAM) as sock:
+                sock.settimeout(timeout)
+                sock.connect((address, port))
+                sock.send(b"isaacsim-fleet audit")
+                sock.recv(512)
+                return "open"
+        with socket.create_connection((address, port), timeout=timeout):
+            return "open"
+    except socket.timeout:
+        return "silent"
+    except ConnectionRefusedError:
+        return "closed"
+    except OSError:
+        return "silent"
+
+
+def probe_findings(rows: list) -> list:
+    """An open port seen from outside the networks allowed for it is a finding."""
+    return [
+        finding(
+            "port",
+            f"{r['host']} {r['proto']}/{r['address']}:{r['port']} ({r['kind']})",
+            f"answers {r['source']}, which is outside the allowed networks",
+        )
+        for r in rows
+        if r["answer"] == "open" and not r["inside"]
+    ]
+
+
+class HostIO:
+    """What the audit reads on the host: Docker's API (DockerSocket), run(argv) -> (rc, out, err),
+    glob(pattern) -> paths, lstat(path) -> os.stat_result or None, read(path) -> text or None,
+    key_files(key) -> paths, default_ipv4() -> address."""
+
+    def __init__(self, docker, run, glob, lstat, read, key_files_of, default_ipv4):
+        self.docker, self.run, self.glob, self.lstat, self.read = docker, run, glob, lstat, read
+        self.key_files, self.default_ipv4 = key_files_of, default_ipv4
+
+
+def _ours(io: HostIO) -> dict:
+    """{path: (mode, text)} of the files the collection writes that hold settings or run as root."""
+    patterns = [
+        f"{layout.CONFIG_DIR}/*",
+        f"{layout.UNIT_DIR}/isaac-sim*",
+        f"{layout.UNIT_DIR}/isaac-sim*.d/*",
+        f"{layout.LIBEXEC_DIR}/*",
+        layout.FIREWALL_SITE_DROPIN,
+    ]
+    files = {}
+    for pattern in patterns:
+        for path in io.glob(pattern):
+            st = io.lstat(path)
+            if st is not None and stat.S_ISREG(st.st_mode):
+                files[path] = (stat.S_IMODE(st.st_mode), io.read(path) or "")
+    return files
+
+
+def _networks(state_text: str | None):
+    """(default, by_kind, rows) of the firewall the lifecycle left; empty without one."""
+    try:
+        model = (json.loads(state_text) if state_text else {}).get("model") or {}
+    except ValueError:
+        model = {}
+    return model.get("default") or [], model.get("by_kind") or {}, model.get("ports") or []
+
+
+def host_report(io: HostIO, key: str, secret_names) -> dict:
+    """{"findings", "ports", "address"} of this host; ports carry the networks allowed for each."""
+    findings = []
+    try:
+        listed = io.docker.get("/containers/json?all=1")
+        containers = [io.docker.get(f"/containers/{c['Id']}/json") for c in listed]
+        findings += container_findings(containers)
+    except (DockerError, OSError) as exc:
+        findings.append(finding("container", "docker", f"could not ask Docker: {exc}"))
+    _rc, journal, _err = io.run(["journalctl", "-o", "cat", "--no-pager"]) if key else (0, "", "")
+    findings += key_findings(key, io.key_files(key), journal)
+    ours = _ours(io)
+    findings += mode_findings(ours, secret_names)
+    envs = {p: t for p, (_m, t) in ours.items() if p.endswith(".env") and os.path.basename(p) != layout.STATUS_ENV}
+    status_env = ours.get(f"{layout.CONFIG_DIR}/{layout.STATUS_ENV}", (0, None))[1]
+    hub = f"{layout.UNIT_DIR}/{layout.HUB_UNIT}" in ours
+    ports = opened_ports(envs, status_env, hub)
+    state_text = io.read(layout.FIREWALL_STATE)
+    listing = "".join(
+        out if rc == 0 else ""
+        for rc, out, _err in (io.run(["nft", "list", "table", fam, "isaac_sim"]) for fam in ("inet", "netdev"))
+    )
+    findings += firewall_findings(state_text, listing, ports)
+    default, by_kind, rows = _networks(state_text)
+    kinds = {(r[1], r[2], r[4]): r[3] for r in rows}
+    for p in ports:
+        kind = kinds.get((p["proto"], p["port"], p["address"]))
+        p["networks"] = by_kind.get(kind, default) if kind else []
+        p["kind"] = kind or p["kind"]
+    return {"findings": findings, "ports": ports, "address": io.default_ipv4()}
+
+
+def targets(reports: dict) -> list:
+    """The probe's targets from the hosts' reports ({host: host_report(), or {} when unreachable})."""
+    out = []
+    for host in sorted(reports):
+        report = reports[host] or {}
+        for p in report.get("ports") or []:
+            address = p.get("address") or report.get("address") or ""
+            if address:
+                out.append(dict(p, host=host, address=address))
+    return out
+
+
+def fleet(reports: dict, probed: list) -> dict:
+    """{"hosts": [{"host", "reachable", "findings"}], "findings": n, "clean": bool, "table": [lines]}."""
+    rows = []
+    by_host = {}
+    for f in probe_findings(probed):
+        by_host.setdefault(f["what"].split(" ", 1)[0], []).append(f)
+    unknown = [r for r in probed if r["inside"] and r["answer"] == "open"]
+    for host in sorted(reports):
+        report = reports[host]
+        found = list((report or {}).get("findings") or []) + by_host.get(host, [])
+        rows.append({"host": host, "reachable": bool(report), "findings": found})
+    count = sum(len(r["findings"]) for r in rows)
+    table = [f"{'HOST':<24} {'CHECK':<13} WHAT / WHY"]
+    for r in rows:
+        if not r["reachable"]:
+            table.append(f"{r['host']:<24} {'host':<13} did not answer: not audited")
+        for f in r["findings"]:
+            table.append(f"{r['host']:<24} {f['check']:<13} {f['what']}: {f['why']}")
+        if r["reachable"] and not r["findings"]:
+            table.append(f"{r['host']:<24} {'-':<13} clean")
+    if unknown:
+        table.append(
+            f"(not checked: {len(unknown)} port(s) answered the probe from inside their allowed networks; "
+            "give audit_probe_host a host outside them)"
+        )
+    return {
+        "hosts": rows,
+        "findings": count,
+        "clean": count == 0 and all(r["reachable"] for r in rows),
+        "probed": probed,
+        "table": table,
+    }

@@ -1,0 +1,129 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_audit
+short_description: Audit an Isaac Sim host, or probe the fleet's ports from outside the allowed networks
+version_added: "0.3.0"
+description:
+  - O(action=host) reads the host - every container's confinement (privileged, added capabilities, the host's
+    namespaces, a confinement turned off, host devices, Docker's socket mounted), the files under C(/etc), C(/root)
+    and C(/var/lib) and the journal that hold O(key), the modes of the collection's env files, units and scripts,
+    and the firewall's tables - and lists the ports the host opens with the networks allowed for each.
+  - O(action=probe) runs on the probe host (the controller, or a host outside the allowed networks) and knocks on
+    each port of O(reports) - a TCP connect, a UDP datagram that waits for an answer.
+  - Never changes anything; the key is never returned.
+author: isaacsim.fleet contributors (@isaacsim-fleet)
+attributes:
+  check_mode:
+    support: full
+    description: Reads only.
+options:
+  action:
+    description: What to do.
+    type: str
+    choices: [host, probe]
+    default: host
+  key:
+    description: The registry key to look for (C(isaac_sim_registry_password)); empty - not looked for.
+    type: str
+    default: ""
+  secret_env_names:
+    description: Variables of the instances' env files that are secrets (C(isaac_sim_secret_env)'s names).
+    type: list
+    elements: str
+    default: []
+  reports:
+    description: For O(action=probe) - host name to the result of O(action=host) on it (empty - it did not answer).
+    type: dict
+    default: {}
+  timeout:
+    description: Seconds to wait for each port's answer.
+    type: float
+    default: 3.0
+"""
+
+EXAMPLES = r"""
+- name: Audit the host
+  isaacsim.fleet.isaac_sim_audit:
+    key: "{{ isaac_sim_registry_password }}"
+  register: audit
+"""
+
+RETURN = r"""
+findings:
+  description: For O(action=host), each C(check), C(what) and C(why).
+  returned: always
+  type: list
+  elements: dict
+ports:
+  description: For O(action=host), the ports the host opens, each with the networks allowed to reach it.
+  returned: always
+  type: list
+  elements: dict
+address:
+  description: For O(action=host), the host's address on its default route.
+  returned: always
+  type: str
+report:
+  description: For O(action=probe), the fleet's audit - C(hosts) (each C(host), C(reachable), C(findings)),
+    C(findings) (their number), C(clean), C(probed) (each port with C(source), C(inside), C(answer)) and C(table).
+  returned: always
+  type: dict
+"""
+
+import glob
+import os
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import audit
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerSocket
+
+
+def bind(module) -> audit.HostIO:
+    def run(argv):
+        path = module.get_bin_path(argv[0])
+        return module.run_command([path] + argv[1:]) if path else (127, "", f"{argv[0]}: not found")
+
+    def lstat(path):
+        try:
+            return os.lstat(path)
+        except OSError:
+            return None
+
+    def read(path):
+        try:
+            with open(path, errors="replace") as fh:
+                return fh.read()
+        except OSError:
+            return None
+
+    return audit.HostIO(DockerSocket(), run, glob.glob, lstat, read, audit.key_files, fleet_status.default_ipv4)
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            action=dict(type="str", choices=["host", "probe"], default="host"),
+            key=dict(type="str", default="", no_log=True),
+            secret_env_names=dict(type="list", elements="str", default=[], no_log=False),
+            reports=dict(type="dict", default={}),
+            timeout=dict(type="float", default=3.0),
+        ),
+        supports_check_mode=True,
+    )
+    p = module.params
+    if p["action"] == "probe":
+        probed = audit.probe(audit.targets(p["reports"]), p["timeout"])
+        module.exit_json(changed=False, findings=[], ports=[], address="", report=audit.fleet(p["reports"], probed))
+    report = audit.host_report(bind(module), p["key"], p["secret_env_names"])
+    module.exit_json(changed=False, report={}, **report)
+
+
+if __name__ == "__main__":
+    main()

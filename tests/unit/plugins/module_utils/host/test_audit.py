@@ -1,0 +1,208 @@
+"""The security audit (module_utils/host/audit.py): containers out of their confinement, the key in
+files and the journal, modes, the firewall as the lifecycle left it, and the probe's knocks on real
+sockets of this machine."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import threading
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import audit
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
+KEY = "nvapi-0123456789abcdef"
+
+
+def inspected(name, **host_config):
+    return {"Name": f"/{name}", "HostConfig": host_config}
+
+
+def test_containers_out_of_their_confinement_are_named_with_the_argument_and_why():
+    ours = inspected(
+        "isaac-sim-0",
+        SecurityOpt=["no-new-privileges"],
+        DeviceRequests=[{"Driver": "nvidia", "DeviceIDs": ["0"]}],
+        Binds=["/var/lib/isaac-sim/instance-0/cache:/isaac-sim/.cache:rw"],
+    )
+    bad = inspected(
+        "planted",
+        Privileged=True,
+        CapAdd=["NET_ADMIN"],
+        PidMode="host",
+        SecurityOpt=["seccomp=unconfined"],
+        Devices=[{"PathOnHost": "/dev/mem"}],
+        Binds=["/var/run/docker.sock:/var/run/docker.sock"],
+        Mounts=[{"Type": "bind", "Source": "/run", "Target": "/host-run"}],
+    )
+    found = audit.container_findings([ours, bad])
+    assert {f["what"] for f in found} == {"planted"}
+    whys = [f["why"] for f in found]
+    assert whys[0] == "--privileged: gives the container every capability and device"
+    assert any(w.startswith("--cap-add=NET_ADMIN: adds the capability NET_ADMIN") for w in whys)
+    assert any(w.startswith("--pid=host: shares the host's PID namespace") for w in whys)
+    assert any(w.startswith("--security-opt=seccomp=unconfined: turns off the seccomp filter") for w in whys)
+    assert any(w.startswith("--device=/dev/mem") for w in whys)
+    assert sum("socket" in w for w in whys) == 2  # the bind and the mount of /run, which holds it
+
+
+def test_the_key_is_found_in_files_and_the_journal_and_never_returned(tmp_path):
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "etc" / "leak.json").write_text(f'{{"auth": "{KEY}"}}')
+    (tmp_path / "etc" / "clean.txt").write_text("nothing here")
+    (tmp_path / "etc" / "link").symlink_to(tmp_path / "etc" / "leak.json")
+    (tmp_path / "skip").mkdir()
+    (tmp_path / "skip" / "layer").write_text(KEY)
+    (tmp_path / "etc" / "big").write_bytes(b"x" * 64 + KEY.encode())
+    files = audit.key_files(KEY, roots=[str(tmp_path)], skip=[str(tmp_path / "skip")], max_file=60)
+    assert files == [str(tmp_path / "etc" / "leak.json")]
+    found = audit.key_findings(KEY, files, f"Nov 25 docker login -p {KEY}\n")
+    assert [f["what"] for f in found] == [files[0], "journal"]
+    assert KEY not in json.dumps(found)
+    assert audit.key_files("", roots=[str(tmp_path)]) == []
+
+
+def test_modes_wider_than_they_should_be():
+    files = {
+        "/etc/isaac-sim/instance-0.env": (0o644, "ISAAC_SIM_INSTANCE=0\nTOKEN=abc\n"),
+        "/etc/isaac-sim/instance-1.env": (0o600, "ISAAC_SIM_INSTANCE=1\nTOKEN=abc\n"),
+        "/etc/systemd/system/isaac-sim@.service": (0o664, "[Unit]\n"),
+        "/usr/local/libexec/isaac-sim/isaac-sim-run": (0o755, "#!/bin/sh\n"),
+    }
+    found = audit.mode_findings(files, ["TOKEN"])
+    assert [(f["what"], f["why"]) for f in found] == [
+        ("/etc/isaac-sim/instance-0.env", "mode 0644 lets others than root read TOKEN"),
+        ("/etc/systemd/system/isaac-sim@.service", "mode 0664 lets group or others write it"),
+    ]
+
+
+def env(i, ports, address=""):
+    lines = [f"{layout.K_CONTAINER}=isaac-sim-{i}", f'{layout.K_PORTS}="{ports}"']
+    return "\n".join(lines + ([f"{layout.K_ADDRESS}={address}"] if address else [])) + "\n"
+
+
+def test_opened_ports_and_the_firewall_as_the_lifecycle_left_it():
+    envs = {"a": env(0, "tcp/49100 udp/47998"), "b": env(1, "tcp/49100", "10.0.0.50")}
+    status = f"{layout.K_STATUS_URL}=http://10.0.0.5:8290/status\n"
+    ports = audit.opened_ports(envs, status, hub=True)
+    assert [(p["proto"], p["port"], p["address"]) for p in ports] == [
+        ("tcp", 8290, ""),
+        ("tcp", 14090, ""),
+        ("udp", 47998, ""),
+        ("tcp", 49100, ""),
+        ("tcp", 49100, "10.0.0.50"),
+    ]
+    kept = json.dumps({"listing": "table inet isaac_sim {}\n"})
+    assert audit.firewall_findings(kept, "table inet isaac_sim {}\n", ports) == []
+    assert audit.firewall_findings(None, "", ports)[0]["why"].startswith("no firewall guards")
+    assert "not loaded" in audit.firewall_findings(kept, "", ports)[0]["why"]
+    assert "differ" in audit.firewall_findings(kept, "table inet isaac_sim { x }\n", ports)[0]["why"]
+    assert audit.firewall_findings(None, "", []) == []
+
+
+@pytest.fixture
+def servers():
+    """A TCP listener, a UDP port that answers and one that stays silent, on 127.0.0.1."""
+    tcp = socket.create_server(("127.0.0.1", 0))
+    echo = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    echo.bind(("127.0.0.1", 0))
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    silent.bind(("127.0.0.1", 0))
+    closed = socket.create_server(("127.0.0.1", 0))
+    closed_port = closed.getsockname()[1]
+    closed.close()
+
+    def answer():
+        data, peer = echo.recvfrom(512)
+        echo.sendto(b"hi " + data, peer)
+
+    threading.Thread(target=answer, daemon=True).start()
+    yield {
+        "tcp": tcp.getsockname()[1],
+        "udp": echo.getsockname()[1],
+        "silent": silent.getsockname()[1],
+        "closed": closed_port,
+    }
+    for s in (tcp, echo, silent):
+        s.close()
+
+
+def test_the_probe_knocks_on_real_sockets_and_knows_when_it_is_inside(servers):
+    def target(proto, port, networks=()):
+        return {"host": "h1", "address": "127.0.0.1", "proto": proto, "port": port, "kind": "signal",
+                "networks": list(networks)}  # fmt: skip
+
+    rows = audit.probe(
+        [
+            target("tcp", servers["tcp"]),
+            target("udp", servers["udp"]),
+            target("udp", servers["silent"]),
+            target("tcp", servers["closed"]),
+            target("tcp", servers["tcp"], ["127.0.0.0/8"]),
+        ],
+        timeout=0.5,
+    )
+    assert [r["answer"] for r in rows] == ["open", "open", "silent", "closed", "open"]
+    assert [r["inside"] for r in rows] == [False, False, False, False, True]
+    assert rows[0]["source"] == "127.0.0.1"
+    found = audit.probe_findings(rows)
+    assert [f["what"] for f in found] == [
+        f"h1 tcp/127.0.0.1:{servers['tcp']} (signal)",
+        f"h1 udp/127.0.0.1:{servers['udp']} (signal)",
+    ]
+    report = audit.fleet({"h1": {"findings": []}, "h2": {}}, rows)
+    assert report["findings"] == 2 and report["clean"] is False
+    assert "h2                       host          did not answer: not audited" in report["table"]
+    assert report["table"][-1].startswith("(not checked: 1 port(s) answered the probe from inside")
+
+
+class FakeIO(audit.HostIO):
+    def __init__(self, files, containers, journal="", listing=""):
+        class Docker:
+            def get(self, endpoint):
+                if endpoint.startswith("/containers/json"):
+                    return [{"Id": c["Name"]} for c in containers]
+                return next(c for c in containers if endpoint == f"/containers/{c['Name']}/json")
+
+        def run(argv):
+            if argv[0] == "journalctl":
+                return 0, journal, ""
+            family = argv[3]
+            return (0, listing, "") if family == "inet" and listing else (1, "", "No such file or directory")
+
+        def glob(pattern):
+            folder, _sep, name = pattern.rpartition("/")
+            return [p for p in files if p.startswith(folder + "/") and (name == "*" or p == pattern
+                    or (name.endswith("*") and os.path.basename(p).startswith(name[:-1])))]  # fmt: skip
+
+        def lstat(path):
+            return os.stat_result((0o100000 | files[path][0], 0, 0, 1, 0, 0, len(files[path][1]), 0, 0, 0))
+
+        super().__init__(Docker(), run, glob, lstat, lambda p: files.get(p, (0, None))[1], lambda key: [],
+                         lambda: "10.0.0.5")  # fmt: skip
+
+
+def test_a_host_report_lists_its_ports_with_their_networks_and_its_findings():
+    model = {
+        "default": ["10.20.0.0/16"],
+        "by_kind": {"status": ["10.9.0.0/24"]},
+        "ports": [["isaac-sim-0", "tcp", 49100, "signal", ""], ["host", "tcp", 8290, "status", ""]],
+    }
+    listing = "table inet isaac_sim {}\n"
+    files = {
+        f"{layout.CONFIG_DIR}/instance-0.env": (0o644, env(0, "tcp/49100")),
+        f"{layout.CONFIG_DIR}/{layout.STATUS_ENV}": (0o644, f"{layout.K_STATUS_URL}=http://10.0.0.5:8290/status\n"),
+        layout.FIREWALL_STATE: (0o644, json.dumps({"model": model, "listing": listing})),
+    }
+    io = FakeIO(files, [inspected("isaac-sim-0", SecurityOpt=["no-new-privileges"])], listing=listing)
+    report = audit.host_report(io, KEY, [])
+    assert report["findings"] == [] and report["address"] == "10.0.0.5"
+    assert [(p["port"], p["kind"], p["networks"]) for p in report["ports"]] == [
+        (8290, "status", ["10.9.0.0/24"]),
+        (49100, "signal", ["10.20.0.0/16"]),
+    ]
+    assert audit.targets({"h1": report, "h2": {}})[0] == dict(report["ports"][0], host="h1", address="10.0.0.5")
+    flushed = audit.host_report(FakeIO(files, [], journal=f"login {KEY}"), KEY, [])
+    assert [f["check"] for f in flushed["findings"]] == ["registry key", "firewall"]
