@@ -59,8 +59,9 @@ options:
     type: float
     default: 14
   allowed_docker_args:
-    description: The confinement-loosening docker arguments the runs' services may ask for (C(test_suite_allowed_docker_args)),
-      as O(isaacsim.fleet.isaac_sim_experience#module:allowed_docker_args) for a single run.
+    description: The confinement-loosening docker arguments the runs' services may ask for
+      (C(test_suite_allowed_docker_args)), as O(isaacsim.fleet.isaac_sim_experience#module:allowed_docker_args) for
+      a single run.
     type: list
     elements: str
     default: []
