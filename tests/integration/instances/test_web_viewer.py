@@ -7,6 +7,7 @@ one for every instance: each viewer is told its instance's address and ports whe
 The last test builds the image through the web_viewer_image role on the test host.
 """
 
+import base64
 import ipaddress
 import json
 import re
@@ -208,6 +209,13 @@ def test_the_role_builds_the_image_once_on_one_host_and_pushes_it_to_the_registr
     first = testbed.run_playbook(host, extra, playbook="playbooks/web_viewer_image.yml")
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr
     assert REGISTRY_KEY not in first.stdout
+    # the push logged in to a config of its own, gone now: no file of the host keeps the password, as
+    # itself or as the base64 user:password Docker writes in a config's "auth"
+    auth = base64.b64encode(f"$oauthtoken:{REGISTRY_KEY}".encode()).decode()
+    held = sh(
+        host, f"grep -rIlsF -e '{REGISTRY_KEY}' -e '{auth}' /etc /root /run /tmp /var/lib/isaac-sim; true"
+    ).stdout.split()
+    assert held == [], held
     # in the fleet's registry now: any host pulls it from there
     repo, tag = ref.split("/", 1)[1].rsplit(":", 1)
     manifest = subprocess.run(
