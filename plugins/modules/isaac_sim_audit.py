@@ -76,34 +76,8 @@ report:
   type: dict
 """
 
-import glob
-import os
-
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import audit
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerSocket
-
-
-def bind(module) -> audit.HostIO:
-    def run(argv):
-        path = module.get_bin_path(argv[0])
-        return module.run_command([path] + argv[1:]) if path else (127, "", f"{argv[0]}: not found")
-
-    def lstat(path):
-        try:
-            return os.lstat(path)
-        except OSError:
-            return None
-
-    def read(path):
-        try:
-            with open(path, errors="replace") as fh:
-                return fh.read()
-        except OSError:
-            return None
-
-    return audit.HostIO(DockerSocket(), run, glob.glob, lstat, read, audit.key_files, fleet_status.default_ipv4)
 
 
 def main():
@@ -121,7 +95,7 @@ def main():
     if p["action"] == "probe":
         probed = audit.probe(audit.targets(p["reports"]), p["timeout"])
         module.exit_json(changed=False, findings=[], ports=[], address="", report=audit.fleet(p["reports"], probed))
-    report = audit.host_report(bind(module), p["key"], p["secret_env_names"])
+    report = audit.host_report(audit.bind(module), p["key"], p["secret_env_names"])
     module.exit_json(changed=False, report={}, **report)
 
 

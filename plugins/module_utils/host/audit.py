@@ -12,6 +12,7 @@ tables missing or not as the lifecycle loaded them. The ports each host opens go
 
 from __future__ import annotations
 
+import glob
 import ipaddress
 import json
 import os
@@ -19,8 +20,9 @@ import socket
 import stat
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import firewall
 
 KEY_ROOTS = ("/etc", "/root", "/var/lib")
 # image layers and content stores: tens of GB the key is never written to by a pull (a container's
@@ -125,16 +127,14 @@ def opened_ports(envs: dict, status_env: str | None, hub: bool) -> list:
     return sorted(out, key=lambda p: (p["address"], p["port"], p["proto"]))
 
 
-def firewall_findings(state_text: str | None, listing: str | None, ports: list) -> list:
-    """The firewall as the lifecycle left it: loaded and unchanged, or nothing at all to guard."""
+def firewall_findings(state: dict | None, listing: str | None, ports: list) -> list:
+    """The firewall as the lifecycle left it (state: its firewall.json, None when there is none):
+    loaded and unchanged, or nothing at all to guard."""
     if not ports:
         return []
-    if state_text is None:
+    if state is None:
         return [finding("firewall", "isaac_sim", "no firewall guards the instances' ports (isaac_sim_firewall)")]
-    try:
-        kept = json.loads(state_text).get("listing")
-    except ValueError:
-        kept = None
+    kept = state.get("listing")
     if not listing:
         return [finding("firewall", "isaac_sim", "the tables are not loaded (systemctl start isaac-sim-firewall)")]
     if kept is not None and listing != kept:
@@ -213,6 +213,29 @@ class HostIO:
         self.key_files, self.default_ipv4 = key_files_of, default_ipv4
 
 
+def bind(module) -> HostIO:
+    """The real host, for the module running on it."""
+
+    def run(argv):
+        path = module.get_bin_path(argv[0])
+        return module.run_command([path] + argv[1:]) if path else (127, "", f"{argv[0]}: not found")
+
+    def lstat(path):
+        try:
+            return os.lstat(path)
+        except OSError:
+            return None
+
+    def read(path):
+        try:
+            with open(path, errors="replace") as fh:
+                return fh.read()
+        except OSError:
+            return None
+
+    return HostIO(DockerSocket(), run, glob.glob, lstat, read, key_files, fleet_status.default_ipv4)
+
+
 def _ours(io: HostIO) -> dict:
     """{path: (mode, text)} of the files the collection writes that hold settings or run as root."""
     patterns = [
@@ -231,13 +254,14 @@ def _ours(io: HostIO) -> dict:
     return files
 
 
-def _networks(state_text: str | None):
-    """(default, by_kind, rows) of the firewall the lifecycle left; empty without one."""
+def _state(text: str | None) -> dict | None:
+    """The firewall.json the lifecycle left ({} when unreadable), None when there is none."""
+    if text is None:
+        return None
     try:
-        model = (json.loads(state_text) if state_text else {}).get("model") or {}
+        return json.loads(text) or {}
     except ValueError:
-        model = {}
-    return model.get("default") or [], model.get("by_kind") or {}, model.get("ports") or []
+        return {}
 
 
 def host_report(io: HostIO, key: str, secret_names) -> dict:
@@ -257,17 +281,14 @@ def host_report(io: HostIO, key: str, secret_names) -> dict:
     status_env = ours.get(f"{layout.CONFIG_DIR}/{layout.STATUS_ENV}", (0, None))[1]
     hub = f"{layout.UNIT_DIR}/{layout.HUB_UNIT}" in ours
     ports = opened_ports(envs, status_env, hub)
-    state_text = io.read(layout.FIREWALL_STATE)
-    listing = "".join(
-        out if rc == 0 else ""
-        for rc, out, _err in (io.run(["nft", "list", "table", fam, "isaac_sim"]) for fam in ("inet", "netdev"))
-    )
-    findings += firewall_findings(state_text, listing, ports)
-    default, by_kind, rows = _networks(state_text)
-    kinds = {(r[1], r[2], r[4]): r[3] for r in rows}
+    state = _state(io.read(firewall.STATE))
+    findings += firewall_findings(state, firewall.listed(io.run), ports)
+    model = (state or {}).get("model") or {}
+    nets = firewall.Networks(model.get("default") or [], model.get("by_kind") or {})
+    kinds = {(r[1], r[2], r[4]): r[3] for r in model.get("ports") or []}
     for p in ports:
         kind = kinds.get((p["proto"], p["port"], p["address"]))
-        p["networks"] = by_kind.get(kind, default) if kind else []
+        p["networks"] = nets.of(kind) if kind else []
         p["kind"] = kind or p["kind"]
     return {"findings": findings, "ports": ports, "address": io.default_ipv4()}
 

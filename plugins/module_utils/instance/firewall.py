@@ -7,10 +7,10 @@ The rules live in tables of the collection's own (inet isaac_sim on the host's i
 netdev isaac_sim on a macvlan parent's ingress hook, where the traffic of instances with
 addresses of their own passes: it never reaches the host's input chain). Nothing else is
 flushed or touched. One file holds both tables and replaces them in one nft transaction; the
-unit isaac-sim-firewall.service loads it at boot and again after the site's nftables.service
-flushed the ruleset (a drop-in of its unit). The lifecycle (lifecycle.py) loads the union of the rules before and
-after a change while instances change, and only the planned ones once every instance runs
-as planned: no port of a running instance is ever without its rule.
+unit isaac-sim-firewall.service loads it at boot, and a drop-in of the site's nftables.service
+loads it again after that flushed the ruleset. The lifecycle (lifecycle.py) loads the union of
+the rules before and after a change while instances change, and only the planned ones once
+every instance runs as planned: no port of a running instance is ever without its rule.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ RULES = layout.FIREWALL_RULES
 # the model the rules were rendered from and nft's own listing of them once loaded
 STATE = layout.FIREWALL_STATE
 UNIT = layout.FIREWALL_UNIT
+UNIT_PATH = f"{layout.UNIT_DIR}/{UNIT}"
 # the site's nftables.service loads a file that starts with "flush ruleset" (Debian's, RHEL's): a
 # drop-in loads ours again after each of its starts and reloads
 SITE_DROPIN = layout.FIREWALL_SITE_DROPIN
@@ -40,6 +41,8 @@ HOST_CHAIN = "host"
 # Docker bridges (a test run reaching the instance it borrowed)
 LOCAL_INTERFACES = ("lo", "docker0", "br-*")
 _DROP_ALL = f"table inet {TABLE}\ndelete table inet {TABLE}\ntable netdev {TABLE}\ndelete table netdev {TABLE}\n"
+# the same as one nft command line (the unit's stop, remove())
+_DROP_ALL_LINE = _DROP_ALL.strip().replace("\n", "; ")
 
 
 class Networks:
@@ -160,11 +163,12 @@ def model(fw: dict, plan: dict) -> dict | None:
     if not fw.get("enabled"):
         return None
     parent = (plan.get("network") or {}).get("parent") or ""
+    rows = entries(plan)
     return {
         "default": fw["default"],
         "by_kind": fw["by_kind"],
-        "ports": entries(plan),
-        "parents": {row[4]: parent for row in entries(plan) if row[4]},
+        "ports": rows,
+        "parents": {row[4]: parent for row in rows if row[4]},
     }
 
 
@@ -292,7 +296,7 @@ def unit(managed: str) -> str:
                     ("RemainAfterExit", "yes"),
                     ("ExecStart", f"{NFT} -f {RULES}"),
                     "# stopped, the instances' ports answer everyone again: cleanup.yml stops it last",
-                    ("ExecStop", f"{NFT} '{_DROP_ALL.strip().replace(chr(10), '; ')}'"),
+                    ("ExecStop", f"{NFT} '{_DROP_ALL_LINE}'"),
                 ],
             ),
             ("Install", [("WantedBy", "multi-user.target")]),
@@ -301,15 +305,19 @@ def unit(managed: str) -> str:
     )
 
 
-def listing(host) -> str | None:
-    """nft's listing of both tables as the kernel has them now; None without nft."""
-    if not host.exists(NFT):
-        return None
+def listed(run) -> str:
+    """nft's listing of both tables as the kernel has them now ("" for a table that is not there).
+    run(argv) -> (rc, out, err). The lifecycle keeps it after a load; the audit compares with it."""
     out = []
     for family in ("inet", "netdev"):
-        rc, text, _err = host.run([NFT, "list", "table", family, TABLE])
+        rc, text, _err = run([NFT, "list", "table", family, TABLE])
         out.append(text if rc == 0 else "")
     return "".join(out)
+
+
+def listing(host) -> str | None:
+    """listed() on the host; None without nft."""
+    return listed(host.run) if host.exists(NFT) else None
 
 
 def state(host) -> dict:
@@ -324,11 +332,11 @@ def in_sync(host, m: dict | None, managed: str) -> bool:
     """Whether the host has exactly `m`: file, unit, and the kernel's tables as last loaded."""
     kept = state(host)
     if m is None:
-        gone = (RULES, f"{layout.UNIT_DIR}/{UNIT}", SITE_DROPIN)
+        gone = (RULES, UNIT_PATH, SITE_DROPIN)
         return all(host.read(path) is None for path in gone) and not _loaded(host)
     return (
         host.read(RULES) == render(m, managed)
-        and host.read(f"{layout.UNIT_DIR}/{UNIT}") == unit(managed)
+        and host.read(UNIT_PATH) == unit(managed)
         and host.read(SITE_DROPIN) == site_dropin(managed)
         and kept.get("model") == m
         and kept.get("listing") is not None
@@ -353,10 +361,9 @@ class FirewallError(Exception):
 def load(host, m: dict, managed: str) -> None:
     """Write the rules, the unit and the state, and load the rules into the kernel (one nft
     transaction: the tables are replaced, never missing in between)."""
-    text = render(m, managed)
-    host.write(RULES, text, 0o644)
+    host.write(RULES, render(m, managed), 0o644)
     units_changed = False
-    for path, text in ((f"{layout.UNIT_DIR}/{UNIT}", unit(managed)), (SITE_DROPIN, site_dropin(managed))):
+    for path, text in ((UNIT_PATH, unit(managed)), (SITE_DROPIN, site_dropin(managed))):
         if host.read(path) != text:
             host.write(path, text, 0o644)
             units_changed = True
@@ -371,20 +378,19 @@ def load(host, m: dict, managed: str) -> None:
     host.write(STATE, json.dumps({"model": m, "listing": listing(host)}, sort_keys=True) + "\n", 0o644)
     if not _enabled(host):
         host.run(["systemctl", "enable", UNIT])
-    # active, so that a restart of nftables.service (PartOf) brings the rules back
+    # active, so that its stop (cleanup.yml) deletes the rules
     host.run(["systemctl", "start", UNIT])
 
 
 def remove(host) -> None:
     """No rule, no file, no unit (isaac_sim_firewall: false)."""
-    unit_path = f"{layout.UNIT_DIR}/{UNIT}"
-    if host.read(unit_path) is not None or host.read(SITE_DROPIN) is not None:
+    if host.read(UNIT_PATH) is not None or host.read(SITE_DROPIN) is not None:
         host.run(["systemctl", "disable", "--now", UNIT])
-        host.remove(unit_path)
+        host.remove(UNIT_PATH)
         host.remove(SITE_DROPIN)
         host.run(["systemctl", "daemon-reload"])
     if host.exists(NFT):
-        host.run([NFT, _DROP_ALL.strip().replace("\n", "; ")])
+        host.run([NFT, _DROP_ALL_LINE])
     for path in (RULES, STATE):
         if host.read(path) is not None:
             host.remove(path)

@@ -589,8 +589,9 @@ def apply(host: Host, want: dict, check=False) -> dict:
     if want.get("prepare"):
         want["prepare"]()
     # before any instance opens a port: the rules of the ports to come, and of those still open
+    grown = firewall.merge(wall_kept, wall)
     if wall_todo and wall:
-        firewall.load(host, firewall.merge(wall_kept, wall), managed)
+        firewall.load(host, grown, managed)
     # before any instance binds a new port; the old ones stay reserved until the end
     if reserving:
         before = reserved_ports.parse(host.read(reserved_ports.PROC))
@@ -785,7 +786,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
     if wall_todo:
         if wall is None:
             firewall.remove(host)
-        elif not firewall.in_sync(host, wall, managed):
+        elif grown != wall:
             firewall.load(host, wall, managed)
     result["changed"] = True
     return result

@@ -94,7 +94,7 @@ def test_opened_ports_and_the_firewall_as_the_lifecycle_left_it():
         ("tcp", 49100, ""),
         ("tcp", 49100, "10.0.0.50"),
     ]
-    kept = json.dumps({"listing": "table inet isaac_sim {}\n"})
+    kept = {"listing": "table inet isaac_sim {}\n"}
     assert audit.firewall_findings(kept, "table inet isaac_sim {}\n", ports) == []
     assert audit.firewall_findings(None, "", ports)[0]["why"].startswith("no firewall guards")
     assert "not loaded" in audit.firewall_findings(kept, "", ports)[0]["why"]
