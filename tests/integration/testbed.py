@@ -136,6 +136,30 @@ def unit_show(host, unit: str) -> dict:
     return dict(line.split("=", 1) for line in out.strip().splitlines())
 
 
+def exposure(host, unit: str) -> float:
+    """systemd-analyze security's overall exposure of a loaded unit on the host."""
+    out = sh(host, f"systemd-analyze security --no-pager {shlex.quote(unit)}").stdout
+    found = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", out)
+    assert found, out[-2000:]
+    return float(found.group(1))
+
+
+def listed_exposure(row: str) -> float:
+    """The exposure the README's table lists for the unit named `row` (as the table names it)."""
+    for line in (ROOT / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.lstrip().startswith("|") and cells[0] == f"`{row}`":
+            return float(cells[-1])
+    raise AssertionError(f"README.md's sandbox table has no row for {row}")
+
+
+def assert_sandboxed(host, unit: str, row: str | None = None):
+    """The unit's exposure is the one the README lists (row: the table's name, default the unit)."""
+    measured, listed = exposure(host, unit), listed_exposure(row or unit)
+    print(f"systemd-analyze security {unit}: {measured}")
+    assert measured == listed, f"{unit}: {measured}, README.md lists {listed}"
+
+
 def container_id(host, container: str) -> str:
     return sh(host, f"docker ps -q --no-trunc --filter name=^{container}$").stdout.strip()
 

@@ -19,7 +19,7 @@ import ipaddress
 import json
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
 TABLE = "isaac_sim"
@@ -297,6 +297,7 @@ def unit(managed: str) -> str:
                     ("ExecStart", f"{NFT} -f {RULES}"),
                     "# stopped, the instances' ports answer everyone again: cleanup.yml stops it last",
                     ("ExecStop", f"{NFT} '{_DROP_ALL_LINE}'"),
+                    *sandbox.firewall(),
                 ],
             ),
             ("Install", [("WantedBy", "multi-user.target")]),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import shlex
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
 
@@ -115,6 +115,8 @@ def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout) -> l
         ("RestartSec", restart_sec),
         ("TimeoutStartSec", ready_timeout + 30),
         ("TimeoutStopSec", stop_timeout + 30),
+        "# The docker client and the scripts around it; the container is Docker's (hardening.py).",
+        *sandbox.docker_client(),
     ]
 
 
@@ -233,6 +235,7 @@ def render_hub_unit(hub: dict, managed: str) -> str:
         ("Restart", "always"),
         ("RestartSec", 5),
         ("TimeoutStartSec", 90),
+        *sandbox.docker_client(localhost=True),
     ]
     return units.render(
         [("Unit", unit_section), ("Service", service), ("Install", [("WantedBy", "multi-user.target")])],
@@ -246,33 +249,6 @@ def render_hub_unit(hub: dict, managed: str) -> str:
 def render_hub_dropin(managed: str) -> str:
     """Every instance wants the Hub cache and starts after it (a drop-in: no instance restarts for it)."""
     return units.render([("Unit", [("Wants", layout.HUB_UNIT), ("After", layout.HUB_UNIT)])], header=[managed])
-
-
-# systemd's sandbox for a host service that only reads (the status endpoint: 2.3 in systemd-analyze security)
-SANDBOX = (
-    ("User", "root"),
-    ("CapabilityBoundingSet", ""),
-    ("AmbientCapabilities", ""),
-    ("NoNewPrivileges", "yes"),
-    ("ProtectSystem", "strict"),
-    ("ProtectHome", "yes"),
-    ("PrivateTmp", "yes"),
-    ("ProtectKernelTunables", "yes"),
-    ("ProtectKernelModules", "yes"),
-    ("ProtectKernelLogs", "yes"),
-    ("ProtectControlGroups", "yes"),
-    ("ProtectClock", "yes"),
-    ("ProtectHostname", "yes"),
-    ("RestrictNamespaces", "yes"),
-    ("RestrictRealtime", "yes"),
-    ("RestrictSUIDSGID", "yes"),
-    ("LockPersonality", "yes"),
-    ("MemoryDenyWriteExecute", "yes"),
-    ("RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6"),
-    ("SystemCallArchitectures", "native"),
-    ("SystemCallFilter", "@system-service"),
-    ("UMask", "0077"),
-)
 
 
 def render_status_unit(server: dict, managed: str = layout.MANAGED) -> str:
@@ -292,7 +268,7 @@ def render_status_unit(server: dict, managed: str = layout.MANAGED) -> str:
         ("RestartSec", 5),
         "# It reads the instances' env files (root's, mode 0600) and asks systemd, Docker and",
         "# nvidia-smi: root for the files it owns, without any capability, with nothing writable.",
-        *SANDBOX,
+        *sandbox.reader(),
         ("MemoryMax", "256M"),
         ("TasksMax", 64),
     ]
@@ -318,6 +294,8 @@ def render_metrics_units(metrics: dict, managed: str = layout.MANAGED) -> dict:
             f"--output {metrics['textfile_dir']}/{layout.METRICS_FILE} --gpu-source {metrics['gpu_source']}",
         ),
         ("Nice", 10),
+        "# reads as the status endpoint does; writes its one file",
+        *sandbox.reader(writable=[metrics["textfile_dir"]], network=False),
     ]
     timer = [("OnActiveSec", "5s"), ("OnUnitActiveSec", metrics["interval"]), ("AccuracySec", "1s")]
     return {

@@ -22,7 +22,7 @@ import math
 import re
 import signal
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse, units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse, sandbox, units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe, lifecycle, releases
 from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import judge
@@ -173,6 +173,8 @@ def unit_text(run: str, name: str, svc: dict, argv: list) -> str:
         ("Restart", restart),
         ("RestartSec", 1),
         ("TimeoutStopSec", grace + 30),
+        # the docker client only; the container is confined by experience.py's checks
+        *sandbox.docker_client(),
     ]
     unit = [("Description", f"isaacsim.fleet test run {run}: service {name}")] + limit
     return units.render([("Unit", unit), ("Service", service)])

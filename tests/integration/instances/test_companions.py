@@ -78,6 +78,7 @@ def test_a_companion_starts_once_its_instance_is_ready_and_shows_under_it(host, 
         comp = {c["name"]: c for c in by_name(status)[f"isaac-sim-{i}"]["companions"]}["rec"]
         assert comp["state"] == "ready" and comp["health"] == "healthy"
         assert comp["ports"] == [{"proto": "tcp", "port": 9100 + i}] and comp["unit"] == unit
+    testbed.assert_sandboxed(host, f"isaac-sim-rec@{WITH_REC[0]}.service", "isaac-sim-NAME@.service")
     # a second run changes nothing
     assert testbed.changed_count(ok(testbed.run_playbook(host, {"isaac_sim_companions": [rec]})), host) == 0
 

@@ -181,7 +181,11 @@ def test_a_port_held_by_another_process_keeps_the_instance_from_starting(host):
     testbed.wait_for(lambda: "49102" in sh(host, "ss -Hltn 'sport = :49102'").stdout, timeout=20, what="the holder")
     try:
         assert sh(host, "systemctl start isaac-sim@2", check=False).rc != 0
-        said = "isaac-sim-2 cannot start: port 49102/tcp of its block is held by python3 (pid "
+        # the unit's sandbox cannot read a root process's sockets (no CAP_SYS_PTRACE): the way to name it
+        said = (
+            "isaac-sim-2 cannot start: port 49102/tcp of its block is held by another process"
+            " (as root: ss -lnp 'sport = :49102')."
+        )
 
         def status_saying_why():
             text = sh(host, "systemctl status isaac-sim@2 --no-pager -l -n 20", check=False).stdout

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from ansible.errors import AnsibleFilterError
 from ansible_collections.isaacsim.fleet.plugins.filter.isaac_sim_host_units import FilterModule, isaac_sim_host_units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import unit_files
 
 STATUS = {
     "name": "gpu host 1",
@@ -34,7 +34,7 @@ def test_status_unit_runs_the_server_with_its_settings_sandboxed():
         " --name 'gpu host 1' --address 0.0.0.0 --port 8290 --allow 10.0.0.0/8 --allow 127.0.0.1/32"
         " --origin http://dash:8080 --gpu-source auto"
     )
-    for key, value in unit_files.SANDBOX:
+    for key, value in sandbox.reader():
         assert f"{key}={value}" in text
     assert text[-2:] == ["[Install]", "WantedBy=multi-user.target"]
 
@@ -44,7 +44,11 @@ def test_metrics_are_a_oneshot_and_its_timer_writing_into_the_textfile_directory
     assert sorted(units) == sorted([layout.METRICS_UNIT, layout.METRICS_TIMER])
     service, timer = lines(units[layout.METRICS_UNIT]), lines(units[layout.METRICS_TIMER])
     assert "Type=oneshot" in service
-    assert f"--output /var/lib/node-exporter/{layout.METRICS_FILE} --gpu-source nvidia-smi" in service[-2]
+    [start] = [line for line in service if line.startswith("ExecStart=")]
+    assert start.endswith(f"--output /var/lib/node-exporter/{layout.METRICS_FILE} --gpu-source nvidia-smi")
+    # the status endpoint's sandbox, no network, and only its directory writable
+    assert "RestrictAddressFamilies=AF_UNIX" in service and "IPAddressDeny=any" in service
+    assert [line for line in service if line.startswith("ReadWritePaths=")] == ["ReadWritePaths=/var/lib/node-exporter"]
     assert "OnUnitActiveSec=15s" in timer and "Description=Write Isaac Sim instance metrics every 15s" in timer
     assert "[Install]" not in service and timer[-1] == "WantedBy=timers.target"
 

@@ -1,0 +1,111 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""systemd's sandbox for every unit the collection installs, one profile per kind of unit.
+
+A unit that runs a container (an instance, a companion, the Hub cache, a test run's service)
+sandboxes the host side only: the docker client, the scripts around it and their checks. The
+container itself is Docker's, confined by common/hardening.py. Each profile is what its unit
+needs and no more; `systemd-analyze security` rates them (README, "Hardening").
+"""
+
+from __future__ import annotations
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
+# every unit: no capability it was not given, nothing written outside what it names, no new
+# privileges, kernel and clock out of reach, the system calls of a service on the native ABI
+_COMMON = (
+    ("User", "root"),
+    ("AmbientCapabilities", ""),
+    ("NoNewPrivileges", "yes"),
+    ("ProtectSystem", "strict"),
+    ("ProtectKernelTunables", "yes"),
+    ("ProtectKernelLogs", "yes"),
+    ("ProtectControlGroups", "yes"),
+    ("ProtectClock", "yes"),
+    ("ProtectHostname", "yes"),
+    ("RestrictNamespaces", "yes"),
+    ("RestrictRealtime", "yes"),
+    ("RestrictSUIDSGID", "yes"),
+    ("LockPersonality", "yes"),
+    ("MemoryDenyWriteExecute", "yes"),
+    ("SystemCallArchitectures", "native"),
+    ("SystemCallFilter", "@system-service"),
+)
+
+# The status endpoint and the metrics exporter: root only to read the env files they own (mode
+# 0600), without any capability; no PrivateDevices, as nvidia-smi opens the GPUs' devices.
+READER = (
+    *_COMMON,
+    ("CapabilityBoundingSet", ""),
+    ("ProtectHome", "yes"),
+    ("PrivateTmp", "yes"),
+    ("ProtectKernelModules", "yes"),
+    ("RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6"),
+    ("UMask", "0077"),
+)
+
+
+def reader(writable=(), network=True) -> tuple:
+    """The status endpoint's profile (network: it serves) or the metrics exporter's (no network;
+    writable: the textfile directory it writes)."""
+    entries = list(READER)
+    if not network:
+        entries = [e for e in entries if e[0] != "RestrictAddressFamilies"]
+        entries += [("RestrictAddressFamilies", "AF_UNIX"), ("IPAddressDeny", "any")]
+    entries += [("ReadWritePaths", path) for path in writable]
+    return tuple(entries)
+
+
+def docker_client(localhost=False) -> tuple:
+    """A unit that runs a container through Docker's socket: the docker client, a bash script
+    around it (ready gate, health loop, ss for the ports of its block: netlink) and systemctl.
+    Nothing of the host's is readable beyond the OS: an empty home (the docker client finds no
+    config, so no registry key either), no devices, its own user namespace. It writes only
+    RUN_DIR (ready markers, a test run's exit files). localhost: it may also reach 127.0.0.1
+    (the Hub cache's unit waits until its cache listens there)."""
+    families = "AF_UNIX AF_NETLINK AF_INET AF_INET6" if localhost else "AF_UNIX AF_NETLINK"
+    return (
+        *_COMMON,
+        # without a capability, ss sees the ports but not who holds them (that would take
+        # CAP_SYS_PTRACE, a root shell's worth): isaac-sim-ports says how to find out
+        ("CapabilityBoundingSet", ""),
+        ("ProtectHome", "tmpfs"),
+        ("PrivateTmp", "yes"),
+        ("PrivateDevices", "yes"),
+        ("PrivateUsers", "yes"),
+        ("ProtectKernelModules", "yes"),
+        ("ProtectProc", "invisible"),
+        ("RestrictAddressFamilies", families),
+        ("IPAddressAllow", "localhost" if localhost else None),
+        ("IPAddressDeny", "any"),
+        ("SystemCallFilter", "~@privileged @resources"),
+        # a denied call fails (the Go runtime of docker raises its open-files limit and goes
+        # on without it) instead of killing the process
+        ("SystemCallErrorNumber", "EPERM"),
+        ("UMask", "0077"),
+        # shared by every unit of the collection, kept when one stops
+        ("RuntimeDirectory", layout.RUN_DIR[len("/run/") :]),
+        ("RuntimeDirectoryPreserve", "yes"),
+        ("RuntimeDirectoryMode", "0755"),
+    )
+
+
+def firewall() -> tuple:
+    """isaac-sim-firewall.service: nft loads and deletes the collection's tables (netlink and
+    CAP_NET_ADMIN), reading its rules file. Runs early at boot (DefaultDependencies=no): nothing
+    that needs /tmp or /var mounted; the kernel may load nf_tables modules on its behalf."""
+    return (
+        *_COMMON,
+        # no PrivateUsers: CAP_NET_ADMIN in a namespace of its own would not reach the host's tables
+        ("CapabilityBoundingSet", "CAP_NET_ADMIN"),
+        ("ProtectHome", "yes"),
+        ("PrivateDevices", "yes"),
+        ("ProtectProc", "invisible"),
+        ("ProcSubset", "pid"),
+        ("RestrictAddressFamilies", "AF_NETLINK"),
+        ("IPAddressDeny", "any"),
+        ("SystemCallFilter", "~@privileged @resources"),
+        ("SystemCallErrorNumber", "EPERM"),
+        ("UMask", "0077"),
+    )
