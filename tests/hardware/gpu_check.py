@@ -24,16 +24,21 @@ import json
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "plugins" / "module_utils"))
+# the collection as Ansible imports it: ansible_collections/isaacsim/fleet -> this checkout
+_TREE = Path(tempfile.mkdtemp(prefix="gpu-check-"))
+(_TREE / "ansible_collections" / "isaacsim").mkdir(parents=True)
+(_TREE / "ansible_collections" / "isaacsim" / "fleet").symlink_to(ROOT)
+sys.path.insert(0, str(_TREE))
 
-import driver  # noqa: E402
-import gpu_usage  # noqa: E402
-import hostprobe  # noqa: E402
-from releases import RELEASES  # noqa: E402
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import driver  # noqa: E402
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import gpu_usage  # noqa: E402
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import hostprobe  # noqa: E402
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES  # noqa: E402
 
 # a made-up container id: the cgroup below stands in for a container, no container runs
 FAKE_CONTAINER_ID = "15aac51a" * 8
