@@ -52,13 +52,25 @@ options:
     type: bool
     default: true
   gpu_map:
-    description: Instance number to GPU index; instances not in it are placed round-robin.
+    description: Instance number to GPU index; instances not in it are placed by the GPU memory they need.
     type: dict
     default: {}
   gpu_exclusive:
     description: Require one GPU per instance.
     type: bool
     default: false
+  gpu_memory:
+    description: GPU memory each instance needs, with its unit; empty is NVIDIA's minimum for the release.
+    type: str
+    default: ""
+  instance_gpu_memory:
+    description: Instance number to the GPU memory it needs.
+    type: dict
+    default: {}
+  gpu_consumer_encode_sessions:
+    description: Encode sessions NVIDIA's driver allows at once on a system's GeForce GPUs.
+    type: int
+    default: 8
   memory_limit:
     description: Memory limit per container, in Docker's size format.
     type: str
@@ -307,6 +319,9 @@ ARGUMENT_SPEC = dict(
     gpu_enabled=dict(type="bool", default=True),
     gpu_map=dict(type="dict", default={}),
     gpu_exclusive=dict(type="bool", default=False),
+    gpu_memory=dict(type="str", default=""),
+    instance_gpu_memory=dict(type="dict", default={}),
+    gpu_consumer_encode_sessions=dict(type="int", default=8),
     memory_limit=dict(type="str", default="32g"),
     shm_size=dict(type="str", default="2g"),
     data_root=dict(type="path", default="/var/lib/isaac-sim"),

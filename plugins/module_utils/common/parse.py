@@ -29,6 +29,15 @@ def parse_size(text) -> int | None:
     return int(float(number) * _UNITS[unit.lower() if unit else None])
 
 
+def mib_of(text) -> int | None:
+    """MiB in a size that names its unit ("16g", "24576m", "80GiB"); None for a bare number, whose
+    unit a reader could take for bytes or for MiB."""
+    match = SIZE_RE.match(str(text).strip())
+    if not match or not match.group(2):
+        return None
+    return parse_size(text) // 1024**2
+
+
 def docker_size(text) -> str:
     """The size as Docker's flags want it, one word: "1 GB" -> "1g", "2GiB" -> "2g"."""
     number, unit, _suffix = SIZE_RE.match(str(text).strip()).groups()

@@ -4,7 +4,8 @@
 
 Both paths return the same shape:
   {"source": "nvml" | "nvidia-smi", "driver": str,
-   "gpus": [{index, name, uuid, memory_total_mib, memory_used_mib}],
+   "gpus": [{index, name, uuid, memory_total_mib, memory_used_mib}, nvidia-smi's also
+            memory_reserved_mib and brand],
    "processes": [{gpu, pid, type, used_mib}]}
 A process's container is found from /proc/PID/cgroup, with no process spawned.
 """
@@ -96,6 +97,10 @@ def parse_smi_xml(text: str) -> dict:
                 "uuid": gpu.findtext("uuid", ""),
                 "memory_total_mib": _mib(gpu.findtext("fb_memory_usage/total")),
                 "memory_used_mib": _mib(gpu.findtext("fb_memory_usage/used")),
+                # what the driver keeps for itself (drivers before 525 have no such line: 0)
+                "memory_reserved_mib": _mib(gpu.findtext("fb_memory_usage/reserved")) or 0,
+                # GeForce, Quadro, NVIDIA, ...: consumer cards limit concurrent encode sessions
+                "brand": gpu.findtext("product_brand", ""),
             }
         )
         for proc in gpu.findall("processes/process_info"):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import re
 import shlex
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import mib_of
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
 VAR = "isaac_sim_companions"
@@ -26,6 +27,7 @@ KEYS = {
     "volumes",
     "healthcheck",
     "gpu",
+    "gpu_memory",
     "user",
     "instances",
     "ready_timeout",
@@ -109,6 +111,15 @@ def health_cmd(test, where, errors) -> str | None:
         'Fix: give a shell command, or ["CMD", "curl", "-f", "http://..."] as in a compose file.'
     )
     return None
+
+
+def gpu_memory_mib(spec: dict):
+    """MiB of its instance's GPU this companion takes (gpu_memory; 0 when it names none), None
+    for a value that is not a size."""
+    value = spec.get("gpu_memory")
+    if value in (None, "") or not spec.get("gpu"):
+        return 0
+    return mib_of(value)
 
 
 def check(specs, release_ports: dict, max_instances: int, gpu_enabled: bool) -> list:
@@ -207,6 +218,15 @@ def check(specs, release_ports: dict, max_instances: int, gpu_enabled: bool) -> 
             errors.append(
                 f"{where}.gpu: true, but isaac_sim_gpu_enabled is false (the instances have no GPU to share). "
                 "Fix: set gpu: false, or enable GPUs."
+            )
+        if spec.get("gpu_memory") not in (None, "") and not spec.get("gpu"):
+            errors.append(
+                f"{where}.gpu_memory: {spec['gpu_memory']!r}, but the companion has no GPU (gpu: false). "
+                "Fix: set gpu: true, or remove gpu_memory."
+            )
+        elif gpu_memory_mib(spec) is None:
+            errors.append(
+                f"{where}.gpu_memory: {spec['gpu_memory']!r} is not a size with its unit. Fix: e.g. 4g or 2048m."
             )
         for inst in spec.get("instances") or []:
             # an instance scaled away may stay listed; one that can never exist is a mistake

@@ -10,12 +10,15 @@ one, as lifecycle.Host is. Everything here only reads.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import sys
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, gpu_usage, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, plan
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, default_image
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, nvenc, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, STREAMS, default_image
 
 PROC = "/proc"
 SYS_NET = "/sys/class/net"
@@ -29,12 +32,15 @@ class Probe:
     containers(name_prefix), network(name); each raises DockerError), asked only where the docker
     command is installed: a socket call instead of a CLI process each (milliseconds, not tens);
     default_ipv4() -> the source address of the default route; proc and sys_net: where /proc and
-    /sys/class/net are.
+    /sys/class/net are; python: the interpreter the encoder probe runs in (nvenc.py); check_mode:
+    nothing is written (the encoder cache is kept only by a real run).
     """
 
-    def __init__(self, which, run, docker, default_ipv4, proc=PROC, sys_net=SYS_NET):
+    def __init__(
+        self, which, run, docker, default_ipv4, proc=PROC, sys_net=SYS_NET, python=sys.executable, check_mode=False
+    ):
         self.which, self.run, self.docker, self.default_ipv4 = which, run, docker, default_ipv4
-        self.proc, self.sys_net = proc, sys_net
+        self.proc, self.sys_net, self.python, self.check_mode = proc, sys_net, python, check_mode
 
 
 def bind(module) -> Probe:
@@ -46,6 +52,8 @@ def bind(module) -> Probe:
         fleet_status.default_ipv4,
         PROC,
         SYS_NET,
+        sys.executable,
+        module.check_mode,
     )
 
 
@@ -67,15 +75,80 @@ def _image_id(probe: Probe, ref):
     return (True, image.get("Id")) if image else (False, None)
 
 
-def _gpus(probe: Probe, p: dict, host: dict) -> None:
+def _gpus(probe: Probe, p: dict, host: dict, docker) -> None:
+    """The GPUs as placement weighs them (placement.py): memory, what other processes hold, brand,
+    video encoder; and where each instance runs now."""
     # a missing binary would end the module with a raw OSError; the plan says it in words instead
-    smi = probe.which(hostprobe.GPU_QUERY[0]) if p["gpu_enabled"] else None
-    if smi:
-        rc, out, _err = probe.run([smi] + hostprobe.GPU_QUERY[1:])
-        if rc == 0:
-            host["gpus"] = hostprobe.parse_gpu_list(out)
-            host["gpu_count"] = len(host["gpus"])
+    smi = probe.which("nvidia-smi") if p["gpu_enabled"] else None
     host["nvidia_smi"] = bool(smi)
+    if not smi:
+        return
+    rc, out, err = probe.run([smi] + gpu_usage.SMI_XML[1:])
+    try:
+        usage = gpu_usage.parse_smi_xml(out) if rc == 0 else None
+    except SyntaxError:  # ElementTree's ParseError
+        usage = None
+    if usage is None:
+        host["gpu_error"] = (err or out).strip()[-300:] or f"nvidia-smi -q -x exited {rc}"
+        return
+    ours = set()
+    if docker and usage["processes"]:
+        with contextlib.suppress(DockerError):
+            ours = {c["Id"] for c in probe.docker.containers("^" + layout.CONTAINER_PREFIX) if c.get("Id")}
+    # what processes outside the collection's containers hold: our instances are re-placed anyway
+    held = {}
+    for proc in usage["processes"]:
+        if gpu_usage.container_of_pid(proc["pid"], probe.proc) not in ours:
+            held[proc["gpu"]] = held.get(proc["gpu"], 0) + (proc["used_mib"] or 0)
+    streams = p["profile"] in STREAMS or any(v in STREAMS for v in (p["instance_profiles"] or {}).values())
+    encoders, why, keep = _encoders(probe, p, usage) if streams else ({}, None, None)
+    if keep:
+        host["encoders_to_keep"] = keep
+    host["gpus"] = [
+        dict(gpu, others_mib=held.get(gpu["index"], 0), encoder=encoders.get(gpu["uuid"]), encoder_why=why)
+        for gpu in usage["gpus"]
+    ]
+    host["gpu_count"] = len(host["gpus"])
+    host["gpu_driver"] = usage["driver"]
+    envs, _errors = fleet_status.read_env_files(p["config_dir"])
+    host["gpu_current"] = {
+        i: int(env[layout.K_GPU]) for i, env in envs.items() if str(env.get(layout.K_GPU, "")).isdigit()
+    }
+
+
+ENCODER_CACHE = "gpu-encoders.json"
+
+
+def _encoders(probe: Probe, p: dict, usage: dict) -> tuple:
+    """({GPU uuid: True | False | None}, why not asked, what to keep): the answers kept for this
+    driver, else the driver's encode API (one session per GPU, nvenc.py). Only what the driver
+    answered is kept (by keep_encoders, once the plan is accepted): a GPU it could not be asked
+    about is asked again next time."""
+    known = {}
+    try:
+        with open(os.path.join(p["data_root"], ENCODER_CACHE)) as fh:
+            kept = json.load(fh)
+        if kept.get("driver") == usage["driver"]:
+            known = {k: v for k, v in kept.get("gpus", {}).items() if isinstance(v, bool)}
+    except (OSError, ValueError, AttributeError):
+        pass
+    if all(gpu["uuid"] in known for gpu in usage["gpus"]):
+        return known, None, None
+    found, why = nvenc.probe(probe.run, probe.python)
+    answered = {k: v for k, v in found.items() if isinstance(v, bool)}
+    keep = {"driver": usage["driver"], "gpus": {**known, **answered}} if answered else None
+    return {**found, **known, **answered}, why, keep
+
+
+def keep_encoders(probe: Probe, p: dict, host: dict) -> None:
+    """Keep what the driver answered under the data root (not in check mode, nor on a host the
+    collection has not set up yet): the next plan does not ask again."""
+    keep = host.pop("encoders_to_keep", None)
+    if keep and not probe.check_mode and os.path.isdir(p["data_root"]):
+        path = os.path.join(p["data_root"], ENCODER_CACHE)
+        with open(path + ".tmp", "w") as fh:
+            json.dump(keep, fh, sort_keys=True)
+        os.replace(path + ".tmp", path)
 
 
 def _images(probe: Probe, p: dict, host: dict, docker) -> None:
@@ -158,8 +231,8 @@ def _ports(probe: Probe, p: dict, docker, own_addresses: bool) -> list:
 def facts(probe: Probe, p: dict) -> dict:
     """What was found on the host: memory, GPUs, ports held, images, units, the LAN."""
     host = {"memory_bytes": hostprobe.memory_bytes(probe.proc), "gpu_count": 0, "gpus": [], "ports_held": []}
-    _gpus(probe, p, host)
     docker = probe.which("docker")
+    _gpus(probe, p, host, docker)
     _images(probe, p, host, docker)
     _units(probe, p, host)
     own_addresses = p["network_mode"] == network.MACVLAN
@@ -184,6 +257,7 @@ def plan_host(probe: Probe, p: dict) -> dict:
             "Isaac Sim configuration rejected before any change:\n- " + "\n- ".join(exc.errors),
             errors=exc.errors,
         ) from exc
+    keep_encoders(probe, p, host)
     existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], layout.TARGET + ".wants"))
     stale = [i for i in existing if i not in result["ids"]]
     return {"plan": result, "stale_ids": stale, "host": host, "warnings": result["warnings"]}

@@ -17,17 +17,25 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common import harde
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import (
     as_int,
     docker_size,
+    mib_of,
     parse_image,
     parse_size,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, status_server
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, firewall, network, unit_files
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
+    companions,
+    firewall,
+    network,
+    placement,
+    unit_files,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import (
     ENV,
     KIT,
     MIN_MEMORY,
     RELEASES,
     STREAMING,
+    STREAMS,
     default_image,
     healthcheck,
     release_of_tag,
@@ -420,43 +428,47 @@ def instance_profiles(release, count, default, per_instance) -> tuple[dict, list
     return chosen, errors
 
 
-def assign_gpus(count, gpu_count, gpu_map, exclusive):
-    """({instance: gpu index}, errors). Round-robin unless the map says otherwise."""
+def gpu_needs(cfg, profile, count, profiles, comp_specs) -> tuple:
+    """({instance: {"mib", "streams"}}, errors): the GPU memory each instance asks for (its own,
+    isaac_sim_gpu_memory or the release's minimum, or isaac_sim_instance_gpu_memory, plus its GPU
+    companions') and whether it streams (needs a video encoder)."""
     errors = []
-    gpu_map = {as_int(k): as_int(v) for k, v in (gpu_map or {}).items()}
-    if gpu_count < 1:
-        return {}, [
-            "isaac_sim_gpu_enabled: true, but this host shows no NVIDIA GPU (nvidia-smi lists none). "
-            "Fix: install the driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
-        ]
-    if exclusive and count > gpu_count:
-        errors.append(
-            f"isaac_sim_instance_count: {count} instances with isaac_sim_gpu_exclusive: true need {count} GPUs, "
-            f"this host has {gpu_count}. Fix: lower isaac_sim_instance_count to {gpu_count} or set "
-            f"isaac_sim_gpu_exclusive: false to share GPUs."
-        )
-    for inst, gpu in sorted(gpu_map.items()):
-        if inst >= count or inst < 0:
+    default = profile.get("min_vram_mib")
+    if cfg.get("gpu_memory") not in (None, ""):
+        default = mib_of(cfg["gpu_memory"])
+        if default is None:
             errors.append(
-                f"isaac_sim_gpu_map: instance {inst} does not exist (instances are 0..{count - 1}). "
-                f"Fix: remove it from isaac_sim_gpu_map."
+                f"isaac_sim_gpu_memory: {cfg['gpu_memory']!r} is not a size with its unit. "
+                "Fix: write it as e.g. 16g or 24576m."
             )
-        if not 0 <= gpu < gpu_count:
+    per_instance = {}
+    for key, value in (cfg.get("instance_gpu_memory") or {}).items():
+        inst, mib = as_int(key), mib_of(value)
+        if inst is None or not 0 <= inst < max(count, 1) or mib is None:
             errors.append(
-                f"isaac_sim_gpu_map: instance {inst} is mapped to GPU {gpu}, this host has GPUs 0..{gpu_count - 1}. "
-                f"Fix: map it to an existing GPU."
+                f"isaac_sim_instance_gpu_memory: {key!r}: {value!r} is not instance number: size "
+                f"(instances are 0..{count - 1}). Fix: e.g. {{3: 40g}}."
             )
-    assignment = {i: gpu_map.get(i, i % gpu_count) for i in range(count)}
-    if exclusive and not errors:
-        used = {}
-        for inst, gpu in assignment.items():
-            if gpu in used:
-                errors.append(
-                    f"isaac_sim_gpu_map: instances {used[gpu]} and {inst} share GPU {gpu} but "
-                    f"isaac_sim_gpu_exclusive is true. Fix: give each instance its own GPU."
-                )
-            used[gpu] = inst
-    return assignment, errors
+        else:
+            per_instance[inst] = mib
+    needs = {}
+    for i in range(count):
+        mib = per_instance.get(i, default) or 0
+        for spec in comp_specs:
+            if isinstance(spec, dict) and companions.wanted_on(spec, i):
+                mib += companions.gpu_memory_mib(spec) or 0
+        needs[i] = {"mib": mib, "streams": profiles.get(i) in STREAMS}
+    return needs, errors
+
+
+def assign_gpus(cfg, host, needs) -> tuple:
+    """({instance: GPU index}, errors, warnings): placement.place over the host's GPUs."""
+    gpus = host.get("gpus") or [{"index": i} for i in range(host.get("gpu_count", 0))]
+    gpu_map = {as_int(k): as_int(v) for k, v in (cfg.get("gpu_map") or {}).items()}
+    current = {as_int(k): as_int(v) for k, v in (host.get("gpu_current") or {}).items()}
+    return placement.place(
+        gpus, needs, gpu_map, current, bool(cfg.get("gpu_exclusive")), cfg.get("gpu_consumer_encode_sessions", 8)
+    )
 
 
 def build(cfg: dict, host: dict) -> dict:
@@ -581,20 +593,6 @@ def build(cfg: dict, host: dict) -> dict:
     else:  # one block stands for all: the same ports at other addresses
         errors += _check_ports(release, {0: blocks[0]} if blocks else {}, bases, 1, {}, shared=False)
 
-    gpus = {}
-    if cfg.get("gpu_enabled") and host.get("nvidia_smi") is False:
-        errors.append(
-            "isaac_sim_gpu_enabled: true, but this host has no nvidia-smi (no NVIDIA driver installed). "
-            "Fix: install the NVIDIA driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
-        )
-    elif cfg.get("gpu_enabled"):
-        gpus, gpu_errors = assign_gpus(count, host.get("gpu_count", 0), cfg.get("gpu_map"), cfg.get("gpu_exclusive"))
-        errors += gpu_errors
-    elif cfg.get("gpu_map"):
-        errors.append(
-            "isaac_sim_gpu_map: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove the map."
-        )
-
     profiles, profile_errors = instance_profiles(
         release, max(count, 0), cfg.get("profile") or STREAMING, cfg.get("instance_profiles")
     )
@@ -629,6 +627,24 @@ def build(cfg: dict, host: dict) -> dict:
     errors += _confinement(cfg, comp_specs, count)
     if not errors:
         errors += _check_companion_ports(comp_specs, blocks, stride, held, shared)
+    gpus, gpu_warnings = {}, []
+    if cfg.get("gpu_enabled") and host.get("nvidia_smi") is False:
+        errors.append(
+            "isaac_sim_gpu_enabled: true, but this host has no nvidia-smi (no NVIDIA driver installed). "
+            "Fix: install the NVIDIA driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
+        )
+    elif cfg.get("gpu_enabled"):
+        needs, need_errors = gpu_needs(cfg, profile, max(count, 0), profiles, comp_specs)
+        errors += need_errors
+        if not errors:
+            gpus, gpu_errors, gpu_warnings = assign_gpus(cfg, host, needs)
+            errors += gpu_errors
+    else:
+        for name in ("gpu_map", "instance_gpu_memory"):
+            if cfg.get(name):
+                errors.append(
+                    f"isaac_sim_{name}: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove it."
+                )
     # the host's own services (status endpoint, Hub) share its network with the instances, or not
     taken = _taken(blocks, comp_specs, stride) if shared else {}
     hub, hub_errors = _hub_cache(cfg, release, taken, held)
@@ -648,7 +664,7 @@ def build(cfg: dict, host: dict) -> dict:
 
     sized = dict(cfg, memory_limit=docker_size(cfg["memory_limit"]), shm_size=docker_size(cfg["shm_size"]))
     sized["hub_dir"] = hub.get("dir")
-    warnings = _needs(release, profile, memory, gpus, host) + fw_warnings
+    warnings = _needs(release, memory) + gpu_warnings + fw_warnings
     instances = [
         _instance(sized, profile, profiles[i], i, blocks[i], gpus.get(i), addresses.get(i)) for i in range(count)
     ]
@@ -706,7 +722,7 @@ def build(cfg: dict, host: dict) -> dict:
     return planned
 
 
-def _needs(release, profile, memory, gpus, host) -> list:
+def _needs(release, memory) -> list:
     """What a real instance may lack with these settings: said, not refused (hosts differ)."""
     warnings = []
     if memory is not None and memory < MIN_MEMORY and release != "2023.1":
@@ -715,20 +731,6 @@ def _needs(release, profile, memory, gpus, host) -> list:
             f"Isaac Sim's minimum; a real instance may be killed for memory while it loads or compiles shaders. "
             f"Fix: raise isaac_sim_memory_limit (fewer instances per host if the sum does not fit)."
         )
-    need = profile.get("min_vram_mib")
-    per_gpu = {}
-    for inst, gpu in gpus.items():
-        per_gpu.setdefault(gpu, []).append(inst)
-    for gpu in host.get("gpus") or []:
-        sharing = per_gpu.get(gpu["index"], [])
-        total = gpu.get("memory_total_mib")
-        if need and total and len(sharing) * need > total:
-            warnings.append(
-                f"isaac_sim_instance_count / isaac_sim_gpu_map: GPU {gpu['index']} ({gpu.get('name')}, {total} MiB) "
-                f"carries instances {', '.join(map(str, sharing))}, {len(sharing)} x the {need} MiB of VRAM NVIDIA "
-                f"names as Isaac Sim {release}'s minimum; they may run out of GPU memory. Fix: at most "
-                f"{max(total // need, 1)} instance(s) on it (isaac_sim_gpu_map), or fewer instances."
-            )
     return warnings
 
 

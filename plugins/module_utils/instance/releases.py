@@ -58,6 +58,8 @@ _STREAMING_PORTS_5X = {
 }
 
 STREAMING, HEADLESS, NATIVE = "streaming", "headless", "native"
+# the profiles that stream through the GPU's video encoder
+STREAMS = (STREAMING, NATIVE)
 
 
 def _launch(entrypoint, opens, health_port, args=()):
@@ -98,7 +100,8 @@ RELEASES = {
         "min_driver": "525.85",
         "env": {},
         "security_opts": [],
-        "min_vram_mib": None,
+        # NVIDIA's 2023.1 requirements: minimum GeForce RTX 3070, 8 GB
+        "min_vram_mib": 8192,
         "log_dir": "/root/.nvidia-omniverse/logs",
     },
     "4.x": {

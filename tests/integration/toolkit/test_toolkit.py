@@ -101,3 +101,55 @@ def test_instances_get_their_gpu_through_dockers_device_requests(host):
         init_env = sh(host, f"docker exec isaac-sim-{i} cat /proc/1/environ").stdout.split("\0")
         assert f"NVIDIA_VISIBLE_DEVICES={i}" in init_env
         assert f"ISAAC_SIM_GPU={i}\n" in sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout
+
+
+# 2 x 80 GB without a video encoder and 4 x 24 GB with one, as the stand-in driver describes them
+MIXED = (
+    "NVIDIA H100 80GB HBM3:81559:no:NVIDIA|NVIDIA H100 80GB HBM3:81559:no:NVIDIA|"
+    "NVIDIA L4:23034:yes:NVIDIA|NVIDIA L4:23034:yes:NVIDIA|NVIDIA L4:23034:yes:NVIDIA|NVIDIA L4:23034:yes:NVIDIA"
+)
+
+
+def gpu_of(host, i: int) -> list:
+    inspect = json.loads(sh(host, f"docker inspect isaac-sim-{i}").stdout)[0]
+    return [r["DeviceIDs"] for r in inspect["HostConfig"]["DeviceRequests"]]
+
+
+def test_instances_are_placed_by_gpu_memory_and_video_encoder(host):
+    """Runs last: it moves instances, then puts the host back as the scenario left it."""
+    sh(host, f"printf '%s\\n' \"STANDIN_GPU_MODELS='{MIXED}'\" > /etc/standin-nvidia-smi.conf")
+    # other GPUs behind the same stand-in UUIDs: what was kept of the old ones no longer holds
+    sh(host, "rm -f /var/lib/isaac-sim/gpu-encoders.json /run/standin-nvidia.log")
+    try:
+        # refused before any change, both reasons at once: a streaming instance mapped to a GPU without an
+        # encoder, and more 20 GiB streams than the encoding GPUs hold
+        before = testbed.snapshot(host)
+        refused = testbed.run_playbook(
+            host, {"isaac_sim_instance_count": 6, "isaac_sim_gpu_memory": "20g", "isaac_sim_gpu_map": {0: 1}}
+        )
+        out = " ".join((refused.stdout + refused.stderr).split())
+        assert refused.returncode != 0
+        assert "isaac_sim_gpu_map: instance 0 streams, and GPU 1 (NVIDIA H100 80GB HBM3) has no video encoder" in out
+        assert "instance 5 needs 20480 MiB of GPU memory, and none of this host's GPUs with a video encoder" in out
+        assert "GPU 0 (NVIDIA H100 80GB HBM3) without a video encoder: 81559 MiB, 522 reserved by the driver" in out
+        assert testbed.snapshot(host) == before
+        sh(host, "rm -f /run/standin-nvidia.log")
+
+        # four streams on the encoding L4s (the two that ran on GPUs 0 and 1 move there), two headless
+        # instances on the 80 GB GPUs, where the most memory is left
+        placed = testbed.run_playbook(
+            host, {"isaac_sim_instance_count": 6, "isaac_sim_instance_profiles": {4: "headless", 5: "headless"}}
+        )
+        assert placed.returncode == 0, placed.stdout[-3000:]
+        testbed.all_ready(host, range(6))
+        assert [gpu_of(host, i) for i in range(6)] == [["2"], ["3"], ["4"], ["5"], ["0"], ["1"]]
+        encoders = json.loads(sh(host, "cat /var/lib/isaac-sim/gpu-encoders.json").stdout)
+        assert encoders["driver"] == "570.172.08" and sorted(encoders["gpus"].values()) == [False] * 2 + [True] * 4
+        # asked once: the stand-in driver logged one session per GPU, each encoder closed again
+        log = sh(host, "cat /run/standin-nvidia.log").stdout.split()
+        assert log.count("open") == 6 and log.count("destroy") == 4
+    finally:
+        sh(host, "rm -f /etc/standin-nvidia-smi.conf /run/standin-nvidia.log /var/lib/isaac-sim/gpu-encoders.json")
+        back = testbed.run_playbook(host)
+        assert back.returncode == 0, back.stdout[-3000:]
+    assert [gpu_of(host, i) for i in range(2)] == [["0"], ["1"]]

@@ -4,6 +4,7 @@ reads: every command it runs is a query."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
@@ -26,13 +27,19 @@ TCP = (
     "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
     "   1: 00000000:BFCD 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 41002 1 0 100 0\n"
 )
-# read-only queries: what the module may run on a host (Docker it asks through its API)
-QUERIES = ("nvidia-smi", "systemctl list-units", "ip -j -4")
+# read-only queries: what the module may run on a host (Docker it asks through its API; the
+# encoder probe is a python child that opens and closes one encode session per GPU)
+QUERIES = ("nvidia-smi", "systemctl list-units", "ip -j -4", "python")
+# the encoder probe's answer for the stand-in's two GPUs (tests/fixtures/nvidia-driver): both encode
+ENCODERS = json.dumps(
+    {"gpus": [{"ordinal": i, "uuid": f"GPU-00000000-0000-0000-0000-00000000000{i}", "status": 0} for i in (0, 1)]}
+)
 
 
 @pytest.fixture()
 def host(tmp_path, monkeypatch):
-    """One H100 (recorded nvidia-smi), the instance image present, two instances serving, 48 GiB;
+    """Two GPUs of 46068 MiB with an encoder (nvidia-smi -q -x as the stand-in prints it, 9220 and 512
+    MiB held by processes not ours), the instance image present, two instances serving, 48 GiB;
     instances 0-5 set up earlier (env files); no socket held. Returns (args, commands, dirs)."""
     proc = tmp_path / "proc"
     (proc / "net").mkdir(parents=True)
@@ -53,7 +60,9 @@ def host(tmp_path, monkeypatch):
         line = " ".join([args[0].rsplit("/", 1)[-1]] + list(args[1:]))
         commands.append(line)
         if line.startswith("nvidia-smi"):
-            return 0, recorded("h100-nvidia-smi-query-gpu.csv"), ""
+            return 0, recorded("standin-nvidia-smi-q-x.xml"), ""
+        if line.startswith("python") and args[1] == "-c":
+            return 0, ENCODERS, ""
         if line.startswith("systemctl list-units"):
             return 0, SERVING, ""
         return 0, "", ""
@@ -105,11 +114,25 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
     plan = result["plan"]
     assert plan["ids"] == [0, 1, 2, 3] and plan["image"] == IMAGE
     assert [i["ports"]["signal"] for i in plan["instances"]] == [49100, 49101, 49102, 49103]
-    assert [i["gpu"] for i in plan["instances"]] == [0, 0, 0, 0]
+    # 16 GiB each: the GPU with the most memory left first
+    assert [i["gpu"] for i in plan["instances"]] == [1, 0, 1, 0]
+    gpu = {
+        "name": "NVIDIA Stand-in GPU",
+        "memory_total_mib": 46068,
+        "memory_reserved_mib": 522,
+        "brand": "",
+        "encoder": True,
+        "encoder_why": None,
+    }
     assert result["host"] == {
         "memory_bytes": 50331648 * 1024,
-        "gpu_count": 1,
-        "gpus": [{"index": 0, "name": "NVIDIA H100 80GB HBM3", "memory_total_mib": 81559, "driver": "580.159.04"}],
+        "gpu_count": 2,
+        "gpu_driver": "570.172.08",
+        "gpu_current": {},
+        "gpus": [
+            dict(gpu, index=0, uuid="GPU-00000000-0000-0000-0000-000000000000", memory_used_mib=9220, others_mib=9220),
+            dict(gpu, index=1, uuid="GPU-00000000-0000-0000-0000-000000000001", memory_used_mib=512, others_mib=512),
+        ],
         "ports_held": [],
         "nvidia_smi": True,
         "image_present": True,

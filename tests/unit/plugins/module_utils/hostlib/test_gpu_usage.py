@@ -31,6 +31,8 @@ def test_smi_xml_recorded_on_a_real_h100():
             "uuid": "GPU-7c29f82e-cc0f-6e84-d164-aa52ca7577e0",
             "memory_total_mib": 81559,
             "memory_used_mib": 4715,
+            "memory_reserved_mib": 480,
+            "brand": "NVIDIA",
         }
     ]
     assert usage["processes"] == [{"gpu": 0, "pid": 470, "type": "C", "used_mib": 4706}]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
@@ -37,15 +39,22 @@ class Docker:
         return self.net
 
 
-def probe(tmp_path, installed=("docker", "systemctl", "ip", "nvidia-smi"), network=None, **docker):
-    """A host with one H100, no image, nothing serving; what it was asked, in order."""
+H100_UUID = "GPU-3a4bf3b5-f6d5-6f6e-6ea6-9e95c4b58413"
+PYTHON = "/usr/bin/python3"
+
+
+def probe(tmp_path, installed=("docker", "systemctl", "ip", "nvidia-smi"), network=None, check_mode=False, **docker):
+    """A host with one H100 (nvidia-smi -q -x and the encoder probe as recorded on it, a process
+    holding 4706 MiB), no image, nothing serving; what it was asked, in order."""
     asked = []
 
     def run(argv):
         asked.append(" ".join(argv))
         name = argv[0].rsplit("/", 1)[-1]
         if name == "nvidia-smi":
-            return 0, recorded("h100-nvidia-smi-query-gpu.csv"), ""
+            return 0, recorded("h100-placement-nvidia-smi-q-x.xml"), ""
+        if argv[0] == PYTHON:
+            return 0, recorded("h100-nvenc-probe.json"), ""
         if name == "ip":
             return 0, ADDR if "addr" in argv else ROUTE, ""
         return 0, "", ""
@@ -59,6 +68,8 @@ def probe(tmp_path, installed=("docker", "systemctl", "ip", "nvidia-smi"), netwo
         lambda: "10.0.0.5",
         str(tmp_path / "proc"),
         str(net),
+        PYTHON,
+        check_mode,
     )
     return found, asked
 
@@ -82,16 +93,129 @@ def params(tmp_path, **over):
 
 def test_facts_are_read_with_one_query_each(tmp_path):
     found, asked = probe(tmp_path)
-    host = host_facts.facts(found, params(tmp_path, gpu_enabled=True))
-    assert host["gpu_count"] == 1 and host["gpus"][0]["memory_total_mib"] == 81559 and host["nvidia_smi"]
+    host = host_facts.facts(found, params(tmp_path, gpu_enabled=True, data_root=str(tmp_path)))
+    assert host["gpus"] == [
+        {
+            "index": 0,
+            "name": "NVIDIA H100 80GB HBM3",
+            "uuid": H100_UUID,
+            "memory_total_mib": 81559,
+            "memory_used_mib": 4715,
+            "memory_reserved_mib": 480,
+            "brand": "NVIDIA",
+            # the recorded process is in no container of ours: its memory is not the plan's
+            "others_mib": 4706,
+            "encoder": False,
+            "encoder_why": None,
+        }
+    ]
+    assert host["gpu_count"] == 1 and host["nvidia_smi"] and host["gpu_driver"] == "580.159.04"
     assert host["image_present"] is False and host["image_id"] is None and host["serving"] == 0
     assert host["memory_bytes"] == 0 and "interfaces" not in host  # no /proc/meminfo; not macvlan
-    # no socket is held on a wanted port: Docker is not asked which containers are ours
+    # Docker is asked for our containers because a GPU process runs; no socket is held on a wanted port
     assert [" ".join(a.split()[:3]) for a in asked] == [
-        "/usr/bin/nvidia-smi --query-gpu=index,name,memory.total,driver_version --format=csv,noheader,nounits",
+        "/usr/bin/nvidia-smi -q -x",
+        "docker containers ^isaac-sim-",
+        f"{PYTHON} -c import",
         "docker image nvcr.io/nvidia/isaac-sim:6.0.1",
         "/usr/bin/systemctl list-units isaac-sim@*.service",
     ]
+
+
+def test_a_process_in_one_of_our_containers_leaves_its_memory_to_the_plan(tmp_path):
+    ours = "15aac51a" * 8
+    (tmp_path / "proc" / "586").mkdir(parents=True)
+    (tmp_path / "proc" / "586" / "cgroup").write_text(f"0::/system.slice/docker-{ours}.scope\n")
+    found, _asked = probe(tmp_path, ids=[ours])
+    host = host_facts.facts(found, params(tmp_path, gpu_enabled=True, data_root=str(tmp_path)))
+    assert host["gpus"][0]["others_mib"] == 0
+    found, _asked = probe(tmp_path, ids=["c0ffee"])
+    assert host_facts.facts(found, params(tmp_path, gpu_enabled=True))["gpus"][0]["others_mib"] == 4706
+
+
+def test_where_each_instance_runs_now_is_read_from_its_env_file(tmp_path):
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "etc" / "instance-0.env").write_text("ISAAC_SIM_GPU=0\n")
+    (tmp_path / "etc" / "instance-3.env").write_text("ISAAC_SIM_GPU=1\n")
+    (tmp_path / "etc" / "instance-4.env").write_text("ISAAC_SIM_GPU=\n")
+    found, _asked = probe(tmp_path)
+    host = host_facts.facts(found, params(tmp_path, gpu_enabled=True, profile="headless"))
+    assert host["gpu_current"] == {0: 0, 3: 1}
+
+
+def test_the_encoder_is_asked_once_per_driver_and_only_for_streams(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    cache = data / host_facts.ENCODER_CACHE
+    p = params(tmp_path, gpu_enabled=True, data_root=str(data))
+
+    def read(check_mode=False):
+        found, asked = probe(tmp_path, check_mode=check_mode)
+        host = host_facts.facts(found, p)
+        host_facts.keep_encoders(found, p, host)
+        return host, any(a.startswith(PYTHON) for a in asked)
+
+    # check mode asks but keeps nothing
+    host, asked = read(check_mode=True)
+    assert host["gpus"][0]["encoder"] is False and asked and not cache.exists()
+    host, asked = read()
+    assert json.loads(cache.read_text()) == {"driver": "580.159.04", "gpus": {H100_UUID: False}}
+    # kept: the next plan does not ask the driver again
+    host, asked = read()
+    assert host["gpus"][0]["encoder"] is False and not asked
+    # another driver: asked again
+    cache.write_text(json.dumps({"driver": "570.1", "gpus": {H100_UUID: True}}))
+    host, asked = read()
+    assert host["gpus"][0]["encoder"] is False and asked
+    # headless instances only: no encoder is needed, none is asked for
+    found, asked = probe(tmp_path)
+    host = host_facts.facts(found, params(tmp_path, gpu_enabled=True, data_root=str(data), profile="headless"))
+    assert host["gpus"][0]["encoder"] is None and not any(a.startswith(PYTHON) for a in asked)
+
+
+def test_a_refused_plan_keeps_nothing(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    found, _asked = probe(tmp_path)
+    with pytest.raises(host_facts.PlanRefusedError):
+        host_facts.plan_host(found, params(tmp_path, gpu_enabled=True, data_root=str(data), image_pull="never"))
+    assert list(data.iterdir()) == []
+
+
+def test_an_encoder_probe_that_cannot_ask_is_said_and_not_kept(tmp_path, monkeypatch):
+    data = tmp_path / "data"
+    data.mkdir()
+    found, _asked = probe(tmp_path)
+    monkeypatch.setattr(
+        found,
+        "run",
+        lambda argv: (0, recorded("h100-placement-nvidia-smi-q-x.xml"), "")
+        if "nvidia-smi" in argv[0]
+        else (
+            0,
+            json.dumps(
+                {"gpus": [], "error": "libnvidia-encode.so.1 (the driver's encode library) could not be loaded"}
+            ),
+            "",
+        ),
+    )
+    p = params(tmp_path, gpu_enabled=True, data_root=str(data))
+    host = host_facts.facts(found, p)
+    host_facts.keep_encoders(found, p, host)
+    gpu = host["gpus"][0]
+    assert gpu["encoder"] is None and "libnvidia-encode.so.1" in gpu["encoder_why"]
+    assert not (data / host_facts.ENCODER_CACHE).exists()
+
+
+def test_streaming_on_the_recorded_h100_is_refused_and_headless_is_placed(tmp_path):
+    found, _asked = probe(tmp_path)
+    with pytest.raises(host_facts.PlanRefusedError) as exc:
+        host_facts.plan_host(found, params(tmp_path, gpu_enabled=True, image_pull="never", instance_count=2))
+    assert "instances 0, 1 stream, and no GPU of this host has a video encoder (NVIDIA H100 80GB HBM3" in exc.value.msg
+    out = host_facts.plan_host(
+        found, params(tmp_path, gpu_enabled=True, image_pull="never", profile="headless", instance_count=4)
+    )
+    assert [i["gpu"] for i in out["plan"]["instances"]] == [0, 0, 0, 0]
 
 
 def test_macvlan_facts_are_the_lan_and_our_network(tmp_path):

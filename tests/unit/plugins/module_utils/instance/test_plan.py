@@ -170,8 +170,12 @@ def test_gpus_round_robin_and_map():
     assert [i["gpu"] for i in result["instances"]] == [0, 1, 0, 1]
     assert "--gpus=device=1" in result["instances"][1]["docker_args"]
     assert "--runtime=nvidia" in result["instances"][1]["docker_args"]
+    # the others go where the least is taken: GPU 0, which the map left empty
     mapped = plan.build(cfg(gpu_enabled=True, gpu_map={"0": 1, "1": 1}), host)
-    assert [i["gpu"] for i in mapped["instances"]] == [1, 1, 0, 1]
+    assert [i["gpu"] for i in mapped["instances"]] == [1, 1, 0, 0]
+    # where they run now, they stay (an upgrade moves no instance)
+    kept = plan.build(cfg(gpu_enabled=True, gpu_map={"0": 1, "1": 1}), dict(host, gpu_current={"3": 1, "2": 0}))
+    assert [i["gpu"] for i in kept["instances"]] == [1, 1, 0, 1]
 
 
 @pytest.mark.parametrize(
@@ -181,7 +185,7 @@ def test_gpus_round_robin_and_map():
         ({}, 0, "shows no NVIDIA GPU"),
         ({"gpu_map": {"1": 5}}, 2, "mapped to GPU 5"),
         ({"gpu_map": {"7": 0}}, 2, "instance 7 does not exist"),
-        ({"gpu_exclusive": True, "instance_count": 2, "gpu_map": {"1": 0}}, 2, "share GPU 0"),
+        ({"gpu_exclusive": True, "instance_count": 2, "gpu_map": {"0": 0, "1": 0}}, 2, "share GPU 0"),
     ],
 )
 def test_gpu_errors(over, gpu_count, needle):
@@ -277,15 +281,43 @@ def test_containers_follow_nvidias_recipe():
 
 def test_settings_below_the_release_needs_are_said():
     big = dict(HOST, memory_bytes=512 * GIB, gpu_count=1, gpus=[H100])
-    quiet = plan.build(cfg(memory_limit="32g", gpu_enabled=True), big)
+    quiet = plan.build(cfg(memory_limit="32g", gpu_enabled=True, profile="headless"), big)
     assert quiet["warnings"] == []
-    small = plan.build(cfg(memory_limit="8g", instance_count=6, gpu_enabled=True), big)
-    assert small["warnings"][0].startswith("isaac_sim_memory_limit: 8.0 GiB per instance is below the 32.0 GiB")
-    assert "GPU 0 (NVIDIA H100 80GB HBM3, 81559 MiB) carries instances 0, 1, 2, 3, 4, 5" in small["warnings"][1]
-    assert "at most 4 instance(s)" in small["warnings"][1]
+    small = plan.build(cfg(memory_limit="8g", gpu_enabled=True, profile="headless"), big)
+    assert small["warnings"] == [
+        "isaac_sim_memory_limit: 8.0 GiB per instance is below the 32.0 GiB NVIDIA names as Isaac Sim's minimum; "
+        "a real instance may be killed for memory while it loads or compiles shaders. Fix: raise "
+        "isaac_sim_memory_limit (fewer instances per host if the sum does not fit)."
+    ]
 
 
-H100 = {"index": 0, "name": "NVIDIA H100 80GB HBM3", "memory_total_mib": 81559, "driver": "580.159.04"}
+def test_gpu_memory_is_placed_not_only_warned_about():
+    """Six instances at NVIDIA's 16 GiB minimum on one 80 GB GPU: four fit, the fifth is refused."""
+    big = dict(HOST, memory_bytes=512 * GIB, gpu_count=1, gpus=[H100])
+    errors = errors_of(cfg(memory_limit="32g", instance_count=6, gpu_enabled=True, profile="headless"), big)
+    assert errors == [
+        "isaac_sim_gpu_memory: instances 4, 5 need 16384 MiB of GPU memory each, and none of this host's GPUs has "
+        "that much left (GPU 0 (NVIDIA H100 80GB HBM3) without a video encoder: 81559 MiB, 480 reserved by the "
+        "driver, 65536 taken by instances 0, 1, 2, 3, 15543 MiB left). Fix: fewer instances "
+        "(isaac_sim_instance_count), less GPU memory each (isaac_sim_gpu_memory, isaac_sim_instance_gpu_memory) "
+        "if your scenes allow it, or stop what else holds GPU memory."
+    ]
+    # less memory each: all six fit
+    fits = plan.build(
+        cfg(memory_limit="32g", instance_count=6, gpu_enabled=True, profile="headless", gpu_memory="12g"), big
+    )
+    assert [i["gpu"] for i in fits["instances"]] == [0] * 6
+
+
+H100 = {
+    "index": 0,
+    "name": "NVIDIA H100 80GB HBM3",
+    "brand": "NVIDIA",
+    "memory_total_mib": 81559,
+    "memory_reserved_mib": 480,
+    "others_mib": 0,
+    "encoder": False,
+}
 
 
 def test_the_healthcheck_is_nvidias_plus_the_port_answering():
@@ -519,3 +551,54 @@ def test_a_way_out_of_the_container_is_refused_for_instances_and_companions_unle
     allow = ["--privileged", "--cap-add", "NET_ADMIN", "--volume=/var/run/docker.sock:/var/run/docker.sock"]
     allowed = plan.build(dict(c, allowed_docker_args=allow), HOST)
     assert "--privileged" in allowed["instances"][0]["docker_args"]
+
+
+L4 = {"name": "NVIDIA L4", "brand": "NVIDIA", "memory_total_mib": 23034, "memory_reserved_mib": 522, "encoder": True}
+
+
+def test_gpu_memory_per_instance_and_companion_is_what_placement_weighs():
+    host = dict(HOST, gpu_count=2, gpus=[dict(L4, index=0), dict(L4, index=1)])
+    # 2 x 16 GiB fit two L4s; instance 1 asking 20g still fits its own, 24g does not fit any
+    two = plan.build(cfg(gpu_enabled=True, instance_count=2, instance_gpu_memory={"1": "20g"}), host)
+    assert [i["gpu"] for i in two["instances"]] == [0, 1]
+    errors = errors_of(cfg(gpu_enabled=True, instance_count=2, instance_gpu_memory={1: "24g"}), host)
+    assert errors[0].startswith("isaac_sim_gpu_memory: instance 1 needs 24576 MiB of GPU memory, and none of")
+    # a companion on the instance's GPU adds what it names
+    bridge = {"name": "bridge", "image": "reg/bridge:1", "gpu": True, "gpu_memory": "8g"}
+    errors = errors_of(cfg(gpu_enabled=True, instance_count=2, companions=[bridge]), host)
+    assert "instances 0, 1 need 24576 MiB of GPU memory each" in errors[0]
+    fits = plan.build(cfg(gpu_enabled=True, instance_count=2, gpu_memory="12g", companions=[bridge]), host)
+    assert [i["gpu"] for i in fits["instances"]] == [0, 1]
+
+
+@pytest.mark.parametrize(
+    "over, needle",
+    [
+        (
+            {"gpu_memory": "16384"},
+            "isaac_sim_gpu_memory: '16384' is not a size with its unit. Fix: write it as e.g. 16g",
+        ),
+        ({"gpu_memory": "lots"}, "isaac_sim_gpu_memory: 'lots' is not a size with its unit"),
+        ({"instance_gpu_memory": {"9": "8g"}}, "isaac_sim_instance_gpu_memory: '9': '8g' is not instance number: size"),
+        ({"instance_gpu_memory": {"1": "8"}}, "isaac_sim_instance_gpu_memory: '1': '8' is not instance number: size"),
+        (
+            {"companions": [{"name": "b", "image": "r/b:1", "gpu": True, "gpu_memory": "big"}]},
+            "isaac_sim_companions[b].gpu_memory: 'big' is not a size with its unit. Fix: e.g. 4g or 2048m.",
+        ),
+        (
+            {"companions": [{"name": "b", "image": "r/b:1", "gpu_memory": "2g"}]},
+            "isaac_sim_companions[b].gpu_memory: '2g', but the companion has no GPU (gpu: false). Fix: set gpu: true",
+        ),
+    ],
+)
+def test_gpu_memory_settings_that_do_not_parse_are_named(over, needle):
+    host = dict(HOST, gpu_count=1, gpus=[dict(L4, index=0)])
+    errors = errors_of(cfg(gpu_enabled=True, instance_count=1, **over), host)
+    assert any(needle in e for e in errors), errors
+
+
+def test_gpu_memory_for_instances_without_gpus_is_a_mistake():
+    errors = errors_of(cfg(instance_gpu_memory={"0": "20g"}), HOST)
+    assert errors == [
+        "isaac_sim_instance_gpu_memory: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove it."
+    ]
