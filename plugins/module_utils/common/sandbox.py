@@ -47,12 +47,14 @@ READER = (
 
 
 def reader(writable=(), network=True) -> tuple:
-    """The status endpoint's profile (network: it serves) or the metrics exporter's (no network;
-    writable: the textfile directory it writes)."""
+    """The status endpoint's profile (network: it serves) or the metrics exporter's (no traffic;
+    writable: the textfile directory it writes). The exporter keeps the IP socket families: it
+    finds the host's address as the status endpoint does, by asking the kernel which source a UDP
+    socket would use (fleet_status.default_ipv4, no packet sent); IPAddressDeny lets no packet
+    through either way."""
     entries = list(READER)
     if not network:
-        entries = [e for e in entries if e[0] != "RestrictAddressFamilies"]
-        entries += [("RestrictAddressFamilies", "AF_UNIX"), ("IPAddressDeny", "any")]
+        entries += [("IPAddressDeny", "any")]
     entries += [("ReadWritePaths", path) for path in writable]
     return tuple(entries)
 

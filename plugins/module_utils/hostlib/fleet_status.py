@@ -593,8 +593,12 @@ def read_journal_tails(run, ids, count: int) -> tuple:
 
 
 def default_ipv4() -> str:
-    """The source address of the default route (no packet is sent), else 127.0.0.1."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    """The source address of the default route (no packet is sent), else 127.0.0.1 (also where a
+    sandbox allows no IPv4 socket at all)."""
+    try:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    except OSError:
+        return "127.0.0.1"
     try:
         sock.connect(("192.0.2.1", 9))  # TEST-NET-1: never routed anywhere real
         return sock.getsockname()[0]

@@ -46,6 +46,10 @@ def test_a_deploy_that_breaks_an_instance_stops_there_and_puts_it_back(host):
 def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_blocks(host):
     lock = "/run/lock/isaac-sim.json"
     envs = {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)}
+    # ready as the rolling restart's preflight reads it (isaac_sim_info), or it ends at once and frees the host
+    testbed.wait_for(
+        lambda: all(i["ready"] for i in testbed.info(host)["instances"]), timeout=180, what="every instance ready"
+    )
     # a rolling restart holds the host for a minute or so
     first = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 10}, playbook="playbooks/rolling_restart.yml")
     third = None
@@ -54,6 +58,10 @@ def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_
         # a deploy with other settings meanwhile: refused before it plans, naming the first run
         second = testbed.run_playbook(host, {"isaac_sim_env": {"STANDIN_CRASH_AFTER": "0"}})
         out = " ".join((second.stdout + second.stderr).split())
+        if first.poll() is not None:  # the first run ended early: say why, not only that the second ran
+            raise AssertionError(
+                f"the rolling restart ended before the second run asked: {first.communicate()[0][-3000:]}"
+            )
         assert second.returncode != 0, out[-3000:]
         assert f"{testbed.name(host)} is held by " in out and "(ansible-playbook pid " in out and " since " in out
         assert "isaac_sim_lock_wait" in out and "isaac_sim_lock_break=true" in out

@@ -47,7 +47,7 @@ def test_metrics_are_a_oneshot_and_its_timer_writing_into_the_textfile_directory
     [start] = [line for line in service if line.startswith("ExecStart=")]
     assert start.endswith(f"--output /var/lib/node-exporter/{layout.METRICS_FILE} --gpu-source nvidia-smi")
     # the status endpoint's sandbox, no network, and only its directory writable
-    assert "RestrictAddressFamilies=AF_UNIX" in service and "IPAddressDeny=any" in service
+    assert "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6" in service and "IPAddressDeny=any" in service
     assert [line for line in service if line.startswith("ReadWritePaths=")] == ["ReadWritePaths=/var/lib/node-exporter"]
     assert "OnUnitActiveSec=15s" in timer and "Description=Write Isaac Sim instance metrics every 15s" in timer
     assert "[Install]" not in service and timer[-1] == "WantedBy=timers.target"

@@ -407,6 +407,16 @@ def test_a_host_without_the_collection_is_not_deployed(tmp_path):
     assert all(r["stray"] for r in result["instances"])
 
 
+def test_default_ipv4_without_ip_sockets_is_the_loopback(monkeypatch):
+    """Where a sandbox allows no IPv4 socket (RestrictAddressFamilies), the exporter still runs."""
+
+    def refused(*_args):
+        raise OSError(97, "Address family not supported by protocol")
+
+    monkeypatch.setattr(fleet_status.socket, "socket", refused)
+    assert fleet_status.default_ipv4() == "127.0.0.1"
+
+
 def test_default_ipv4_is_an_address():
     parts = fleet_status.default_ipv4().split(".")
     assert len(parts) == 4 and all(p.isdigit() for p in parts)
