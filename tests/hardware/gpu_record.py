@@ -44,7 +44,7 @@ def plain(value):
         return [plain(v) for v in value]
     fields = getattr(value, "_fields_", None)
     if fields:
-        return {name: plain(getattr(value, name)) for name, *_ in fields}
+        return {field[0]: plain(getattr(value, field[0])) for field in fields}
     return repr(value)
 
 

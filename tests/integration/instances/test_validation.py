@@ -10,7 +10,7 @@ import testbed
 import testinfra
 from testbed import ROOT, sh
 
-NVIDIA_SMI = ROOT / "tests" / "fixtures" / "nvidia-smi" / "nvidia-smi"
+NVIDIA_SMI = ROOT / "tests" / "fixtures" / "nvidia-driver" / "nvidia-smi"
 
 
 def assert_rejected(host, extra_vars, *needles):
@@ -197,6 +197,8 @@ def test_a_refused_registry_login_names_the_registry_and_the_user_never_the_key(
         "Fix: check isaac_sim_registry_username and isaac_sim_registry_password",
     )
     assert key not in out
+    # refused once, in the deploy's first play, when the tag's digest was asked: before any pull
+    assert "when asked which digest" in out and "Pull the Isaac Sim image" not in out
 
 
 def test_a_pull_with_the_key_leaves_it_nowhere_on_the_host_nor_in_the_play_s_output(host, monkeypatch):
