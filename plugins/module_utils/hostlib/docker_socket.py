@@ -27,12 +27,13 @@ class DockerError(Exception):
         self.status = status
 
 
-def _exchange(path: str, target: str, timeout) -> bytes:
+def _exchange(path: str, target: str, timeout, headers=None) -> bytes:
     """The daemon's whole answer to one GET; it closes the connection after it (Connection: close)."""
+    extra = "".join(f"{name}: {value}\r\n" for name, value in (headers or {}).items())
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout)
         sock.connect(path)
-        sock.sendall(f"GET {target} HTTP/1.1\r\nHost: docker\r\nConnection: close\r\n\r\n".encode("ascii"))
+        sock.sendall(f"GET {target} HTTP/1.1\r\nHost: docker\r\n{extra}Connection: close\r\n\r\n".encode("ascii"))
         parts = []
         while True:
             data = sock.recv(65536)
@@ -77,11 +78,11 @@ class DockerSocket:
         self.timeout = timeout
         self.calls = 0
 
-    def get(self, endpoint: str):
+    def get(self, endpoint: str, headers=None):
         """The decoded JSON answer of GET /v1.41{endpoint}."""
         self.calls += 1
         try:
-            status, body = parse_response(_exchange(self.path, f"/v{API_VERSION}{endpoint}", self.timeout))
+            status, body = parse_response(_exchange(self.path, f"/v{API_VERSION}{endpoint}", self.timeout, headers))
         except OSError as exc:
             raise DockerError(f"cannot reach the Docker daemon at {self.path}: {exc}") from exc
         except ValueError as exc:  # a cut or garbled answer
@@ -120,6 +121,12 @@ class DockerSocket:
     def images(self):
         """Every image with its repo digests: one call."""
         return self.get("/images/json")
+
+    def distribution(self, name: str, auth: str = ""):
+        """What the image's registry says of `name` (its manifest's digest), asked by the daemon with
+        its own registry settings; auth: an X-Registry-Auth value (the credentials travel over the
+        socket for this one call, and are written nowhere)."""
+        return self.get(f"/distribution/{quote(name, safe='/:@')}/json", {"X-Registry-Auth": auth} if auth else None)
 
     def network(self, name: str):
         """The network `name` as Docker describes it (docker network inspect's object), or None: one call."""

@@ -58,10 +58,12 @@ def restarts_text(inst: dict) -> str:
     return str(inst.get("restarts") or 0) + (f" (24h: {', '.join(said)})" if said else "")
 
 
-def build(results: dict, targets: list, generated_at: str = "") -> dict:
+def build(results: dict, targets: list, generated_at: str = "", compare: bool = True) -> dict:
     """One report over the hosts asked for; a host without a result is unreachable or failed.
 
     results: {host: isaac_sim_info result, or {"failed": True, "msg": ...}}
+    compare: mark instances whose digest differs from the fleet's (fleet_drift); a host's status
+    endpoint answers for itself alone and leaves that to the page, which compares its hosts.
     """
     hosts, totals = [], {"hosts": 0, "reachable": 0, "instances": 0, "running": 0, "ready": 0, "failed": 0, "stray": 0}
     for host in targets:
@@ -111,7 +113,33 @@ def build(results: dict, targets: list, generated_at: str = "") -> dict:
                 "summary": summary,
             }
         )
+    totals["drift"] = (
+        fleet_drift(hosts) if compare else sum(bool(i.get("drift")) for h in hosts for i in h["instances"])
+    )
     return {"generated_at": generated_at, "summary": totals, "hosts": hosts}
+
+
+def fleet_drift(hosts: list) -> int:
+    """Mark (fleet_drift) every instance that runs another digest than most instances of the same
+    image across the fleet (a host a deploy left out, an image changed by hand); an instance off its
+    own deploy's digest says so in drift (fleet_status.drift). The dashboard's page compares its
+    live answers the same way (status.html.j2, fleetDigests). Returns how many drift either way."""
+    seen = {}
+    for h in hosts:
+        for inst in h["instances"]:
+            if inst.get("configured") and inst.get("image") and inst.get("digest"):
+                counts = seen.setdefault(inst["image"], {})
+                counts[inst["digest"]] = counts.get(inst["digest"], 0) + 1
+    # the digest most instances of the image run (on a tie, the first in name order: stable between reads)
+    fleet = {image: max(sorted(counts), key=counts.get) for image, counts in seen.items()}
+    drifting = 0
+    for h in hosts:
+        for inst in h["instances"]:
+            theirs = fleet.get(inst.get("image"))
+            if inst.get("configured") and theirs and inst.get("digest") not in (None, theirs):
+                inst["fleet_drift"] = f"runs {inst['digest'][:19]} where the fleet runs {theirs[:19]}"
+            drifting += bool(inst.get("drift") or inst.get("fleet_drift"))
+    return drifting
 
 
 def table(report: dict) -> list:
@@ -130,7 +158,9 @@ def table(report: dict) -> list:
                 (
                     h["host"],
                     str(i["id"]) if i["id"] is not None else i["name"],
-                    i["state"] + (" (stray)" if i.get("stray") else ""),
+                    i["state"]
+                    + (" (stray)" if i.get("stray") else "")
+                    + (" (drift)" if i.get("drift") or i.get("fleet_drift") else ""),
                     "yes" if i["ready"] else "no",
                     i["uptime"],
                     i.get("restarts_text") or str(i["restarts"]),
@@ -158,6 +188,7 @@ def table(report: dict) -> list:
     lines.append(
         f"{s['hosts']} hosts ({s['reachable']} answered), {s['instances']} instances: "
         f"{s['running']} running, {s['ready']} ready, {s['failed']} failed, {s['stray']} stray"
+        + (f", {s['drift']} on another digest than the fleet's" if s.get("drift") else "")
     )
     return lines
 

@@ -213,8 +213,8 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
     """{name: container record} for the isaac-sim-* containers of the list API."""
     digests = {}
     for image in images or []:
-        repo_digests = image.get("RepoDigests") or []
-        digests[image.get("Id")] = repo_digests[0].split("@", 1)[1] if repo_digests else None
+        # every digest the image was pulled by (a tag's and a pinned one's can both name it)
+        digests[image.get("Id")] = [d.split("@", 1)[1] for d in image.get("RepoDigests") or [] if "@" in d]
     out = {}
     for c in containers or []:
         names = [n for n in c.get("Names") or [] if _CONTAINER_NAME.match(n)]
@@ -237,7 +237,8 @@ def parse_containers(containers: list, images: list, now: float) -> dict:
             "uptime_s": int(now - created) if running and created else None,
             "image": c.get("Image"),
             "image_id": c.get("ImageID"),
-            "digest": digests.get(c.get("ImageID")),
+            "digest": (digests.get(c.get("ImageID")) or [None])[0],
+            "digests": digests.get(c.get("ImageID")) or [],
             "labelled_instance": int(label) if label and label.isdigit() else None,
             "companion": companion,
             "host_service": host_service,
@@ -404,6 +405,8 @@ def build(
         urls = endpoints(release, ports, address, served, listens) if release and ports else {}
         procs = gpu_by_container.get((container or {}).get("id"), [])
         gpu_index = env.get(layout.K_GPU, "")
+        pinned = env.get(layout.K_IMAGE_PINNED, "").rpartition("@")[2] or None
+        running = (container or {}).get("digests") or []
         active_enter = _int((unit or {}).get("ActiveEnterTimestampMonotonic"))
         active = (unit or {}).get("ActiveState") == "active"
         records.append(
@@ -435,7 +438,10 @@ def build(
                 "release": release,
                 "image": env.get(layout.K_IMAGE) or (container or {}).get("image"),
                 "image_id": (container or {}).get("image_id") or env.get(layout.K_IMAGE_ID),
-                "digest": (container or {}).get("digest"),
+                "digest": pinned if pinned and pinned in running else (container or {}).get("digest"),
+                # the digest the deploy pinned the tag to, for the whole fleet (image_pin.py)
+                "pinned": pinned,
+                "drift": drift(pinned, running, (container or {}).get("digest")),
                 "profile": env.get(layout.K_PROFILE) or ("streaming" if env else None),
                 "ports": ports,
                 "public_address": address,
@@ -449,6 +455,14 @@ def build(
             }
         )
     return records
+
+
+def drift(pinned, running: list, shown) -> str | None:
+    """Why a running instance is not on the digest its deploy pinned, or None: a container started
+    from another image (before the deploy reached it, or by hand)."""
+    if not pinned or not running or pinned in running:
+        return None
+    return f"runs {(shown or running[0])[:19]}, its deploy pinned {pinned[:19]}"
 
 
 def companion_records(i, envs: dict, units: dict, containers: dict, markers: set) -> list:

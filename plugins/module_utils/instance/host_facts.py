@@ -65,13 +65,18 @@ class PlanRefusedError(Exception):
         self.msg, self.fields = msg, fields
 
 
-def _image_id(probe: Probe, ref):
-    """(present, id) of an image on the host; a daemon that does not answer has none (image.yml
-    then says Docker does not run)."""
+def _image(probe: Probe, ref):
+    """(the image as Docker describes it or None, whether the daemon answered); a daemon that
+    does not answer has no image (image.yml then says Docker does not run)."""
     try:
-        image = probe.docker.image(ref)
+        return probe.docker.image(ref), True
     except DockerError:
-        image = None
+        return None, False
+
+
+def _image_id(probe: Probe, ref):
+    """(present, id) of an image on the host."""
+    image = _image(probe, ref)[0]
     return (True, image.get("Id")) if image else (False, None)
 
 
@@ -154,9 +159,18 @@ def keep_encoders(probe: Probe, p: dict, host: dict) -> None:
 def _images(probe: Probe, p: dict, host: dict, docker) -> None:
     image = p["image"] or (default_image(p["release"]) if p["release"] in RELEASES else "")
     # what later tasks would otherwise ask the host again: the image (its id), the metrics timer
-    host["image_present"], host["image_id"] = False, None
+    host["image_present"], host["image_id"], host["image_digests"], host["docker_answers"] = False, None, [], False
     if docker and image:
-        host["image_present"], host["image_id"] = _image_id(probe, image)
+        found, host["docker_answers"] = _image(probe, image)
+        if found:
+            # the digests it was pulled by: whether it is the one the fleet's tag is pinned to (image_pin.py)
+            host["image_present"], host["image_id"] = True, found.get("Id")
+            host["image_digests"] = [d.split("@", 1)[1] for d in found.get("RepoDigests") or [] if "@" in d]
+    # what the instances set up before run: a deploy says which hosts it moves
+    envs, _errors = fleet_status.read_env_files(p["config_dir"])
+    host["images_configured"] = sorted(
+        {env.get(layout.K_IMAGE_PINNED) or env.get(layout.K_IMAGE) for env in envs.values()} - {None, ""}
+    )
     # companion images not on the host yet: the role pulls them with the instance's image
     host["companion_images_missing"] = []
     wanted_images = [c.get("image") for c in p["companions"] if isinstance(c, dict) and c.get("image")]

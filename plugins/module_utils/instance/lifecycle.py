@@ -293,7 +293,8 @@ def pinned(host: Host, text: str) -> str:
     """An env file pinned to its image id when its tag has moved to another image since it was written."""
     env = layout.parse(text)
     ref, image_id = env.get(layout.K_IMAGE, ""), env.get(layout.K_IMAGE_ID, "")
-    if not image_id.startswith("sha256:"):
+    # pinned to a digest by its deploy: it runs that digest, whatever the tag does
+    if not image_id.startswith("sha256:") or env.get(layout.K_IMAGE_PINNED):
         return text
     rc, out, _err = host.run(["docker", "image", "inspect", "-f", "{{.Id}}", ref])
     if rc == 0 and out.strip() == image_id:

@@ -28,6 +28,9 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{layout.K_IMAGE}={layout.quote(plan['image'])}",
         f"{layout.K_IMAGE_ID}={layout.quote(image_id)}",
     ]
+    # the digest the tag named when the deploy asked, for every host of it: what runs (image_pin.py)
+    if plan.get("image_pinned"):
+        lines.append(f"{layout.K_IMAGE_PINNED}={layout.quote(plan['image_pinned'])}")
     lines += [f"{layout.K_PORT_PREFIX}{kind.upper()}={port}" for kind, port in instance["ports"].items()]
     protocols = instance.get("protocols", {})
     # checked free at start (isaac-sim-ports): the ports the app itself opens, not a companion's

@@ -774,7 +774,8 @@ def deployed_simulator(read, ids=None, config_dir: str = layout.CONFIG_DIR) -> d
         if env.get(layout.K_IMAGE):
             limits = fleet_status.parse_limits(env.get(layout.K_DOCKER_ARGS, ""))
             return {
-                "image": env[layout.K_IMAGE],
+                # the digest the fleet runs, where its deploy pinned one
+                "image": env.get(layout.K_IMAGE_PINNED) or env[layout.K_IMAGE],
                 "release": env.get(layout.K_RELEASE),
                 "memory": limits.get("memory"),
                 "shm_size": limits.get("shm_size"),

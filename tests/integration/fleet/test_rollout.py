@@ -7,7 +7,8 @@ preflight that refuses an unhealthy fleet and one with a host that does not
 answer, a rollout scoped by --limit and
 instance selection, a canary pause nobody answers, a Docker settings change that
 restarts Docker one host at a time, a fleet-wide scale-down, and an upgrade approved at
-the canary prompt that goes through.
+the canary prompt that goes through, every host on the digest its tag named when the deploy
+began though the tag moves upstream while the canary waits.
 """
 
 from __future__ import annotations
@@ -270,13 +271,26 @@ def test_a_fleet_wide_scale_down_goes_host_by_host_and_to_zero_only_when_confirm
         testbed.wait_for(lambda h=h: all_ready(h), timeout=180, what=f"{h} ready")
 
 
-def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
+# the registry as this machine reaches it (tests/fixtures/registry), to move a tag upstream
+UPSTREAM = "127.0.0.1:5555/fixtures/isaac-sim-standin"
+
+
+def move_tag(tag: str, source: str) -> str:
+    """Push the local image `source` under `tag` upstream; the digest the tag names now."""
+    subprocess.run(["docker", "tag", source, f"{UPSTREAM}:{tag}"], check=True)
+    pushed = subprocess.run(["docker", "push", f"{UPSTREAM}:{tag}"], capture_output=True, text=True, check=True)
+    return re.search(r"digest: (sha256:[0-9a-f]{64})", pushed.stdout).group(1)
+
+
+def test_upgrade_approved_at_the_canary_converges_every_host_on_one_digest_while_the_tag_moves(fleet):
     new = registry_image(fleet[0], "6.0.2")
     seen = {}
 
     def approve():
         # at the prompt the canary runs the new image and no other host was touched yet
         seen.update({h: {image for _key, image in containers(h).values()} for h in fleet})
+        # mid-run, the tag moves upstream to another image: the hosts still to come must not follow it
+        seen["moved to"] = move_tag("6.0.2", "isaacsim-fleet/isaac-sim-standin:good")
         return "yes"
 
     watcher = Watcher({h: ip(h) for h in fleet}, [SIGNAL + i for i in range(INSTANCES)])
@@ -290,10 +304,15 @@ def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
         )
     finally:
         watcher.stop()
+        # the tag back where the registry fixture keeps it
+        move_tag("6.0.2", "isaacsim-fleet/isaac-sim-standin:next")
     assert answered, out[-4000:]
     assert seen[fleet[0]] == {new} and all(new not in seen[h] for h in fleet[1:]), seen
     assert code == 0, out[-4000:]
     assert "completed: every host rolled" in out
+    # the deploy said, before any change, the digest the tag named and whom it moves
+    pinned = re.search(rf"{re.escape(new)} is (sha256:[0-9a-f]{{64}}) now; this deploy moves ", squash(out))
+    assert pinned and pinned.group(1) != seen["moved to"], squash(out)[-3000:]
     # the upgrade is the deploy as a rollout: every host disturbed, never below 3 of 4
     assert watcher.lowest() == {h: INSTANCES - 1 for h in fleet}, watcher.lowest()
     digest = None
@@ -311,6 +330,11 @@ def test_upgrade_approved_at_the_canary_converges_every_host(fleet):
         )["plays"][0]["tasks"][0]["hosts"][h]
         registry = sh(h, f"docker image inspect -f '{{{{index .RepoDigests 0}}}}' {new}").strip().split("@", 1)[1]
         digest = digest or registry
-        assert registry == digest
+        # every host the digest the deploy pinned, none the one the tag moved to mid-run
+        assert registry == digest == pinned.group(1), (h, registry, seen["moved to"])
         assert [i["digest"] for i in info["instances"]] == [digest] * INSTANCES, h
+        # the reports name the tag as written; the env file runs the digest
         assert all(i["ready"] and i["image"] == new for i in info["instances"]), h
+        assert f'ISAAC_SIM_IMAGE_PINNED="{new.rsplit(":", 1)[0]}@{digest}"' in sh(
+            h, "cat /etc/isaac-sim/instance-3.env"
+        )

@@ -17,8 +17,19 @@ class _Server(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
     daemon_threads = True
 
 
+DISTRIBUTION = {
+    "Descriptor": {
+        "mediaType": "application/vnd.docker.distribution.manifest.v2+json",
+        "digest": "sha256:" + "ab" * 32,
+        "size": 1570,
+    },
+    "Platforms": [{"architecture": "amd64", "os": "linux"}],
+}
+
+
 class _Dockerd(http.server.BaseHTTPRequestHandler):
     asked = []
+    auth = []
 
     def address_string(self):  # a unix socket has no client address
         return "unix"
@@ -30,6 +41,9 @@ class _Dockerd(http.server.BaseHTTPRequestHandler):
             status, body = 200, recorded("docker-containers.json")
         elif url.path == "/v1.41/images/json":
             status, body = 200, recorded("docker-images.json")
+        elif url.path.startswith("/v1.41/distribution/"):
+            self.auth.append(self.headers.get("X-Registry-Auth"))
+            status, body = 200, json.dumps(DISTRIBUTION)
         else:
             status, body = 404, '{"message": "page not found"}'
         data = body.encode()
@@ -47,6 +61,7 @@ class _Dockerd(http.server.BaseHTTPRequestHandler):
 def dockerd(tmp_path):
     path = str(tmp_path / "docker.sock")
     _Dockerd.asked = []
+    _Dockerd.auth = []
     server = _Server(path, _Dockerd)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
@@ -134,3 +149,12 @@ def test_an_answer_that_is_not_http_is_a_docker_error(tmp_path):
     finally:
         listener.close()
         thread.join(5)
+
+
+def test_the_registry_is_asked_through_the_daemon_with_the_credentials_in_a_header(dockerd):
+    docker = DockerSocket(f"unix://{dockerd}")
+    assert docker.distribution("reg.lab:5000/isaac-sim:6.0.1", "eyJ1c2VybmFtZSI6") == DISTRIBUTION
+    assert docker.distribution("reg.lab:5000/isaac-sim:6.0.1") == DISTRIBUTION
+    # the reference as the docker CLI sends it; the header only when there are credentials
+    assert _Dockerd.asked == ["/v1.41/distribution/reg.lab:5000/isaac-sim:6.0.1/json"] * 2
+    assert _Dockerd.auth == ["eyJ1c2VybmFtZSI6", None]

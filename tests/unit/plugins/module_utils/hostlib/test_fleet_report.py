@@ -88,3 +88,35 @@ def test_the_table_and_metrics_keep_the_last_days_ends_that_nrestarts_forgets():
     text = fleet_report.prometheus({"instances": [dict(inst, id=3, name="isaac-sim-3")]})
     assert 'isaac_sim_crashes_last_day{isaac_sim_instance="3"} 3' in text
     assert 'isaac_sim_session_ends_last_day{isaac_sim_instance="3"} 10' in text
+
+
+def _on(result, digest, pinned=None, drift=None):
+    """A host's result whose configured instances run `digest` (pinned to `pinned`)."""
+    for inst in result["instances"]:
+        if inst["configured"]:
+            inst.update(image="reg/isaac-sim:6.0.1", digest=digest, pinned=pinned, drift=drift)
+    return result
+
+
+def test_an_instance_off_the_fleet_s_digest_drifts_in_the_report_and_the_table():
+    old, new = "sha256:" + "1" * 64, "sha256:" + "2" * 64
+    results = {"a": _on(host_result(), new), "b": _on(host_result(), new), "c": _on(host_result(), old)}
+    report = fleet_report.build(results, ["a", "b", "c"])
+    assert report["summary"]["drift"] == 4
+    c = [i for i in report["hosts"][2]["instances"] if i["configured"]]
+    assert {i["fleet_drift"] for i in c} == {f"runs {old[:19]} where the fleet runs {new[:19]}"}
+    assert not any(i.get("fleet_drift") for h in report["hosts"][:2] for i in h["instances"])
+    lines = fleet_report.table(report)
+    assert "ready (drift)" in [" ".join(line.split()[2:4]) for line in lines if line.startswith("c ")]
+    assert lines[-1].endswith(", 4 on another digest than the fleet's")
+    # a host's own answer (its status endpoint) compares nothing: the page compares its hosts
+    alone = fleet_report.build({"c": _on(host_result(), old)}, ["c"], compare=False)
+    assert alone["summary"]["drift"] == 0 and not any("fleet_drift" in i for i in alone["hosts"][0]["instances"])
+
+
+def test_an_instance_off_its_own_deploy_s_digest_counts_once():
+    old, new = "sha256:" + "1" * 64, "sha256:" + "2" * 64
+    result = _on(host_result(), new)
+    result["instances"][0]["drift"] = f"runs {old[:19]}, its deploy pinned {new[:19]}"
+    report = fleet_report.build({"a": result}, ["a"])
+    assert report["summary"]["drift"] == 1

@@ -495,3 +495,11 @@ def test_a_started_command_takes_its_words_literally_and_a_hung_or_missing_one_r
 def test_gather_without_run_or_start_says_so_instead_of_recursing():
     with pytest.raises(TypeError, match="needs run or start"):
         fleet_status.gather(None, None, None, None)
+
+
+def test_drift_is_a_running_instance_off_the_digest_its_deploy_pinned():
+    pinned, other = "sha256:" + "a" * 64, "sha256:" + "b" * 64
+    assert fleet_status.drift(pinned, [other, pinned], other) is None
+    assert fleet_status.drift(pinned, [other], other) == f"runs {other[:19]}, its deploy pinned {pinned[:19]}"
+    # not pinned (an older deploy, isaac_sim_image_pin: false), or nothing running: no drift to say
+    assert fleet_status.drift(None, [other], other) is None and fleet_status.drift(pinned, [], None) is None

@@ -345,6 +345,13 @@ def test_going_back_pins_the_previous_image_id_when_its_tag_moved():
     assert layout.parse(h.files[layout.env_file(0)][0])[layout.K_IMAGE] == "sha256:old"
 
 
+def test_an_env_file_pinned_to_a_digest_goes_back_as_written():
+    """Its deploy pinned the digest (image_pin.py): it runs that, whatever the tag names now."""
+    h = ScriptedHost(1, tags={"reg/isaac-sim:5.0.0": "sha256:moved"})
+    text = OLD + 'ISAAC_SIM_IMAGE_PINNED="reg/isaac-sim@sha256:' + "e" * 64 + '"\n'
+    assert lifecycle.pinned(h.host, text) == text
+
+
 def test_a_changed_shared_file_rolls_every_serving_instance_and_goes_back_with_it():
     h = ScriptedHost(3)
     ok = lifecycle.apply(h.host, want({i: OLD for i in range(3)}, files={UNIT_FILE: ("unit v2\n", 0o644)}))

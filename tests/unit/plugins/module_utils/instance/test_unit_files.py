@@ -41,6 +41,11 @@ def test_env_file_carries_every_value_exactly():
     env = layout.parse(unit_files.render_env(headless["instances"][1], headless, "sha256:abc", {}, "managed"))
     # checked free at start: nothing, as the headless app opens nothing
     assert env[layout.K_PROFILE] == "headless" and env[layout.K_PORTS] == ""
+    # not pinned: no line; pinned: the digest runs, the tag stays what the reports name
+    assert layout.K_IMAGE_PINNED not in env
+    pinned = dict(p, image_pinned="reg/isaac-sim@sha256:" + "c" * 64)
+    env = layout.parse(unit_files.render_env(pinned["instances"][1], pinned, "sha256:abc", {}, "managed"))
+    assert env[layout.K_IMAGE_PINNED] == "reg/isaac-sim@sha256:" + "c" * 64 and env[layout.K_IMAGE] == p["image"]
 
 
 def test_unit_numbers_are_numbers_whatever_was_given():

@@ -527,6 +527,9 @@ def test_the_dedicated_simulator_takes_the_image_release_and_limits_of_the_host_
         "shm_size": "4g",
     }
     assert testrun.deployed_simulator(files.get, []) == {}
+    # the fleet's pinned digest, where its deploy pinned one
+    files["/etc/isaac-sim/instance-2.env"] += 'ISAAC_SIM_IMAGE_PINNED="reg/isaac-sim@sha256:' + "d" * 64 + '"\n'
+    assert testrun.deployed_simulator(files.get, [2])["image"] == "reg/isaac-sim@sha256:" + "d" * 64
 
 
 def test_a_dedicated_simulator_s_settings_are_checked_before_anything_runs():

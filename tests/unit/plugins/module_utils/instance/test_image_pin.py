@@ -1,0 +1,113 @@
+"""One digest for the fleet (module_utils/instance/image_pin.py): a tag resolved once, through one
+host's Docker daemon."""
+
+from __future__ import annotations
+
+import base64
+import json
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import image_pin
+
+DIGEST = "sha256:" + "ab" * 32
+
+
+class Docker:
+    """Docker's /distribution answer: a descriptor (Docker 20.10's lowercase keys), or an error."""
+
+    def __init__(self, answer=None, error=None):
+        self.answer = answer if answer is not None else {"Descriptor": {"digest": DIGEST}, "Platforms": []}
+        self.error, self.asked = error, []
+
+    def distribution(self, name, auth=""):
+        self.asked.append((name, auth))
+        if self.error:
+            raise self.error
+        return self.answer
+
+
+@pytest.mark.parametrize(
+    "repository, registry",
+    [
+        ("nvcr.io/nvidia/isaac-sim", "nvcr.io"),
+        ("172.17.0.1:5555/fixtures/isaac-sim-standin", "172.17.0.1:5555"),
+        ("localhost/isaac-sim", "localhost"),
+        ("nvidia/isaac-sim", "docker.io"),
+        ("isaac-sim", "docker.io"),
+    ],
+)
+def test_the_registry_is_found_as_docker_finds_it(repository, registry):
+    assert image_pin.registry_of(repository) == registry
+
+
+def test_a_tag_is_pinned_to_the_digest_it_names_now_with_the_credentials_in_the_header_only():
+    docker = Docker()
+    found = image_pin.resolve(docker, "nvcr.io/nvidia/isaac-sim:6.0.1", "$oauthtoken", "key-123")
+    assert found == {
+        "image": "nvcr.io/nvidia/isaac-sim:6.0.1",
+        "pinned": f"nvcr.io/nvidia/isaac-sim@{DIGEST}",
+        "digest": DIGEST,
+    }
+    (name, auth) = docker.asked[0]
+    assert name == "nvcr.io/nvidia/isaac-sim:6.0.1"
+    assert json.loads(base64.urlsafe_b64decode(auth)) == {
+        "username": "$oauthtoken",
+        "password": "key-123",
+        "serveraddress": "nvcr.io",
+    }
+    # older engines name it Digest; without a password nothing is sent
+    docker = Docker({"Descriptor": {"Digest": DIGEST}})
+    assert image_pin.resolve(docker, "reg.lab:5000/sim:1")["pinned"] == f"reg.lab:5000/sim@{DIGEST}"
+    assert docker.asked == [("reg.lab:5000/sim:1", "")]
+
+
+def test_an_image_named_by_digest_is_pinned_as_written_without_asking():
+    docker = Docker(error=DockerError("must not be asked"))
+    found = image_pin.resolve(docker, f"nvcr.io/nvidia/isaac-sim:6.0.1@{DIGEST}")
+    assert found["pinned"] == f"nvcr.io/nvidia/isaac-sim@{DIGEST}" and docker.asked == []
+
+
+def test_a_refused_login_names_the_registry_and_the_fix_and_never_the_key():
+    error = DockerError('Docker answered 401 to GET /distribution/x: b\'{"message":"unauthorized: key-123"}\'', 401)
+    with pytest.raises(image_pin.PinError) as exc:
+        image_pin.resolve(Docker(error=error), "nvcr.io/nvidia/isaac-sim:6.0.1", "$oauthtoken", "key-123", "gpu-01")
+    text = str(exc.value)
+    assert text.startswith(
+        "nvcr.io refused the login of user $oauthtoken from gpu-01 when asked which digest "
+        "nvcr.io/nvidia/isaac-sim:6.0.1 names"
+    )
+    assert "isaac_sim_registry_password" in text and "key-123" not in text and "********" in text
+
+
+def test_a_registry_out_of_reach_or_a_bad_answer_is_said_with_the_way_out():
+    error = DockerError("cannot reach the Docker daemon at /var/run/docker.sock: [Errno 2] No such file")
+    with pytest.raises(image_pin.PinError) as exc:
+        image_pin.resolve(Docker(error=error), "reg.lab/sim:1")
+    assert "could not ask reg.lab which digest reg.lab/sim:1 names" in str(exc.value)
+    assert "isaac_sim_image_pin: false" in str(exc.value)
+    with pytest.raises(image_pin.PinError) as exc:
+        image_pin.resolve(Docker({"Descriptor": {"digest": "md5:00"}}), "reg.lab/sim:1")
+    assert str(exc.value).startswith("reg.lab answered without a digest for reg.lab/sim:1")
+    with pytest.raises(image_pin.PinError):
+        image_pin.resolve(Docker(), "Not An Image")
+
+
+def test_each_image_of_the_fleet_is_asked_once_and_the_deploy_says_whom_it_moves():
+    docker = Docker()
+    old = "nvcr.io/nvidia/isaac-sim@sha256:" + "01" * 32
+    images = {f"gpu-0{i}": "nvcr.io/nvidia/isaac-sim:6.0.1" for i in (1, 2, 3, 4)}
+    configured = {
+        "gpu-01": [old],
+        "gpu-02": [f"nvcr.io/nvidia/isaac-sim@{DIGEST}"],
+        "gpu-03": [],
+        "gpu-04": ["nvcr.io/nvidia/isaac-sim:6.0.0"],
+    }
+    found = image_pin.pin_fleet(docker, images, configured, "$oauthtoken", "k")
+    assert len(docker.asked) == 1
+    assert found["pinned"] == {h: f"nvcr.io/nvidia/isaac-sim@{DIGEST}" for h in images}
+    assert found["digests"] == {"nvcr.io/nvidia/isaac-sim:6.0.1": DIGEST}
+    assert found["summary"] == [
+        f"nvcr.io/nvidia/isaac-sim:6.0.1 is {DIGEST} now; this deploy moves gpu-01 (from sha256:010101010101), "
+        "gpu-04 (from nvcr.io/nvidia/isaac-sim:6.0.0); gpu-02 runs it already; gpu-03 gets it first"
+    ]
