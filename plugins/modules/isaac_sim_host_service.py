@@ -25,7 +25,7 @@ options:
   files:
     description:
       - Path to C(content) and C(mode) (octal string, default C(0644)) of each file of the service, the unit
-        file among them.
+        file among them; C(uid) and C(gid) (numbers) for a file the service reads as its own user (default root's).
     type: dict
     default: {}
   directories:

@@ -41,6 +41,16 @@ options:
     description: The host asked through, as the inventory names it (for the messages).
     type: str
     default: ""
+  mirror:
+    description:
+      - A pull-through mirror (C(HOST:PORT), role C(registry_mirror)) of O(mirror_upstream); images of that registry
+        are asked of the mirror and pinned to the mirror's reference.
+    type: str
+    default: ""
+  mirror_upstream:
+    description: The registry the mirror proxies, as a URL or a host.
+    type: str
+    default: ""
   docker_socket:
     description: The Docker daemon's socket.
     type: path
@@ -87,6 +97,8 @@ def main():
             registry_username=dict(type="str", default=""),
             registry_password=dict(type="str", default="", no_log=True),
             asked_from=dict(type="str", default=""),
+            mirror=dict(type="str", default=""),
+            mirror_upstream=dict(type="str", default=""),
             docker_socket=dict(type="path", default="/var/run/docker.sock"),
         ),
         supports_check_mode=True,
@@ -100,6 +112,8 @@ def main():
             p["registry_username"],
             p["registry_password"],
             p["asked_from"],
+            p["mirror"],
+            p["mirror_upstream"],
         )
     except image_pin.PinError as exc:
         module.fail_json(msg=str(exc))

@@ -248,6 +248,14 @@ options:
     description: The role's C(isaac_sim_image_pull); an NGC image that will be pulled needs a registry key.
     type: str
     default: missing
+  registry_mirror:
+    description: A pull-through mirror (HOST:PORT) the image is pulled through; the host then needs no registry key.
+    type: str
+    default: ""
+  registry_mirror_upstream:
+    description: The registry the mirror proxies.
+    type: str
+    default: ""
   registry_login:
     description: Whether a registry password (the NGC API key) is given; the key itself is not passed here.
     type: bool
@@ -342,6 +350,8 @@ ARGUMENT_SPEC = dict(
     health_retries=dict(type="raw", default=3),
     unhealthy_restart=dict(type="raw", default=300),
     image_pull=dict(type="str", default="missing"),
+    registry_mirror=dict(type="str", default=""),
+    registry_mirror_upstream=dict(type="str", default=""),
     registry_login=dict(type="bool", default=False),
     check_host_ports=dict(type="bool", default=True),
     companions=dict(type="list", elements="raw", default=[]),

@@ -138,7 +138,12 @@ def unit_show(host, unit: str) -> dict:
 
 def exposure(host, unit: str) -> float:
     """systemd-analyze security's overall exposure of a loaded unit on the host."""
-    out = sh(host, f"systemd-analyze security --no-pager {shlex.quote(unit)}").stdout
+    return exposure_of(lambda command: sh(host, command).stdout, unit)
+
+
+def exposure_of(run, unit: str) -> float:
+    """The same, on a host reached by run(command) -> its output (the fleet's hosts are containers)."""
+    out = run(f"systemd-analyze security --no-pager {shlex.quote(unit)}")
     found = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", out)
     assert found, out[-2000:]
     return float(found.group(1))
@@ -208,3 +213,30 @@ def snapshot(host) -> str:
         "systemctl list-units --all --no-legend 'isaac-sim*' | awk '{print $1, $3, $4}'",
         check=False,
     ).stdout
+
+
+# the stand-in NGC registry as this machine reaches it, and its token realm (tests/fixtures/registry)
+REGISTRY = "127.0.0.1:5555"
+REGISTRY_REALM = "http://127.0.0.1:5557/token?service=isaacsim-fleet-fixture"
+REGISTRY_KEY_FILE = ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key"
+
+
+def registry_status(path: str, scope: str, accept="application/vnd.docker.distribution.manifest.v2+json") -> int:
+    """The HTTP status the stand-in registry answers GET path with, asked as a client does at a
+    Bearer registry such as NGC: a token from its realm for scope, then the request with it."""
+    import base64
+    import urllib.error
+    import urllib.request
+
+    basic = base64.b64encode(f"$oauthtoken:{REGISTRY_KEY_FILE.read_text().strip()}".encode()).decode()
+    ask = urllib.request.Request(f"{REGISTRY_REALM}&scope={scope}", headers={"Authorization": f"Basic {basic}"})
+    with urllib.request.urlopen(ask, timeout=10) as answer:
+        token = json.load(answer)["token"]
+    request = urllib.request.Request(
+        f"http://{REGISTRY}{path}", headers={"Authorization": f"Bearer {token}", "Accept": accept}
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=10) as answer:
+            return answer.status
+    except urllib.error.HTTPError as exc:
+        return exc.code

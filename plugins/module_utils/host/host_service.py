@@ -24,11 +24,13 @@ def is_unit_file(path: str) -> bool:
 
 
 def changed_files(files: dict, read) -> list:
-    """The paths whose content or mode differ from what is wanted. read(path) -> (content, mode) or None."""
+    """The paths whose content, mode or (where wanted) owner differ from what is wanted.
+    read(path) -> (content, mode[, uid, gid]) or None."""
     out = []
     for path, want in sorted(files.items()):
         have = read(path)
-        if have is None or have[0] != want["content"] or have[1] != int(str(want.get("mode", "0644")), 8):
+        owned = want.get("uid") is None or (have is not None and tuple(have[2:4]) == (want["uid"], want["gid"]))
+        if have is None or have[0] != want["content"] or have[1] != int(str(want.get("mode", "0644")), 8) or not owned:
             out.append(path)
     return out
 
@@ -94,19 +96,22 @@ def read_file(path):
     try:
         with open(path) as fh:
             content = fh.read()
-        return content, os.stat(path).st_mode & 0o7777
+        st = os.stat(path)
+        return content, st.st_mode & 0o7777, st.st_uid, st.st_gid
     except (OSError, UnicodeDecodeError):
         return None
 
 
-def write_file(path: str, content: str, mode) -> None:
-    """Atomically: a reader never sees half a file."""
+def write_file(path: str, content: str, mode, uid=None, gid=None) -> None:
+    """Atomically: a reader never sees half a file (nor, with an owner of its own, another's)."""
     directory = os.path.dirname(path)
     os.makedirs(directory, mode=0o755, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=".isaac-sim.")
     try:
         with os.fdopen(fd, "w") as fh:
             fh.write(content)
+        if uid is not None:
+            os.chown(tmp, int(uid), int(gid))
         os.chmod(tmp, int(str(mode), 8))
         os.replace(tmp, path)
     except BaseException:
@@ -150,6 +155,13 @@ def wanted_files(params: dict) -> dict:
         if "content" not in spec:
             raise ServiceError(f"files.{path}: no content. Fix: give content (and mode) for every file.")
         files[path] = {"content": str(spec["content"]), "mode": str(spec.get("mode", "0644"))}
+        # an owner of its own: a service that runs as its own user reads its secrets (the registry mirror)
+        if spec.get("uid") is not None:
+            if not str(spec["uid"]).isdigit() or not str(spec.get("gid", "")).isdigit():
+                raise ServiceError(
+                    f"files.{path}: uid and gid must be numbers. Fix: give both, e.g. uid: 104, gid: 110."
+                )
+            files[path].update(uid=int(spec["uid"]), gid=int(spec["gid"]))
     return files
 
 
@@ -195,7 +207,8 @@ class Service:
                 fix_directory(d)
         elif verb == "write":
             for path in changed:
-                write_file(path, self.files[path]["content"], self.files[path]["mode"])
+                want = self.files[path]
+                write_file(path, want["content"], want["mode"], want.get("uid"), want.get("gid"))
         elif verb == "remove":
             for path in changed:
                 remove(path)

@@ -22,6 +22,8 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases i
 
 PROC = "/proc"
 SYS_NET = "/sys/class/net"
+# where Docker finds the CA of a registry (a mirror's, docker_engine_registry_cas)
+CERTS_D = "/etc/docker/certs.d"
 
 
 class Probe:
@@ -166,6 +168,9 @@ def _images(probe: Probe, p: dict, host: dict, docker) -> None:
             # the digests it was pulled by: whether it is the one the fleet's tag is pinned to (image_pin.py)
             host["image_present"], host["image_id"] = True, found.get("Id")
             host["image_digests"] = [d.split("@", 1)[1] for d in found.get("RepoDigests") or [] if "@" in d]
+    # a mirror this host's Docker trusts can be asked for the fleet's digest before anything changes
+    mirror = p.get("registry_mirror") or ""
+    host["mirror_trusted"] = bool(mirror) and os.path.exists(os.path.join(CERTS_D, mirror, "ca.crt"))
     # what the instances set up before run: a deploy says which hosts it moves
     envs, _errors = fleet_status.read_env_files(p["config_dir"])
     host["images_configured"] = sorted(

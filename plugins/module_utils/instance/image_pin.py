@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import parse_image
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 
 DOCKER_HUB = "docker.io"
+REFUSED = re.compile(r"unauthorized|authentication required|denied", re.IGNORECASE)
 
 
 def registry_of(repository: str) -> str:
@@ -64,7 +66,8 @@ def resolve(docker, image: str, username: str = "", password: str = "", asked_fr
         answer = docker.distribution(image, auth)
     except DockerError as exc:
         why = str(exc).replace(password, "********") if password else str(exc)
-        if exc.status in (401, 403):
+        # Docker 20.10 passes the registry's 401 on as its own 500, with the registry's word in it
+        if exc.status in (401, 403) or REFUSED.search(str(exc)):
             raise PinError(
                 f"{server} refused the login of user {username or '(none)'} from {asked_from or 'this host'} when "
                 f"asked which digest {image} names ({why[:300]}). Fix: check isaac_sim_registry_username and "
@@ -83,15 +86,35 @@ def resolve(docker, image: str, username: str = "", password: str = "", asked_fr
 
 
 def pin_fleet(
-    docker, images: dict, configured: dict, username: str = "", password: str = "", asked_from: str = ""
+    docker,
+    images: dict,
+    configured: dict,
+    username: str = "",
+    password: str = "",
+    asked_from: str = "",
+    mirror: str = "",
+    upstream: str = "",
 ) -> dict:
     """Each distinct image of the play resolved once; what every host will run and which it moves.
 
-    images: {host: the plan's image}; configured: {host: [what its instances run now]}.
+    images: {host: the plan's image}; configured: {host: [what its instances run now]}; mirror:
+    HOST:PORT of a pull-through mirror of `upstream` (host/registry_mirror.py): an image of that
+    registry is asked of the mirror (which holds the credentials) and pinned to the mirror's
+    reference, so the hosts pull it from there.
     Returns {"pinned": {host: REPOSITORY@DIGEST}, "digests": {image: DIGEST}, "summary": [lines]}.
     """
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
+
     wanted = sorted(set(images.values()) - {"", None})
-    found = {image: resolve(docker, image, username, password, asked_from) for image in wanted}
+    found = {}
+    for image in wanted:
+        through = registry_mirror.mirror_reference(image, mirror, upstream) if mirror else None
+        if through:
+            # the mirror serves anonymously to the fleet: no credentials leave the controller for it
+            pin = resolve(docker, through, "", "", asked_from)
+            found[image] = dict(pin, image=image)
+        else:
+            found[image] = resolve(docker, image, username, password, asked_from)
     pinned = {host: found[image]["pinned"] for host, image in images.items() if image in found}
     summary = []
     for image, pin in found.items():

@@ -21,6 +21,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import
     parse_image,
     parse_size,
 )
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, status_server
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
     companions,
@@ -527,7 +528,14 @@ def build(cfg: dict, host: dict) -> dict:
                 f"isaac_sim_image: tag {parsed[1]} is an Isaac Sim {tag_release} image but isaac_sim_release is "
                 f"{release}. Fix: set isaac_sim_release: {tag_release!r}, or pick a {release} image."
             )
-        needs_key = parsed[0].split("/")[0] == NGC_DOMAIN and cfg.get("image_pull", "missing") != "never"
+        # pulled through a mirror, the mirror holds the key (host/registry_mirror.py)
+        mirror = cfg.get("registry_mirror") or ""
+        mirrored = bool(mirror) and registry_mirror.mirror_reference(
+            image, mirror, cfg.get("registry_mirror_upstream") or ""
+        )
+        needs_key = (
+            parsed[0].split("/")[0] == NGC_DOMAIN and cfg.get("image_pull", "missing") != "never" and not mirrored
+        )
         if needs_key and not cfg.get("registry_login") and not host.get("image_present"):
             errors.append(
                 f"isaac_sim_registry_password: empty, but {image} is on NGC ({NGC_DOMAIN}), which refuses pulls "

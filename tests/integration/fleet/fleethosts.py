@@ -40,6 +40,14 @@ def containers(host: str) -> dict:
     return {name: (cid, image) for name, cid, image in found if re.fullmatch(r"isaac-sim-\d+", name)}
 
 
+def ready_fleet(timeout=240) -> list:
+    """The fleet's hosts, once every instance of each is ready (the fixture of a test module)."""
+    found = hosts()
+    for h in found:
+        testbed.wait_for(lambda h=h: all_ready(h), timeout=timeout, what=f"{h} ready")
+    return found
+
+
 def all_ready(host: str) -> bool:
     out = sh(host, "systemctl is-active isaac-sim@0 isaac-sim@1 isaac-sim@2 isaac-sim@3; ls /run/isaac-sim")
     return out.count("active\n") == INSTANCES and all(f"instance-{i}.ready" in out for i in range(INSTANCES))

@@ -276,9 +276,21 @@ UPSTREAM = "127.0.0.1:5555/fixtures/isaac-sim-standin"
 
 
 def move_tag(tag: str, source: str) -> str:
-    """Push the local image `source` under `tag` upstream; the digest the tag names now."""
-    subprocess.run(["docker", "tag", source, f"{UPSTREAM}:{tag}"], check=True)
-    pushed = subprocess.run(["docker", "push", f"{UPSTREAM}:{tag}"], capture_output=True, text=True, check=True)
+    """Push the local image `source` under `tag` upstream (logged in for that push only); the digest
+    the tag names now."""
+    registry = UPSTREAM.split("/", 1)[0]
+    subprocess.run(
+        ["docker", "login", "-u", "$oauthtoken", "--password-stdin", registry],
+        input=testbed.REGISTRY_KEY_FILE.read_text().strip(),
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    try:
+        subprocess.run(["docker", "tag", source, f"{UPSTREAM}:{tag}"], check=True)
+        pushed = subprocess.run(["docker", "push", f"{UPSTREAM}:{tag}"], capture_output=True, text=True, check=True)
+    finally:
+        subprocess.run(["docker", "logout", registry], capture_output=True, check=False)
     return re.search(r"digest: (sha256:[0-9a-f]{64})", pushed.stdout).group(1)
 
 
@@ -307,12 +319,15 @@ def test_upgrade_approved_at_the_canary_converges_every_host_on_one_digest_while
         # the tag back where the registry fixture keeps it
         move_tag("6.0.2", "isaacsim-fleet/isaac-sim-standin:next")
     assert answered, out[-4000:]
-    assert seen[fleet[0]] == {new} and all(new not in seen[h] for h in fleet[1:]), seen
     assert code == 0, out[-4000:]
     assert "completed: every host rolled" in out
     # the deploy said, before any change, the digest the tag named and whom it moves
     pinned = re.search(rf"{re.escape(new)} is (sha256:[0-9a-f]{{64}}) now; this deploy moves ", squash(out))
     assert pinned and pinned.group(1) != seen["moved to"], squash(out)[-3000:]
+    # at the prompt the canary ran that digest (Docker names the image as it was run: by digest) and no
+    # other host was touched yet
+    on = {h: {image.rsplit("@", 1)[-1] for image in seen[h]} for h in fleet}
+    assert on[fleet[0]] == {pinned.group(1)} and all(pinned.group(1) not in on[h] for h in fleet[1:]), seen
     # the upgrade is the deploy as a rollout: every host disturbed, never below 3 of 4
     assert watcher.lowest() == {h: INSTANCES - 1 for h in fleet}, watcher.lowest()
     digest = None

@@ -20,7 +20,7 @@ import socket
 
 import pytest
 import testbed
-from fleethosts import INSTANCES, SIGNAL, all_ready, hosts, ip, playbook, probe, sh, squash
+from fleethosts import INSTANCES, SIGNAL, all_ready, ip, playbook, probe, ready_fleet, sh, squash
 from test_stream_addresses import VIEWER, viewer_image
 from testbed import ROOT
 
@@ -34,10 +34,7 @@ SITE_RULES = (
 
 @pytest.fixture(scope="module")
 def fleet():
-    found = hosts()
-    for h in found:
-        testbed.wait_for(lambda h=h: all_ready(h), timeout=240, what=f"{h} ready")
-    return found
+    return ready_fleet()
 
 
 def block(i: int) -> list:

@@ -5,6 +5,7 @@ script's kit flags or ISAACSIM_* variables ask for, so a port that answers
 proves the settings were passed the release's way.
 """
 
+import json
 import re
 import socket
 import urllib.request
@@ -97,10 +98,10 @@ def test_a_release_switch_goes_through_the_lifecycle_and_a_failed_one_goes_back(
         -3000:
     ]
     testbed.all_ready(host)
-    assert sh(host, "docker inspect -f '{{.Config.User}} {{.Config.Image}}' isaac-sim-0").stdout.split() == [
-        "0:0",
-        registry_image(host, "4.5.0"),
-    ]
+    user, image = sh(host, "docker inspect -f '{{.Config.User}} {{.Config.Image}}' isaac-sim-0").stdout.split()
+    # run by the digest its deploy pinned the 4.5.0 tag to (REPOSITORY@DIGEST, one of the tag's RepoDigests)
+    digests = sh(host, f"docker image inspect -f '{{{{json .RepoDigests}}}}' {registry_image(host, '4.5.0')}").stdout
+    assert user == "0:0" and image in json.loads(digests), (image, digests)
     assert {i: testbed.container_id(host, f"isaac-sim-{i}") for i in (1, 2, 3)} == {i: root_ids[i] for i in (1, 2, 3)}
 
     # the good switch: every instance runs as uid 1234 with its caches kept and handed over

@@ -11,7 +11,6 @@ import base64
 import ipaddress
 import json
 import re
-import subprocess
 import urllib.request
 
 import portwatch
@@ -218,21 +217,7 @@ def test_the_role_builds_the_image_once_on_one_host_and_pushes_it_to_the_registr
     assert held == [], held
     # in the fleet's registry now: any host pulls it from there
     repo, tag = ref.split("/", 1)[1].rsplit(":", 1)
-    manifest = subprocess.run(
-        [
-            "curl",
-            "-sf",
-            "-u",
-            f"$oauthtoken:{REGISTRY_KEY}",
-            "-o",
-            "/dev/null",
-            "-H",
-            "Accept: application/vnd.docker.distribution.manifest.v2+json",
-            f"http://127.0.0.1:5555/v2/{repo}/manifests/{tag}",
-        ],
-        check=False,
-    )
-    assert manifest.returncode == 0
+    assert testbed.registry_status(f"/v2/{repo}/manifests/{tag}", f"repository:{repo}:pull") == 200
     label = sh(host, f"docker image inspect -f '{{{{index .Config.Labels \"org.isaacsim.fleet.recipe\"}}}}' {ref}")
     assert len(label.stdout.strip()) == 16
     # the same recipe again: nothing is built or pushed

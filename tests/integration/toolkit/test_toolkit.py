@@ -112,7 +112,7 @@ MIXED = (
 
 def gpu_of(host, i: int) -> list:
     inspect = json.loads(sh(host, f"docker inspect isaac-sim-{i}").stdout)[0]
-    return [r["DeviceIDs"] for r in inspect["HostConfig"]["DeviceRequests"]]
+    return [d for r in inspect["HostConfig"]["DeviceRequests"] for d in r["DeviceIDs"]]
 
 
 def test_instances_are_placed_by_gpu_memory_and_video_encoder(host):

@@ -140,6 +140,7 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
         "image_digests": [],
         "docker_answers": True,
         "images_configured": [],
+        "mirror_trusted": False,
         "companion_images_missing": [],
         "metrics_timer": True,
         "status_unit": False,

@@ -67,6 +67,23 @@ def test_changed_files_compare_content_and_mode(tmp_path):
     assert host_service.remove(str(tmp_path)) and not os.path.exists(same)
 
 
+def test_a_file_with_an_owner_of_its_own_is_written_to_it_and_rewritten_when_owned_otherwise(tmp_path):
+    """The registry mirror's secrets: 0600 and its own user's (as root here, chown works)."""
+    path = str(tmp_path / "config.yml")
+    uid, gid = os.getuid() + 4242, os.getgid() + 4242
+    want = {path: {"content": "k\n", "mode": "0600", "uid": uid, "gid": gid}}
+    host_service.write_file(path, "k\n", "0600")
+    assert host_service.changed_files(want, host_service.read_file) == [path]
+    host_service.write_file(path, "k\n", "0600", uid, gid)
+    assert (os.stat(path).st_uid, os.stat(path).st_gid, os.stat(path).st_mode & 0o777) == (uid, gid, 0o600)
+    assert host_service.changed_files(want, host_service.read_file) == []
+    assert host_service.wanted_files({"files": want, "remove": [], "directories": []})[path]["uid"] == uid
+    with pytest.raises(host_service.ServiceError, match="uid and gid must be numbers"):
+        host_service.wanted_files(
+            {"files": {path: {"content": "", "uid": "registry"}}, "remove": [], "directories": []}
+        )
+
+
 def test_directories_are_created_or_reowned_and_kept(tmp_path):
     uid, gid = os.getuid(), os.getgid()
     hub = tmp_path / "hub-cache"

@@ -270,3 +270,13 @@ def test_our_containers_are_asked_for_only_when_a_wanted_port_is_held(tmp_path, 
     seen.clear()
     host_facts.facts(found, params(tmp_path))
     assert seen == [[]]
+
+
+def test_a_mirror_is_asked_through_a_host_only_once_its_docker_trusts_it(tmp_path, monkeypatch):
+    monkeypatch.setattr(host_facts, "CERTS_D", str(tmp_path / "certs.d"))
+    found, _asked = probe(tmp_path)
+    assert host_facts.facts(found, params(tmp_path, registry_mirror="m.lab:5443"))["mirror_trusted"] is False
+    (tmp_path / "certs.d" / "m.lab:5443").mkdir(parents=True)
+    (tmp_path / "certs.d" / "m.lab:5443" / "ca.crt").write_text("PEM")
+    assert host_facts.facts(found, params(tmp_path, registry_mirror="m.lab:5443"))["mirror_trusted"] is True
+    assert host_facts.facts(found, params(tmp_path))["mirror_trusted"] is False

@@ -80,6 +80,20 @@ def test_a_refused_login_names_the_registry_and_the_fix_and_never_the_key():
     assert "isaac_sim_registry_password" in text and "key-123" not in text and "********" in text
 
 
+def test_a_refusal_docker_passes_on_as_its_own_500_is_a_refused_login():
+    """Docker 20.10 answers GET /distribution with 500 and the registry's own word (recorded on
+    Debian 12's docker.io against the Bearer stand-in registry, a wrong key)."""
+    error = DockerError(
+        "Docker answered 500 to GET /distribution/reg.lab:5555/sim:6.0.1/json: "
+        'b\'{"message":"Head \\"http://reg.lab:5555/v2/sim/manifests/6.0.1\\": '
+        "unauthorized: authentication required\"}'",
+        500,
+    )
+    with pytest.raises(image_pin.PinError) as exc:
+        image_pin.resolve(Docker(error=error), "reg.lab:5555/sim:6.0.1", "$oauthtoken", "wrong", "gpu-01")
+    assert str(exc.value).startswith("reg.lab:5555 refused the login of user $oauthtoken from gpu-01")
+
+
 def test_a_registry_out_of_reach_or_a_bad_answer_is_said_with_the_way_out():
     error = DockerError("cannot reach the Docker daemon at /var/run/docker.sock: [Errno 2] No such file")
     with pytest.raises(image_pin.PinError) as exc:
@@ -111,3 +125,14 @@ def test_each_image_of_the_fleet_is_asked_once_and_the_deploy_says_whom_it_moves
         f"nvcr.io/nvidia/isaac-sim:6.0.1 is {DIGEST} now; this deploy moves gpu-01 (from sha256:010101010101), "
         "gpu-04 (from nvcr.io/nvidia/isaac-sim:6.0.0); gpu-02 runs it already; gpu-03 gets it first"
     ]
+
+
+def test_an_image_of_the_mirror_s_upstream_is_asked_of_the_mirror_without_credentials():
+    docker = Docker()
+    images = {"gpu-01": "nvcr.io/nvidia/isaac-sim:6.0.1", "gpu-02": "reg.lab/other:1"}
+    found = image_pin.pin_fleet(docker, images, {}, "$oauthtoken", "k", "gpu-01", "m.lab:5443", "https://nvcr.io")
+    assert docker.asked == [("m.lab:5443/nvidia/isaac-sim:6.0.1", ""), ("reg.lab/other:1", docker.asked[1][1])]
+    assert docker.asked[1][1]  # another registry: asked directly, with the credentials
+    assert found["pinned"] == {"gpu-01": f"m.lab:5443/nvidia/isaac-sim@{DIGEST}", "gpu-02": f"reg.lab/other@{DIGEST}"}
+    # the reports name the image as written
+    assert found["summary"][0].startswith(f"nvcr.io/nvidia/isaac-sim:6.0.1 is {DIGEST} now")

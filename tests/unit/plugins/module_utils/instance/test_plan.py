@@ -602,3 +602,13 @@ def test_gpu_memory_for_instances_without_gpus_is_a_mistake():
     assert errors == [
         "isaac_sim_instance_gpu_memory: set while isaac_sim_gpu_enabled is false. Fix: enable GPUs or remove it."
     ]
+
+
+def test_an_ngc_image_pulled_through_a_mirror_needs_no_key_on_the_host():
+    ngc = cfg(image="nvcr.io/nvidia/isaac-sim:6.0.1", image_pull="missing", registry_login=False)
+    absent = dict(HOST, image_present=False)
+    assert any(e.startswith("isaac_sim_registry_password: empty") for e in errors_of(ngc, absent))
+    plan.build(dict(ngc, registry_mirror="m.lab:5443", registry_mirror_upstream="https://nvcr.io"), absent)
+    # a mirror of another registry does not carry NGC's images
+    other = dict(ngc, registry_mirror="m.lab:5443", registry_mirror_upstream="https://reg.lab")
+    assert any(e.startswith("isaac_sim_registry_password: empty") for e in errors_of(other, absent))

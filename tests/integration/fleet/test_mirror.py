@@ -1,0 +1,121 @@
+"""The fleet's registry mirror (roles/registry_mirror) and one digest for the fleet, after the cold deploy.
+
+Runs first of the fleet's modules (file order), right after converge: the three hosts were deployed
+cold through the mirror (isaacsim-mirror-1, Debian's Distribution registry in proxy mode) from the
+stand-in upstream (tests/fixtures/registry, login required as NGC's). The upstream's own access log
+says what it served to whom: every blob of the image once in all, to the mirror, none to a host.
+Every host runs the one digest the deploy pinned, from the mirror. A host without the registry key
+still deploys (it pulls through the mirror, which holds the key).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+
+import pytest
+import testbed
+from fleethosts import all_ready, ip, playbook, ready_fleet, sh, squash
+from testbed import ROOT, client
+
+MIRROR = "isaacsim-mirror-1"
+UPSTREAM_LOG = (
+    Path(os.environ.get("ISAACSIM_FLEET_REGISTRY_STATE", "/var/lib/isaacsim-fleet/registry")) / "registry.log"
+)
+# the access log: 172.17.0.5 - - [26/Nov/2026:12:00:00 +0000] "GET /v2/... HTTP/1.1" 200 1234 "" "agent"
+ACCESS = re.compile(
+    r'^(?P<addr>\S+) \S+ \S+ \[(?P<when>[^\]]+)\] "(?P<method>\S+) (?P<path>\S+) [^"]*" (?P<status>\d+) (?P<size>\d+|-)'
+)
+BLOB = re.compile(r"^/v2/.+/blobs/(?P<digest>sha256:[0-9a-f]{64})$")
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    return ready_fleet()
+
+
+def served_since(container: str) -> list:
+    """(client address, blob digest, bytes) of every blob the upstream served since the container started."""
+    started = client().containers.get(container).attrs["State"]["StartedAt"][:19]
+    start = datetime.strptime(started, "%Y-%m-%dT%H:%M:%S").replace(tzinfo=timezone.utc)
+    found = []
+    for line in UPSTREAM_LOG.read_text(errors="replace").splitlines():
+        hit = ACCESS.match(line)
+        blob = hit and BLOB.match(hit["path"])
+        fresh = blob and datetime.strptime(hit["when"], "%d/%b/%Y:%H:%M:%S %z") >= start
+        if fresh and hit["method"] == "GET" and hit["status"] == "200":
+            found.append((hit["addr"], blob["digest"], int(hit["size"]) if hit["size"].isdigit() else 0))
+    return found
+
+
+def pinned(host: str) -> str:
+    return re.search(r'^ISAAC_SIM_IMAGE_PINNED="([^"]+)"', sh(host, "cat /etc/isaac-sim/instance-0.env"), re.M).group(1)
+
+
+def test_a_cold_deploy_fetched_each_blob_from_upstream_once_through_the_mirror(fleet):
+    mirror = f"{ip(MIRROR)}:5443"
+    refs = {h: pinned(h) for h in fleet}
+    # every host runs the one digest, from the mirror
+    assert len(set(refs.values())) == 1 and all(r.startswith(f"{mirror}/") for r in refs.values()), refs
+    repository, digest = refs[fleet[0]].split("/", 1)[1].split("@")
+    for h in fleet:
+        info = json.loads(sh(h, "docker inspect isaac-sim-0 isaac-sim-1 isaac-sim-2 isaac-sim-3"))
+        assert {c["Config"]["Image"] for c in info} == {refs[h]}, h
+    # the image's blobs as the registries store them (compressed), from the manifest the mirror serves
+    manifest = json.loads(
+        sh(
+            fleet[0],
+            f"curl -sf --cacert /etc/docker/certs.d/{mirror}/ca.crt "
+            "-H 'Accept: application/vnd.docker.distribution.manifest.v2+json' "
+            f"https://{mirror}/v2/{repository}/manifests/{digest}",
+        )
+    )
+    blobs = {layer["digest"]: layer["size"] for layer in manifest["layers"]}
+    blobs[manifest["config"]["digest"]] = manifest["config"]["size"]
+    served = [(addr, d, size) for addr, d, size in served_since(MIRROR) if d in blobs]
+    to_mirror = sorted(d for addr, d, _size in served if addr == ip(MIRROR))
+    to_hosts = [d for addr, d, _size in served if addr in {ip(h) for h in fleet}]
+    assert to_mirror == sorted(blobs), (to_mirror, blobs)
+    assert to_hosts == [], "a host pulled from the upstream itself"
+    fetched, size = sum(bytes_ for _addr, _d, bytes_ in served if _addr == ip(MIRROR)), sum(blobs.values())
+    print(f"upstream bytes / image size: {fetched / size:.2f} ({fetched} of {size} bytes, {len(fleet)} hosts)")
+    assert fetched == size
+
+
+def test_only_the_mirror_holds_the_upstream_key_and_a_host_without_it_deploys(fleet):
+    key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
+    # on the mirror: in its configuration alone, which only the registry's user reads
+    assert sh(MIRROR, "stat -c '%a %U' /etc/isaac-sim/mirror/config.yml").split() == ["600", "docker-registry"]
+    holding = sh(MIRROR, f"grep -rlsF -e '{key}' /etc /var/lib /root /tmp; true").split()
+    assert holding == ["/etc/isaac-sim/mirror/config.yml"], holding
+    assert sh(MIRROR, "ps -o user= -C docker-registry").split() == ["docker-r+"]
+    measured = testbed.exposure_of(lambda command: sh(MIRROR, command), "isaac-sim-mirror.service")
+    assert measured == testbed.listed_exposure("isaac-sim-mirror.service"), measured
+    # a host given no key at all, forced to pull again: it pulls through the mirror, never logs in
+    last = fleet[-1]
+    run = playbook("deploy.yml", {"isaac_sim_registry_password": "", "isaac_sim_image_pull": "always"}, limit=last)
+    out = squash(run.stdout + run.stderr)
+    assert run.returncode == 0, out[-3000:]
+    assert re.search(r"TASK \[isaacsim\.fleet\.isaac_sim : Pull the Isaac Sim image[^\]]*\] \*+ (changed|ok): ", out)
+    assert not re.search(r"Log in to the image's registry, into the pull's own config\] \*+ (changed|ok): ", out)
+    testbed.wait_for(lambda: all_ready(last), timeout=240, what=f"{last} ready")
+    assert sh(last, f"grep -rlsF -e '{key}' /etc /root /var/lib /run /tmp; true").strip() == ""
+
+
+def test_the_mirror_answers_the_fleet_and_comes_back_after_a_reboot(fleet):
+    mirror = f"{ip(MIRROR)}:5443"
+    ask = f"curl -s -o /dev/null -w '%{{http_code}}' --max-time 5 --cacert /etc/docker/certs.d/{mirror}/ca.crt"
+    ask += f" https://{mirror}/v2/; true"
+    assert sh(fleet[0], ask) == "200"
+    assert "tcp dport 5443 ip saddr 172.16.0.0/12 accept" in sh(MIRROR, "nft list table inet isaac_sim_mirror")
+    client().containers.get(MIRROR).restart(timeout=30)
+    testbed.wait_for(
+        lambda: sh(MIRROR, "systemctl is-active isaac-sim-mirror.service; true").strip() == "active",
+        timeout=120,
+        what="the mirror's unit after the reboot",
+    )
+    testbed.wait_for(lambda: sh(fleet[0], ask) == "200", timeout=60, what="the mirror answering again")
+    assert "isaac_sim_mirror" in sh(MIRROR, "nft list tables")
