@@ -107,17 +107,26 @@ def test_a_stray_container_is_reported(host):
 
 def test_a_starting_instance_is_not_ready_and_a_day2_restart_fixes_it(host):
     others = {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1, 3)}
+    old = container_id(host, "isaac-sim-2")
     # behind the role's back: instance 2 never prints its ready line
     sh(
         host,
         "sed -i 's/^ISAAC_SIM_DOCKER_ARGS=\"/ISAAC_SIM_DOCKER_ARGS=\"--env=STANDIN_NEVER_READY=1 /' "
         "/etc/isaac-sim/instance-2.env && systemctl restart --no-block isaac-sim@2",
     )
-    wait_for(lambda: container_id(host, "isaac-sim-2"), what="the new container of instance 2")
-    inst = by_name(testbed.info(host))["isaac-sim-2"]
-    assert inst["ready"] is False and inst["state"] == "starting" and inst["container"]["state"] == "running"
-    # put the file back as the role wrote it and restart through the day-2 playbook
-    sh(host, "sed -i 's/--env=STANDIN_NEVER_READY=1 //' /etc/isaac-sim/instance-2.env")
+    try:
+        # the new container, not the old one on its way out, and running, not only created
+        wait_for(lambda: container_id(host, "isaac-sim-2") not in ("", old), what="the new container of instance 2")
+        inst = wait_for(
+            lambda: (lambda i: i if (i["container"] or {}).get("state") == "running" else None)(
+                by_name(testbed.info(host))["isaac-sim-2"]
+            ),
+            what="instance 2's new container running",
+        )
+        assert inst["ready"] is False and inst["state"] == "starting"
+    finally:
+        # put the file back as the role wrote it, whatever happened, and restart through the day-2 playbook
+        sh(host, "sed -i 's/--env=STANDIN_NEVER_READY=1 //' /etc/isaac-sim/instance-2.env")
     run = ok(
         testbed.run_playbook(
             host,
