@@ -117,12 +117,12 @@ def test_a_starting_instance_is_not_ready_and_a_day2_restart_fixes_it(host):
     try:
         # the new container, not the old one on its way out, and running, not only created
         wait_for(lambda: container_id(host, "isaac-sim-2") not in ("", old), what="the new container of instance 2")
-        inst = wait_for(
-            lambda: (lambda i: i if (i["container"] or {}).get("state") == "running" else None)(
-                by_name(testbed.info(host))["isaac-sim-2"]
-            ),
-            what="instance 2's new container running",
-        )
+
+        def running():
+            found = by_name(testbed.info(host))["isaac-sim-2"]
+            return found if (found["container"] or {}).get("state") == "running" else None
+
+        inst = wait_for(running, what="instance 2's new container running")
         assert inst["ready"] is False and inst["state"] == "starting"
     finally:
         # put the file back as the role wrote it, whatever happened, and restart through the day-2 playbook
