@@ -248,6 +248,10 @@ options:
     description: The role's C(isaac_sim_image_pull); an NGC image that will be pulled needs a registry key.
     type: str
     default: missing
+  image_pin:
+    description: Whether the deploy pins the image's tag to one digest for the fleet (a mirror needs it).
+    type: bool
+    default: true
   registry_mirror:
     description: A pull-through mirror (HOST:PORT) the image is pulled through; the host then needs no registry key.
     type: str
@@ -350,6 +354,7 @@ ARGUMENT_SPEC = dict(
     health_retries=dict(type="raw", default=3),
     unhealthy_restart=dict(type="raw", default=300),
     image_pull=dict(type="str", default="missing"),
+    image_pin=dict(type="bool", default=True),
     registry_mirror=dict(type="str", default=""),
     registry_mirror_upstream=dict(type="str", default=""),
     registry_login=dict(type="bool", default=False),

@@ -30,6 +30,8 @@ TABLE = "isaac_sim_mirror"
 REGISTRY = "/usr/bin/docker-registry"
 NFT = "/usr/sbin/nft"
 _HOST_RE = re.compile(r"^[A-Za-z0-9.-]+$")
+DOCKER_HUB = "docker.io"
+DOCKER_HUB_NAMES = ("docker.io", "index.docker.io", "registry-1.docker.io")
 
 
 def check(p: dict) -> list:
@@ -40,6 +42,11 @@ def check(p: dict) -> list:
         errors.append(
             f"registry_mirror_upstream: {p.get('upstream')!r} is not a registry's URL. "
             "Fix: give its scheme and host, e.g. https://nvcr.io."
+        )
+    elif "@" in upstream.netloc:
+        errors.append(
+            "registry_mirror_upstream: holds credentials (user:password@), which would be shown in the unit's "
+            "description. Fix: give them as registry_mirror_username and registry_mirror_password."
         )
     if not p.get("password"):
         errors.append(
@@ -53,6 +60,8 @@ def check(p: dict) -> list:
             "Fix: the address the fleet's hosts reach the mirror at."
         )
     port = p.get("port")
+    # a number given as text (ansible-core 2.18 templates set_fact values to text)
+    port = int(port) if str(port).isdigit() else port
     if not isinstance(port, int) or not 1024 <= port <= 65535:
         errors.append(f"registry_mirror_port: {port!r} is not a port of 1024-65535. Fix: e.g. 5443.")
     networks = p.get("allowed_networks") or []
@@ -189,7 +198,9 @@ def mirror_reference(image: str, mirror: str, upstream: str):
     if "/" in tag:  # the colon was a registry's port, there is no tag
         name, tag = repository, ""
     home = urlparse(upstream).netloc if "://" in upstream else upstream
-    if registry_of(name) != (home or "docker.io"):
+    # Docker Hub answers at registry-1.docker.io; Docker names its images docker.io
+    home = DOCKER_HUB if home in DOCKER_HUB_NAMES else home
+    if registry_of(name) != (home or DOCKER_HUB):
         return None
     path = name.split("/", 1)[1] if registry_of(name) != "docker.io" or name.startswith("docker.io/") else name
     if "/" not in path:  # Docker Hub's official images live under library/

@@ -141,7 +141,7 @@ def _encoders(probe: Probe, p: dict, usage: dict) -> tuple:
         pass
     if all(gpu["uuid"] in known for gpu in usage["gpus"]):
         return known, None, None
-    found, why = nvenc.probe(probe.run, probe.python)
+    found, why = nvenc.probe(probe.run, probe.python, probe.which("timeout"))
     answered = {k: v for k, v in found.items() if isinstance(v, bool)}
     keep = {"driver": usage["driver"], "gpus": {**known, **answered}} if answered else None
     return {**found, **known, **answered}, why, keep
@@ -165,9 +165,10 @@ def _images(probe: Probe, p: dict, host: dict, docker) -> None:
     if docker and image:
         found, host["docker_answers"] = _image(probe, image)
         if found:
-            # the digests it was pulled by: whether it is the one the fleet's tag is pinned to (image_pin.py)
+            # the references it was pulled by (REPOSITORY@DIGEST): whether the host has the one the
+            # fleet's tag is pinned to, by that name (a mirror's is another name for the same digest)
             host["image_present"], host["image_id"] = True, found.get("Id")
-            host["image_digests"] = [d.split("@", 1)[1] for d in found.get("RepoDigests") or [] if "@" in d]
+            host["image_digests"] = [d for d in found.get("RepoDigests") or [] if "@" in d]
     # a mirror this host's Docker trusts can be asked for the fleet's digest before anything changes
     mirror = p.get("registry_mirror") or ""
     host["mirror_trusted"] = bool(mirror) and os.path.exists(os.path.join(CERTS_D, mirror, "ca.crt"))

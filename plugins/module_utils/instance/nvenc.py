@@ -125,9 +125,17 @@ def read(text: str) -> tuple:
     return found, answer.get("error")
 
 
-def probe(run, python: str) -> tuple:
-    """Ask the driver (run(argv) -> (rc, out, err); python: the interpreter to run the child)."""
-    rc, out, err = run([python, "-c", PROGRAM])
+# a driver that hangs in cuInit stalls no plan: the probe is ended after this many seconds
+TIMEOUT_S = 60
+
+
+def probe(run, python: str, timeout=None) -> tuple:
+    """Ask the driver (run(argv) -> (rc, out, err); python: the interpreter to run the child;
+    timeout: the path of coreutils' timeout, which ends a probe that hangs)."""
+    argv = [python, "-c", PROGRAM]
+    rc, out, err = run([timeout, "-k", "5", str(TIMEOUT_S)] + argv if timeout else argv)
+    if timeout and rc in (124, 137):
+        return {}, f"the encoder probe did not answer within {TIMEOUT_S} s (the driver hangs)"
     if rc != 0:
         return {}, f"the encoder probe exited {rc}: {(err or out).strip()[-300:]}"
     return read(out)

@@ -18,7 +18,7 @@ from __future__ import annotations
 # NVIDIA's driver limits concurrent encode sessions on its consumer GPUs, per system and summed
 # over all of them (NVENC licensing policy); the count has changed with drivers (2, 3, 5, then 8
 # since early 2024): isaac_sim_gpu_consumer_encode_sessions follows the hosts' drivers
-CONSUMER_BRANDS = ("GeForce", "TITAN")
+CONSUMER_BRANDS = ("geforce", "titan")  # nvidia-smi's product_brand, as a prefix ("GeForce RTX", "Titan")
 
 
 def capacity(gpu: dict):
@@ -34,7 +34,8 @@ def _describe(gpu: dict) -> str:
 
 
 def _memory_line(gpu: dict, used: int, on: list) -> str:
-    parts = [f"{gpu.get('memory_total_mib')} MiB"]
+    total = gpu.get("memory_total_mib")
+    parts = [f"{total} MiB" if total is not None else "memory not known"]
     if gpu.get("memory_reserved_mib"):
         parts.append(f"{gpu['memory_reserved_mib']} reserved by the driver")
     if gpu.get("others_mib"):
@@ -46,13 +47,16 @@ def _memory_line(gpu: dict, used: int, on: list) -> str:
     return f"{_describe(gpu)}{mute}: {', '.join(parts)}, {free - used if free is not None else '?'} MiB left"
 
 
-def place(gpus: list, needs: dict, gpu_map: dict, current: dict, exclusive: bool, consumer_limit=8) -> tuple:
+def place(
+    gpus: list, needs: dict, gpu_map: dict, current: dict, exclusive: bool, consumer_limit=8, why_none=""
+) -> tuple:
     """({instance: GPU index}, errors, warnings).
 
     gpus: [{index, name, brand, memory_total_mib, memory_reserved_mib, others_mib, encoder}]
     (encoder True, False or None: not known); needs: {instance: {"mib": int, "streams": bool}};
     gpu_map: {instance: GPU index} the user fixed; current: {instance: GPU index} where each runs now;
-    consumer_limit: the encode sessions NVIDIA's driver allows on a system's consumer GPUs.
+    consumer_limit: the encode sessions NVIDIA's driver allows on a system's consumer GPUs;
+    why_none: what nvidia-smi said when it listed no GPU.
     """
     errors, warnings = [], []
     by_index = {g["index"]: g for g in gpus}
@@ -73,10 +77,11 @@ def place(gpus: list, needs: dict, gpu_map: dict, current: dict, exclusive: bool
         on[index].append(inst)
 
     if not gpus:
+        said = f"nvidia-smi answered: {why_none}" if why_none else "nvidia-smi lists none"
         return (
             {},
             [
-                "isaac_sim_gpu_enabled: true, but this host shows no NVIDIA GPU (nvidia-smi lists none). "
+                f"isaac_sim_gpu_enabled: true, but this host shows no NVIDIA GPU ({said}). "
                 "Fix: install the driver, or set isaac_sim_gpu_enabled: false to run without GPUs."
             ],
             [],
@@ -148,6 +153,12 @@ def place(gpus: list, needs: dict, gpu_map: dict, current: dict, exclusive: bool
     if errors:
         return {}, errors, warnings
     warnings += _encoder_warnings(gpus, needs, on) + consumer_sessions(gpus, placed, needs, consumer_limit)
+    unknown = [g for g in gpus if capacity(g) is None and on[g["index"]]]
+    if unknown and any(needs[i]["mib"] for i in needs):
+        warnings.append(
+            f"{', '.join(_describe(g) for g in unknown)}: memory not known (nvidia-smi gave none), so instances "
+            "were placed there by count, not by the GPU memory they need."
+        )
     return placed, errors, warnings
 
 
@@ -209,7 +220,7 @@ def _encoder_warnings(gpus, needs, on) -> list:
 
 def consumer_sessions(gpus, placed, needs, limit) -> list:
     """A warning when more streams than NVIDIA's driver allows are placed on this host's consumer GPUs."""
-    consumer = {g["index"] for g in gpus if (g.get("brand") or "") in CONSUMER_BRANDS}
+    consumer = {g["index"] for g in gpus if (g.get("brand") or "").lower().startswith(CONSUMER_BRANDS)}
     streams = sorted(i for i, index in placed.items() if index in consumer and needs[i]["streams"])
     if not limit or len(streams) <= limit:
         return []

@@ -467,9 +467,8 @@ def assign_gpus(cfg, host, needs) -> tuple:
     gpus = host.get("gpus") or [{"index": i} for i in range(host.get("gpu_count", 0))]
     gpu_map = {as_int(k): as_int(v) for k, v in (cfg.get("gpu_map") or {}).items()}
     current = {as_int(k): as_int(v) for k, v in (host.get("gpu_current") or {}).items()}
-    return placement.place(
-        gpus, needs, gpu_map, current, bool(cfg.get("gpu_exclusive")), cfg.get("gpu_consumer_encode_sessions", 8)
-    )
+    exclusive, limit = bool(cfg.get("gpu_exclusive")), cfg.get("gpu_consumer_encode_sessions", 8)
+    return placement.place(gpus, needs, gpu_map, current, exclusive, limit, host.get("gpu_error", ""))
 
 
 def build(cfg: dict, host: dict) -> dict:
@@ -542,6 +541,23 @@ def build(cfg: dict, host: dict) -> dict:
                 "without an API key, and the image is not on this host. Fix: set isaac_sim_registry_password to "
                 "your NGC API key (from a vault), or load the image on the host and set isaac_sim_image_pull: never."
             )
+        if mirrored and not cfg.get("image_pin", True):
+            errors.append(
+                "isaac_sim_registry_mirror: set while isaac_sim_image_pin is false, and the hosts pull through the "
+                "mirror by the digest the deploy pins. Fix: set isaac_sim_image_pin: true, or leave "
+                "isaac_sim_registry_mirror empty."
+            )
+    # a companion's image (the Hub cache's, a web viewer's) comes straight from its registry, never
+    # through the mirror: one on NGC needs the key on the host
+    if cfg.get("image_pull", "missing") != "never" and not cfg.get("registry_login"):
+        for ref in host.get("companion_images_missing") or []:
+            if (parse_image(ref) or ("",))[0].split("/")[0] == NGC_DOMAIN:
+                errors.append(
+                    f"isaac_sim_registry_password: empty, but {ref} (a companion's image or the Hub cache's) is on "
+                    f"NGC ({NGC_DOMAIN}), which refuses pulls without an API key, is not on this host and is pulled "
+                    "straight from NGC (only the instances' image goes through a mirror). Fix: set "
+                    "isaac_sim_registry_password, or put that image in the fleet's own registry."
+                )
 
     memory = parse_size(cfg["memory_limit"])
     shm = parse_size(cfg["shm_size"])

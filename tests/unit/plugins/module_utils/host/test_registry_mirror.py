@@ -22,6 +22,8 @@ GOOD = {
 
 def test_good_settings_pass():
     assert registry_mirror.check(GOOD) == []
+    # ansible-core 2.18 gives set_fact's numbers as text
+    assert registry_mirror.check(dict(GOOD, port="5443")) == []
 
 
 @pytest.mark.parametrize(
@@ -32,6 +34,7 @@ def test_good_settings_pass():
         ({"password": ""}, "registry_mirror_password: empty"),
         ({"address": "mirror lab"}, "registry_mirror_address: 'mirror lab' is neither"),
         ({"port": 443}, "registry_mirror_port: 443 is not a port of 1024-65535"),
+        ({"upstream": "https://me:secret@nvcr.io"}, "registry_mirror_upstream: holds credentials"),
         ({"allowed_networks": []}, "registry_mirror_allowed_networks: empty"),
         ({"allowed_networks": ["10.0.0.1/16"]}, "registry_mirror_allowed_networks: '10.0.0.1/16' is not a network"),
         ({"allowed_networks": ["everyone"]}, "registry_mirror_allowed_networks: 'everyone' is not a network"),
@@ -90,7 +93,7 @@ def test_the_mirror_s_port_answers_the_allowed_networks_only():
         ),
         ("172.17.0.1:5555/fixtures/sim:5.1.0", "172.17.0.1:5555", "m.lab:5443/fixtures/sim:5.1.0"),
         ("172.17.0.1:5555/fixtures/sim", "http://172.17.0.1:5555", "m.lab:5443/fixtures/sim"),
-        ("ubuntu:24.04", "https://registry-1.docker.io", None),
+        ("ubuntu:24.04", "https://registry-1.docker.io", "m.lab:5443/library/ubuntu:24.04"),
         ("ubuntu:24.04", "docker.io", "m.lab:5443/library/ubuntu:24.04"),
         ("reg.lab/isaac-sim:6.0.1", "https://nvcr.io", None),
     ],

@@ -103,3 +103,17 @@ def test_without_the_encode_library_nothing_is_known(driver_libs, tmp_path):
 def test_no_gpu_is_said_not_guessed(driver_libs, tmp_path):
     found, error, _log = run_probe(driver_libs, tmp_path, "STANDIN_GPUS=0\n")
     assert found == {} and error == "cuInit returned 100"
+
+
+def test_a_probe_that_hangs_is_ended_and_said():
+    seen = []
+
+    def run(argv):
+        seen.append(argv)
+        return 124, "", ""
+
+    assert nvenc.probe(run, "python3", "/usr/bin/timeout") == (
+        {},
+        f"the encoder probe did not answer within {nvenc.TIMEOUT_S} s (the driver hangs)",
+    )
+    assert seen[0][:4] == ["/usr/bin/timeout", "-k", "5", str(nvenc.TIMEOUT_S)] and seen[0][4:6] == ["python3", "-c"]

@@ -149,3 +149,23 @@ def test_more_streams_than_a_consumer_gpu_allows_are_warned_about():
     ]
     assert place(gpus, needs(3, mib=4096, headless=(2,)), limit=2)[2] == []
     assert place(gpus, needs(3, mib=4096))[2] == []
+
+
+def test_no_gpu_says_what_nvidia_smi_said_and_unknown_memory_is_warned_about():
+    errors = placement.place(
+        [], needs(1), {}, {}, False, 8, "Failed to initialize NVML: Driver/library version mismatch"
+    )[1]
+    assert "(nvidia-smi answered: Failed to initialize NVML: Driver/library version mismatch)" in errors[0]
+    warnings = place([{"index": 0, "encoder": True}], needs(1))[2]
+    assert warnings == [
+        "GPU 0 (unknown model): memory not known (nvidia-smi gave none), so instances were placed there by count, "
+        "not by the GPU memory they need."
+    ]
+
+
+def test_every_geforce_and_titan_brand_is_a_consumer_gpu():
+    gpus = [
+        gpu(0, "NVIDIA GeForce RTX 4090", 24564, brand="GeForce RTX"),
+        gpu(1, "NVIDIA TITAN RTX", 24576, brand="Titan RTX"),
+    ]
+    assert len(place(gpus, needs(3, mib=4096), limit=2)[2]) == 1

@@ -612,3 +612,21 @@ def test_an_ngc_image_pulled_through_a_mirror_needs_no_key_on_the_host():
     # a mirror of another registry does not carry NGC's images
     other = dict(ngc, registry_mirror="m.lab:5443", registry_mirror_upstream="https://reg.lab")
     assert any(e.startswith("isaac_sim_registry_password: empty") for e in errors_of(other, absent))
+
+
+def test_a_mirror_needs_the_pin_and_a_companion_s_ngc_image_needs_the_key():
+    mirrored = cfg(
+        image="nvcr.io/nvidia/isaac-sim:6.0.1", registry_mirror="m.lab:5443", registry_mirror_upstream="nvcr.io"
+    )
+    errors = errors_of(dict(mirrored, image_pin=False), HOST)
+    assert errors[0].startswith("isaac_sim_registry_mirror: set while isaac_sim_image_pin is false")
+    # the Hub cache's image on NGC, not on the host, no key: it is pulled straight from NGC
+    hub = "nvcr.io/nvidia/omniverse/hub_workstation_cache:2.0.0"
+    errors = errors_of(mirrored, dict(HOST, companion_images_missing=[hub]))
+    assert errors == [
+        f"isaac_sim_registry_password: empty, but {hub} (a companion's image or the Hub cache's) is on NGC "
+        "(nvcr.io), which refuses pulls without an API key, is not on this host and is pulled straight from NGC "
+        "(only the instances' image goes through a mirror). Fix: set isaac_sim_registry_password, or put that "
+        "image in the fleet's own registry."
+    ]
+    plan.build(dict(mirrored, registry_login=True), dict(HOST, companion_images_missing=[hub]))
