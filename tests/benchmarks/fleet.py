@@ -114,7 +114,7 @@ def inventory(tmp: Path, hosts: list, mirror: bool, instances: int, image: str) 
         text += (
             f"        isaac_sim_registry_mirror: {docker_ip(MIRROR)}:5443\n"
             f"        isaac_sim_registry_mirror_upstream: {image.split('/')[0]}\n"
-            f"        isaac_sim_registry_mirror_ca: \"{{{{ lookup('file', '{ca}/ca.crt') }}}}\"\n"
+            f"        isaac_sim_registry_mirror_ca: {ca}/ca.crt\n"
             "        isaac_sim_registry_password: ''\n"
             "    isaac_sim_mirror:\n      hosts:\n"
             f"        {MIRROR}:\n"
