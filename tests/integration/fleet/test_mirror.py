@@ -3,7 +3,8 @@
 Runs first of the fleet's modules (file order), right after converge: the three hosts were deployed
 cold through the mirror (isaacsim-mirror-1, Debian's Distribution registry in proxy mode) from the
 stand-in upstream (tests/fixtures/registry, login required as NGC's). The upstream's own access log
-says what it served to whom: every blob of the image once in all, to the mirror, none to a host.
+says what it served to whom: every blob of the image to the mirror, at most twice (Debian's
+Distribution 2.8 keeps and serves a blob's first request with two fetches), none to a host.
 Every host runs the one digest the deploy pinned, from the mirror. A host without the registry key
 still deploys (it pulls through the mirror, which holds the key).
 """
@@ -55,7 +56,7 @@ def pinned(host: str) -> str:
     return re.search(r'^ISAAC_SIM_IMAGE_PINNED="([^"]+)"', sh(host, "cat /etc/isaac-sim/instance-0.env"), re.M).group(1)
 
 
-def test_a_cold_deploy_fetched_each_blob_from_upstream_once_through_the_mirror(fleet):
+def test_a_cold_deploy_fetched_the_image_from_upstream_through_the_mirror_alone(fleet):
     mirror = f"{ip(MIRROR)}:5443"
     refs = {h: pinned(h) for h in fleet}
     # every host runs the one digest, from the mirror
@@ -76,13 +77,17 @@ def test_a_cold_deploy_fetched_each_blob_from_upstream_once_through_the_mirror(f
     blobs = {layer["digest"]: layer["size"] for layer in manifest["layers"]}
     blobs[manifest["config"]["digest"]] = manifest["config"]["size"]
     served = [(addr, d, size) for addr, d, size in served_since(MIRROR) if d in blobs]
-    to_mirror = sorted(d for addr, d, _size in served if addr == ip(MIRROR))
+    to_mirror = [d for addr, d, _size in served if addr == ip(MIRROR)]
     to_hosts = [d for addr, d, _size in served if addr in {ip(h) for h in fleet}]
-    assert to_mirror == sorted(blobs), (to_mirror, blobs)
     assert to_hosts == [], "a host pulled from the upstream itself"
-    fetched, size = sum(bytes_ for _addr, _d, bytes_ in served if _addr == ip(MIRROR)), sum(blobs.values())
+    fetched, size = sum(bytes_ for addr, _d, bytes_ in served if addr == ip(MIRROR)), sum(blobs.values())
     print(f"upstream bytes / image size: {fetched / size:.2f} ({fetched} of {size} bytes, {len(fleet)} hosts)")
-    assert fetched == size
+    # every blob through the mirror, each at most twice: Debian's Distribution 2.8 fetches a blob once to
+    # keep and once to serve its first client (registry/proxy/proxyblobstore.go), whatever the number of
+    # hosts, because one host pulls first, alone; three hosts at once straight from the upstream cost 3.0
+    assert set(to_mirror) == set(blobs), (to_mirror, blobs)
+    assert max(to_mirror.count(d) for d in blobs) <= 2, to_mirror
+    assert fetched <= 2 * size
 
 
 def test_only_the_mirror_holds_the_upstream_key_and_a_host_without_it_deploys(fleet):
