@@ -104,6 +104,11 @@ def run_playbook(
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT, check=False)
     if f"{name(host)} " not in result.stdout.split("PLAY RECAP", 1)[-1]:
         raise AssertionError(f"the playbook did not run on {name(host)}:\n{result.stdout[-2000:]}{result.stderr}")
+    if " is held by " in result.stdout + result.stderr:
+        # refused for another run's lock: which runs of this machine were alive then, for the failure's reader
+        ps = subprocess.run(["ps", "-eo", "pid,ppid,lstart,args"], capture_output=True, text=True, check=False)
+        alive = [line for line in ps.stdout.splitlines() if "ansible-playbook" in line or "PID" in line]
+        result.stdout += "\n[testbed] ansible-playbook processes after the run:\n" + "\n".join(alive) + "\n"
     return result
 
 

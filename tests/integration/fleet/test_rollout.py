@@ -348,8 +348,7 @@ def test_upgrade_approved_at_the_canary_converges_every_host_on_one_digest_while
         # every host the digest the deploy pinned, none the one the tag moved to mid-run
         assert registry == digest == pinned.group(1), (h, registry, seen["moved to"])
         assert [i["digest"] for i in info["instances"]] == [digest] * INSTANCES, h
-        # the reports name the tag as written; the env file runs the digest
+        # the reports name the tag as written; the env file runs the digest, through the fleet's mirror
         assert all(i["ready"] and i["image"] == new for i in info["instances"]), h
-        assert f'ISAAC_SIM_IMAGE_PINNED="{new.rsplit(":", 1)[0]}@{digest}"' in sh(
-            h, "cat /etc/isaac-sim/instance-3.env"
-        )
+        through = f"{ip('isaacsim-mirror-1')}:5443/{new.split('/', 1)[1].rsplit(':', 1)[0]}@{digest}"
+        assert f'ISAAC_SIM_IMAGE_PINNED="{through}"' in sh(h, "cat /etc/isaac-sim/instance-3.env"), h

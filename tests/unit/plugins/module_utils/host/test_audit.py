@@ -141,11 +141,15 @@ def test_the_probe_knocks_on_real_sockets_and_knows_when_it_is_inside(servers):
             target("udp", servers["silent"]),
             target("tcp", servers["closed"]),
             target("tcp", servers["tcp"], ["127.0.0.0/8"]),
+            # knocked on at once: each answer still in its target's place
+            target("udp", servers["silent"]),
+            target("tcp", servers["closed"]),
         ],
         timeout=0.5,
     )
-    assert [r["answer"] for r in rows] == ["open", "open", "silent", "closed", "open"]
-    assert [r["inside"] for r in rows] == [False, False, False, False, True]
+    assert [r["answer"] for r in rows] == ["open", "open", "silent", "closed", "open", "silent", "closed"]
+    assert [r["inside"] for r in rows] == [False, False, False, False, True, False, False]
+    rows = rows[:5]
     assert rows[0]["source"] == "127.0.0.1"
     found = audit.probe_findings(rows)
     assert [f["what"] for f in found] == [
