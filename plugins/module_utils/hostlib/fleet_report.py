@@ -89,6 +89,7 @@ def build(results: dict, targets: list, generated_at: str = "", compare: bool = 
         for inst in res["instances"]:
             view = dict(inst)
             view["uptime"] = duration(inst.get("uptime_s"))
+            view["ready_in"] = ready_in(inst)
             view["gpu_text"] = gpu_text(inst)
             view["restarts_text"] = restarts_text(inst)
             view["primary_url"] = primary_url(inst)
@@ -117,6 +118,15 @@ def build(results: dict, targets: list, generated_at: str = "", compare: bool = 
         fleet_drift(hosts) if compare else sum(bool(i.get("drift")) for h in hosts for i in h["instances"])
     )
     return {"generated_at": generated_at, "summary": totals, "hosts": hosts}
+
+
+def ready_in(inst: dict):
+    """How long the running container took to its ready line, e.g. "12s (warm caches)"; None if not ready."""
+    after = inst.get("ready_after_s")
+    if after is None:
+        return None
+    cache = inst.get("cache_at_start")
+    return f"{duration(after)}" + (f" ({cache} caches)" if cache else "")
 
 
 def fleet_drift(hosts: list) -> int:
@@ -202,6 +212,11 @@ _METRICS = (
         "gauge",
     ),
     ("isaac_sim_uptime_seconds", "Seconds the instance's container has been running.", "gauge"),
+    (
+        "isaac_sim_ready_seconds",
+        "Seconds the running container took from its start to its ready line; cache: warm or cold at the start.",
+        "gauge",
+    ),
     ("isaac_sim_crashes_last_day", "Crashes and failed starts in the last 24 h (the journal).", "gauge"),
     ("isaac_sim_session_ends_last_day", "Stream sessions that ended (clean exits) in the last 24 h.", "gauge"),
     ("isaac_sim_gpu_memory_used_bytes", "GPU memory held by the instance's processes.", "gauge"),
@@ -229,6 +244,9 @@ def prometheus(result: dict) -> str:
         samples["isaac_sim_ready"].append((lab, 1 if inst.get("ready") else 0))
         samples["isaac_sim_restarts"].append((lab, inst.get("restarts") or 0))
         samples["isaac_sim_uptime_seconds"].append((lab, inst.get("uptime_s") or 0))
+        if inst.get("ready_after_s") is not None:
+            cache = f',cache="{_label(inst.get("cache_at_start") or "unknown")}"'
+            samples["isaac_sim_ready_seconds"].append((lab + cache, inst["ready_after_s"]))
         if inst.get("last_day") is not None:
             samples["isaac_sim_crashes_last_day"].append((lab, inst["last_day"]["crashes"]))
             samples["isaac_sim_session_ends_last_day"].append((lab, inst["last_day"]["session_ends"]))

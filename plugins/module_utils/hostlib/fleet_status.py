@@ -201,6 +201,23 @@ def read_ready_markers(run_dir: str) -> dict:
     return markers
 
 
+def read_cache_states(run_dir: str) -> dict:
+    """{id: "warm" or "cold"}: what isaac-sim-cache-state found in the instance's caches at its last start."""
+    states = {}
+    for i, _path, text in _instance_files(run_dir, "instance-*.cache", layout.CACHE_STATE_RE):
+        if not isinstance(text, OSError) and text.strip() in ("warm", "cold"):
+            states[i] = text.strip()
+    return states
+
+
+def _ready_after(marker, container: dict | None):
+    """Seconds from the container's start to its ready marker, or None (the gate polls each second)."""
+    started = (container or {}).get("started_at")
+    if not isinstance(marker, int) or not isinstance(started, int) or marker < started:
+        return None
+    return marker - started
+
+
 def health_of(status: str) -> str:
     """Docker's health from the list API's status text; "none" without a healthcheck."""
     for word, health in (("(healthy)", "healthy"), ("(unhealthy)", "unhealthy"), ("(health: starting)", "starting")):
@@ -336,11 +353,13 @@ def build(
     companion_envs: dict | None = None,
     companion_units: dict | None = None,
     companion_markers: set | None = None,
+    cache_states: dict | None = None,
 ) -> list:
     """Instance records, configured first, then strays, sorted by instance number.
 
     pid_containers maps a GPU process's pid to its container id (or None). The companions
     ({(id, name): env}, {(id, name): unit}, markers) are listed under their instance.
+    cache_states: {id: "warm" or "cold"} at the container's start (read_cache_states).
     """
     now = time.time() if now is None else now
     monotonic_now = time.monotonic() if monotonic_now is None else monotonic_now
@@ -422,6 +441,9 @@ def build(
                 else "stray-container",
                 "ready": ready,
                 "ready_since": markers.get(key) if ready else None,
+                # from the container's start (docker run creates it then) to the ready line the gate saw
+                "ready_after_s": _ready_after(markers.get(key), container) if ready else None,
+                "cache_at_start": (cache_states or {}).get(key) if ready else None,
                 "active_state": (unit or {}).get("ActiveState"),
                 "sub_state": (unit or {}).get("SubState"),
                 "enabled": (unit or {}).get("UnitFileState") == "enabled",
@@ -695,6 +717,7 @@ def gather(
         companion_envs=companion_envs,
         companion_units=companion_units,
         companion_markers=read_companion_markers(run_dir),
+        cache_states=read_cache_states(run_dir),
     )
     lap("build")
     rc, out, err = events_read()

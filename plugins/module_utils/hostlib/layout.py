@@ -34,9 +34,11 @@ LABEL_COMPANION = "org.isaacsim.fleet.companion"
 RUN_SCRIPT = "isaac-sim-run"
 READY_SCRIPT = "isaac-sim-ready"
 PORTS_SCRIPT = "isaac-sim-ports"
+# before each start (with root's rights: the caches are the container user's): a warm or a cold start
+CACHE_STATE_SCRIPT = "isaac-sim-cache-state"
 # isaac-sim-run's exit status when a port of the block is held by another process
 PORTS_HELD_STATUS = 76
-SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT)
+SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT, CACHE_STATE_SCRIPT)
 # the host's read-only status endpoint (a host service, not an instance)
 STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"
@@ -77,6 +79,8 @@ UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
 ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env$")
 MARKER_RE = re.compile(r"^instance-(\d+)\.ready$")
+# "warm" or "cold": whether the instance's caches held anything when its container last started
+CACHE_STATE_RE = re.compile(r"^instance-(\d+)\.cache$")
 # companions: a unit template per companion, one unit per instance (isaac-sim-viewer@2.service)
 COMPANION_NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
 COMPANION_TEMPLATE_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@\.service$")
@@ -108,6 +112,8 @@ K_READY_MARKER = "ISAAC_SIM_READY_MARKER"
 K_STOP_TIMEOUT = "ISAAC_SIM_STOP_TIMEOUT"
 K_HEALTH_INTERVAL = "ISAAC_SIM_HEALTH_INTERVAL"
 K_UNHEALTHY_RESTART = "ISAAC_SIM_UNHEALTHY_RESTART"
+# the instance's cache directories on the host (releases.WARM_CACHES), as isaac-sim-cache-state reads them
+K_CACHES = "ISAAC_SIM_CACHES"
 K_DOCKER_ARGS = "ISAAC_SIM_DOCKER_ARGS"
 K_APP_ARGS = "ISAAC_SIM_APP_ARGS"
 K_COMPANION = "ISAAC_SIM_COMPANION"
@@ -159,6 +165,10 @@ def companion_container(i: int, name: str) -> str:
 
 def companion_env_file(i: int, name: str, config_dir: str = CONFIG_DIR) -> str:
     return os.path.join(config_dir, f"instance-{i}.{name}.env")
+
+
+def cache_state(i: int, run_dir: str = RUN_DIR) -> str:
+    return os.path.join(run_dir, f"instance-{i}.cache")
 
 
 def companion_marker(i: int, name: str, run_dir: str = RUN_DIR) -> str:

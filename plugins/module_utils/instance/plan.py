@@ -37,6 +37,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases i
     RELEASES,
     STREAMING,
     STREAMS,
+    WARM_CACHES,
     default_image,
     healthcheck,
     release_of_tag,
@@ -804,11 +805,13 @@ def _instance(cfg, profile, mode, i, ports, gpu, address=None):
         env_names.append(name)
     env_names += list(cfg.get("secret_env_names") or [])
     docker += [f"--env={name}" for name in env_names]
-    dirs = []
+    dirs, caches = [], []
     for sub, target in profile["mounts"].items():
         # the host's one Hub cache, shared with the Hub service (NVIDIA: the same directory in both)
         source = cfg["hub_dir"] if sub == "cache/hub" and cfg.get("hub_dir") else f"{root}/{sub}"
         dirs.append(source)
+        if sub in WARM_CACHES:
+            caches.append(source)
         docker.append(f"--volume={source}:{target}:rw")
     probe = launch["health_port"]
     docker += [
@@ -834,6 +837,7 @@ def _instance(cfg, profile, mode, i, ports, gpu, address=None):
         "gpu": gpu,
         "root": root,
         "dirs": dirs,
+        "caches": caches,
         "docker_args": docker,
         "app_args": app,
         "container_env": container_env,

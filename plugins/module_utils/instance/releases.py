@@ -57,6 +57,10 @@ _STREAMING_PORTS_5X = {
     "http": ("tcp", 8011, KIT, "/exts/omni.services.transport.server.http/port"),
 }
 
+# the mounts whose content a start reuses (shader, GL and compute caches; 5.x and later keep the
+# shader cache under .cache): a start with any file in them is warm, one with none is cold
+WARM_CACHES = ("cache/kit", "cache/ov", "cache/main", "cache/glcache", "cache/computecache")
+
 STREAMING, HEADLESS, NATIVE = "streaming", "headless", "native"
 # the profiles that stream through the GPU's video encoder
 STREAMS = (STREAMING, NATIVE)

@@ -49,6 +49,7 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{layout.K_STOP_TIMEOUT}={settings['stop_timeout']}",
         f"{layout.K_HEALTH_INTERVAL}={settings['health_interval']}",
         f"{layout.K_UNHEALTHY_RESTART}={settings['unhealthy_restart']}",
+        f"{layout.K_CACHES}={layout.quote(layout.join_args(instance.get('caches') or []))}",
     ]
     env = list(instance["container_env"].items()) + list((secret_env or {}).items())
     return "\n".join(lines + _container_lines(instance, env)) + "\n"
@@ -94,14 +95,16 @@ def _container_lines(planned: dict, env: list) -> list:
     return lines + [f"{name}={layout.quote(value)}" for name, value in env]
 
 
-def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout) -> list:
-    """The [Service] section shared by instances and companions: everything from the env file."""
+def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout, pre=()) -> list:
+    """The [Service] section shared by instances and companions: everything from the env file.
+    pre: more of the unit's ExecStartPre lines, after the one that clears the container's name."""
     return [
         ("Type", "simple"),
         ("EnvironmentFile", env),
         ("SyslogIdentifier", name),
         "# A container left by a crash or an unclean reboot would block the name.",
         ("ExecStartPre", f"-/usr/bin/docker rm -f ${{{layout.K_CONTAINER}}}"),
+        *pre,
         f"# {layout.RUN_SCRIPT} refuses to start while a port of the block is held (Kit would move to",
         f"# another port) and exits {layout.PORTS_HELD_STATUS}: not retried, so systemctl status keeps saying why.",
         ("RestartPreventExitStatus", layout.PORTS_HELD_STATUS),
@@ -158,6 +161,11 @@ def render_unit(settings: dict, managed: str) -> str:
         settings["restart_sec"],
         settings["ready_timeout"],
         settings["stop_timeout"],
+        pre=[
+            f"# Whether this start finds its caches warm or cold, for status ({layout.CACHE_STATE_SCRIPT}).",
+            "# With root's rights (+): the caches are the container user's (0750); never fatal (-).",
+            ("ExecStartPre", f"-+{layout.LIBEXEC_DIR}/{layout.CACHE_STATE_SCRIPT}"),
+        ],
     )
     return units.render(
         [("Unit", unit_section), ("Service", service), ("Install", [("WantedBy", layout.TARGET)])],

@@ -61,6 +61,28 @@ def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
     assert all(set(i["last_day"]) == kinds for i in result["instances"])
 
 
+def test_status_says_how_long_each_start_took_to_ready_and_whether_its_caches_were_warm(host):
+    caches = "/var/lib/isaac-sim/instance-3/cache"
+
+    def three():
+        all_ready(host, [3])
+        return by_name(testbed.info(host))["isaac-sim-3"]
+
+    # a start on empty caches (a new host, release or driver): cold, and the stand-in takes its cold
+    # time (3 s, 1 s on a warm cache); the cache directories themselves stay, as the role made them
+    sh(host, f"systemctl stop isaac-sim@3 && find {caches} -mindepth 2 -delete && systemctl start isaac-sim@3")
+    cold = three()
+    assert cold["cache_at_start"] == "cold" and cold["ready_after_s"] >= 3, cold
+    said = sh(host, "journalctl -u isaac-sim@3 -n 200 --no-pager | grep 'starting as' | tail -n 1").stdout
+    assert "shader cache cold" in said, said
+    sh(host, "systemctl restart isaac-sim@3")
+    warm = three()
+    assert warm["cache_at_start"] == "warm" and warm["ready_after_s"] >= 1, warm
+    # every other instance too, from the container's start to the ready line the gate saw
+    for inst in testbed.info(host)["instances"]:
+        assert inst["cache_at_start"] == "warm" and 1 <= inst["ready_after_s"] <= inst["uptime_s"] + 1, inst
+
+
 def test_info_in_check_mode_and_with_log_lines(host):
     result = testbed.info(host, check=True, log_lines=5, instances=[1])
     assert result["changed"] is False
@@ -411,6 +433,7 @@ def test_metrics_timer_writes_prometheus_text_and_goes_away_when_off(host):
             assert f'isaac_sim_up{{isaac_sim_instance="{i}"}} 1' in text
             assert f'isaac_sim_ready{{isaac_sim_instance="{i}"}} 1' in text
             assert re.search(rf'isaac_sim_uptime_seconds{{isaac_sim_instance="{i}"}} \d+', text)
+            assert re.search(rf'isaac_sim_ready_seconds{{isaac_sim_instance="{i}",cache="warm"}} \d+', text)
         assert 'isaac_sim_up{isaac_sim_instance="2"} 0' in text
         assert 'isaac_sim_ready{isaac_sim_instance="2"} 0' in text
         assert 'isaac_sim_restarts{isaac_sim_instance="0"} 0' in text

@@ -120,3 +120,16 @@ def test_an_instance_off_its_own_deploy_s_digest_counts_once():
     result["instances"][0]["drift"] = f"runs {old[:19]}, its deploy pinned {new[:19]}"
     report = fleet_report.build({"a": result}, ["a"])
     assert report["summary"]["drift"] == 1
+
+
+def test_time_to_ready_and_the_caches_it_started_with_reach_the_page_and_the_metrics():
+    result = host_result()
+    result["instances"][0].update(ready_after_s=247, cache_at_start="cold")
+    result["instances"][1].update(ready_after_s=12, cache_at_start=None)
+    views = fleet_report.build({"h": result}, ["h"])["hosts"][0]["instances"]
+    # instance 2 as recorded (its marker 16 s after its container's start), 3 stopped
+    assert [v["ready_in"] for v in views[:4]] == ["4m07s (cold caches)", "12s", "16s", None]
+    text = fleet_report.prometheus(result)
+    assert 'isaac_sim_ready_seconds{isaac_sim_instance="0",cache="cold"} 247' in text
+    assert 'isaac_sim_ready_seconds{isaac_sim_instance="1",cache="unknown"} 12' in text
+    assert 'isaac_sim_ready_seconds{isaac_sim_instance="3"' not in text

@@ -143,6 +143,25 @@ def test_not_ready_without_the_marker():
     assert r["ready"] is False and r["state"] == "running"
 
 
+def test_time_to_ready_is_from_the_container_s_start_to_its_marker_with_the_caches_it_found(tmp_path):
+    started = containers()["isaac-sim-2"]["started_at"]
+    (tmp_path / "instance-2.cache").write_text("cold\n")
+    (tmp_path / "instance-0.cache").write_text("warm\n")
+    (tmp_path / "instance-1.cache").write_text("lukewarm\n")
+    (tmp_path / "instance-x.cache").write_text("warm\n")
+    states = fleet_status.read_cache_states(str(tmp_path))
+    assert states == {0: "warm", 2: "cold"}
+    r = records(markers={2: started + 47}, cache_states=states)["isaac-sim-2"]
+    assert (r["ready_after_s"], r["cache_at_start"]) == (47, "cold")
+    # not ready: neither; a marker older than the container (a start the gate did not see) says nothing
+    r = records(markers={}, cache_states=states)["isaac-sim-2"]
+    assert (r["ready_after_s"], r["cache_at_start"]) == (None, None)
+    assert records(markers={2: started - 5}, cache_states=states)["isaac-sim-2"]["ready_after_s"] is None
+    # a start before this version wrote no cache state: the time alone
+    r = records(markers={2: started + 3})["isaac-sim-2"]
+    assert (r["ready_after_s"], r["cache_at_start"]) == (3, None)
+
+
 @pytest.mark.parametrize(
     "active,sub,expected",
     [

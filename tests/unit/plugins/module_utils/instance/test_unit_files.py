@@ -62,3 +62,21 @@ def test_unit_numbers_are_numbers_whatever_was_given():
     # a stop while dockerd is down (systemd restarting it) must not wait on Docker's socket
     assert "ExecStop=-/bin/sh -c 'systemctl -q is-active docker.service || exit 0; exec /usr/bin/docker stop" in unit
     assert "EnvironmentFile=/etc/isaac-sim/instance-%i.env\n" in unit
+
+
+def test_an_instance_says_at_each_start_whether_its_caches_were_warm_or_cold():
+    p = _plan()
+    env = layout.parse(unit_files.render_env(p["instances"][1], p, "sha256:abc", {}, "managed"))
+    root = "/var/lib/isaac-sim/instance-1"
+    # the shader, GL and compute caches 6.x keeps: not pip's, not the Hub's (assets, shared by the host)
+    assert layout.split_args(env[layout.K_CACHES]) == [f"{root}/cache/main", f"{root}/cache/computecache",
+                                                        f"{root}/cache/kit"]  # fmt: skip
+    unit = unit_files.render_unit(p["settings"], "managed")
+    # with root's rights (the caches are the container user's), never failing the start, before docker run
+    step = "ExecStartPre=-+/usr/local/libexec/isaac-sim/isaac-sim-cache-state\n"
+    assert step in unit and unit.index(step) < unit.index("ExecStart=/usr/local/libexec/isaac-sim/isaac-sim-run")
+    assert "isaac-sim-cache-state" in layout.SCRIPTS
+    old = _plan(release="4.x", image="reg/isaac-sim:4.5.0")
+    env = layout.parse(unit_files.render_env(old["instances"][0], old, "sha256:abc", {}, "managed"))
+    assert [d.rsplit("/", 1)[1] for d in layout.split_args(env[layout.K_CACHES])] == [
+        "kit", "ov", "glcache", "computecache"]  # fmt: skip
