@@ -1,5 +1,6 @@
 """status.yml's dashboard, written and then read the way a person does: in headless Chromium."""
 
+import re
 import time
 import urllib.parse
 from pathlib import Path
@@ -36,6 +37,9 @@ def check_dashboard(page: Path, expected: dict, shot: Path):
         ]
         frames = [f.get_attribute("src") for f in driver.find_elements("css selector", "iframe.stream")]
         states = {c.get_attribute("data-instance"): c.get_attribute("data-state") for c in cards}
+        ready_in = {
+            c.get_attribute("data-instance"): c.find_element("css selector", "dd.f-ready-in").text for c in cards
+        }
         summary = driver.find_element("id", "sum-instances").text
         shot.parent.mkdir(parents=True, exist_ok=True)
         driver.save_screenshot(str(shot))
@@ -47,6 +51,10 @@ def check_dashboard(page: Path, expected: dict, shot: Path):
     assert errors == [], errors
     assert len(cards) == len(expected) and summary == str(len(expected))
     assert states == {str(i): rec["state"] for i, rec in expected.items()}
+    # a ready instance: how long its start took to ready, and the caches it found
+    for i, rec in expected.items():
+        if rec["ready"]:
+            assert re.fullmatch(r"(\d+s|\d+m\d\ds) \((warm|cold) caches\)", ready_in[str(i)]), ready_in
     for instance, kind, href in links:
         url = urllib.parse.urlsplit(href)
         rec = expected[int(instance)]
