@@ -69,8 +69,11 @@ def test_an_instance_says_at_each_start_whether_its_caches_were_warm_or_cold():
     env = layout.parse(unit_files.render_env(p["instances"][1], p, "sha256:abc", {}, "managed"))
     root = "/var/lib/isaac-sim/instance-1"
     # the shader, GL and compute caches 6.x keeps: not pip's, not the Hub's (assets, shared by the host)
-    assert layout.split_args(env[layout.K_CACHES]) == [f"{root}/cache/main", f"{root}/cache/computecache",
-                                                        f"{root}/cache/kit"]  # fmt: skip
+    assert layout.split_args(env[layout.K_CACHES]) == [
+        f"{root}/cache/main",
+        f"{root}/cache/computecache",
+        f"{root}/cache/kit",
+    ]
     unit = unit_files.render_unit(p["settings"], "managed")
     # with root's rights (the caches are the container user's), never failing the start, before docker run
     step = "ExecStartPre=-+/usr/local/libexec/isaac-sim/isaac-sim-cache-state\n"
@@ -78,5 +81,5 @@ def test_an_instance_says_at_each_start_whether_its_caches_were_warm_or_cold():
     assert "isaac-sim-cache-state" in layout.SCRIPTS
     old = _plan(release="4.x", image="reg/isaac-sim:4.5.0")
     env = layout.parse(unit_files.render_env(old["instances"][0], old, "sha256:abc", {}, "managed"))
-    assert [d.rsplit("/", 1)[1] for d in layout.split_args(env[layout.K_CACHES])] == [
-        "kit", "ov", "glcache", "computecache"]  # fmt: skip
+    names = [d.rsplit("/", 1)[1] for d in layout.split_args(env[layout.K_CACHES])]
+    assert names == ["kit", "ov", "glcache", "computecache"]
