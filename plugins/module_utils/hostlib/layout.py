@@ -114,6 +114,8 @@ K_HEALTH_INTERVAL = "ISAAC_SIM_HEALTH_INTERVAL"
 K_UNHEALTHY_RESTART = "ISAAC_SIM_UNHEALTHY_RESTART"
 # the instance's cache directories on the host (releases.WARM_CACHES), as isaac-sim-cache-state reads them
 K_CACHES = "ISAAC_SIM_CACHES"
+# where it writes what it found (cache_state): the path comes from here, as the ready marker's does
+K_CACHE_STATE = "ISAAC_SIM_CACHE_STATE"
 K_DOCKER_ARGS = "ISAAC_SIM_DOCKER_ARGS"
 K_APP_ARGS = "ISAAC_SIM_APP_ARGS"
 K_COMPANION = "ISAAC_SIM_COMPANION"

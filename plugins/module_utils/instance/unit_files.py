@@ -50,6 +50,7 @@ def render_env(instance: dict, plan: dict, image_id: str, secret_env: dict, mana
         f"{layout.K_HEALTH_INTERVAL}={settings['health_interval']}",
         f"{layout.K_UNHEALTHY_RESTART}={settings['unhealthy_restart']}",
         f"{layout.K_CACHES}={layout.quote(layout.join_args(instance.get('caches') or []))}",
+        f"{layout.K_CACHE_STATE}={layout.quote(layout.cache_state(i))}",
     ]
     env = list(instance["container_env"].items()) + list((secret_env or {}).items())
     return "\n".join(lines + _container_lines(instance, env)) + "\n"

@@ -15,7 +15,7 @@ def state(tmp_path, caches) -> str:
     run_dir = tmp_path / "run"
     env = dict(
         os.environ,
-        ISAAC_SIM_READY_MARKER=str(run_dir / "instance-3.ready"),
+        ISAAC_SIM_CACHE_STATE=str(run_dir / "instance-3.cache"),
         # as the env file has it, one shell-quoted word per directory
         ISAAC_SIM_CACHES=layout.join_args([str(c) for c in caches]),
     )

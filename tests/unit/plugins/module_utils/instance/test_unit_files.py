@@ -74,6 +74,9 @@ def test_an_instance_says_at_each_start_whether_its_caches_were_warm_or_cold():
         f"{root}/cache/computecache",
         f"{root}/cache/kit",
     ]
+    # written where status reads it (fleet_status.read_cache_states)
+    assert env[layout.K_CACHE_STATE] == "/run/isaac-sim/instance-1.cache"
+    assert layout.CACHE_STATE_RE.match(env[layout.K_CACHE_STATE].rsplit("/", 1)[1])
     unit = unit_files.render_unit(p["settings"], "managed")
     # with root's rights (the caches are the container user's), never failing the start, before docker run
     step = "ExecStartPre=-+/usr/local/libexec/isaac-sim/isaac-sim-cache-state\n"
