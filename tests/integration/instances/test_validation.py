@@ -128,13 +128,23 @@ def test_more_instances_than_gpus(host):
 
 def test_a_port_held_by_another_process(host):
     # the signal port a fifth instance would get (the four hold every port of their own blocks)
-    sh(host, "systemd-run --unit=port-squatter python3 -m http.server 49104")
+    # 49104 is in the kernel's ephemeral range and not reserved (no instance has it): a passing
+    # outbound connection may hold it a moment, so the squatter retries its bind until it holds it
+    sh(
+        host,
+        "systemd-run --unit=port-squatter -p Restart=on-failure -p RestartSec=1 "
+        "-p StartLimitIntervalSec=0 python3 -m http.server 49104",
+    )
 
     def listening():
         return sh(host, "ss -Hltn 'sport = :49104'").stdout.strip()
 
-    testbed.wait_for(listening, timeout=20, what="squatter")
     try:
+        try:
+            testbed.wait_for(listening, timeout=60, what="squatter")
+        except AssertionError as exc:
+            said = sh(host, "journalctl -u port-squatter --no-pager -n 30; ss -Htanu | grep -w 49104", check=False)
+            raise AssertionError(f"{exc}\n{said.stdout}") from exc
         assert_rejected(
             host,
             {"isaac_sim_instance_count": 5},
