@@ -2,9 +2,9 @@
 
 Runs first of the fleet's modules (file order), right after converge: the three hosts were deployed
 cold through the mirror (isaacsim-mirror-1, Debian's Distribution registry in proxy mode) from the
-stand-in upstream (tests/fixtures/registry, login required as NGC's). The upstream's own access log
-says what it served to whom: every blob of the image to the mirror, at most twice (Debian's
-Distribution 2.8 keeps and serves a blob's first request with two fetches), none to a host.
+stand-in upstream (tests/fixtures/registry, login required as NGC's), the deploy having copied the
+pinned image into the mirror's storage first (isaac_sim_mirror_seed). The upstream's own access log
+says what it served to whom: every blob of the image to the mirror once, none to a host.
 Every host runs the one digest the deploy pinned, from the mirror. A host without the registry key
 still deploys (it pulls through the mirror, which holds the key).
 """
@@ -82,19 +82,21 @@ def test_a_cold_deploy_fetched_the_image_from_upstream_through_the_mirror_alone(
     assert to_hosts == [], "a host pulled from the upstream itself"
     fetched, size = sum(bytes_ for addr, _d, bytes_ in served if addr == ip(MIRROR)), sum(blobs.values())
     print(f"upstream bytes / image size: {fetched / size:.2f} ({fetched} of {size} bytes, {len(fleet)} hosts)")
-    # every blob through the mirror, each at most twice: Debian's Distribution 2.8 fetches a blob once to
-    # keep and once to serve its first client (registry/proxy/proxyblobstore.go), whatever the number of
-    # hosts, because one host pulls first, alone; three hosts at once straight from the upstream cost 3.0
+    # every blob once for the whole fleet: copied into the mirror before any host pulled, then served by
+    # the proxy from its storage (a proxy asked first fetches a blob twice: once to keep, once to serve)
     assert set(to_mirror) == set(blobs), (to_mirror, blobs)
-    assert max(to_mirror.count(d) for d in blobs) <= 2, to_mirror
-    assert fetched <= 2 * size
+    assert max(to_mirror.count(d) for d in blobs) == 1, to_mirror
+    assert fetched == size, (fetched, size)
+    # the copy's writable registry is gone with it, and its key's file too
+    assert sh(MIRROR, "systemctl is-active isaac-sim-mirror-seed.service; true").strip() != "active"
+    assert sh(MIRROR, "ls /run | grep -c '^isaac-sim-seed' ; true").strip() == "0"
 
 
 def test_only_the_mirror_holds_the_upstream_key_and_a_host_without_it_deploys(fleet):
     key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
     # on the mirror: in its configuration alone, which only the registry's user reads
     assert sh(MIRROR, "stat -c '%a %U' /etc/isaac-sim/mirror/config.yml").split() == ["600", "docker-registry"]
-    holding = sh(MIRROR, f"grep -rlsF -e '{key}' /etc /var/lib /root /tmp; true").split()
+    holding = sh(MIRROR, f"grep -rlsF -e '{key}' /etc /var/lib /root /tmp /run; true").split()
     assert holding == ["/etc/isaac-sim/mirror/config.yml"], holding
     assert set(sh(MIRROR, "ps -o user= -C docker-registry").split()) == {"docker-registry"}
     measured = testbed.exposure_of(lambda command: sh(MIRROR, command), "isaac-sim-mirror.service")

@@ -1,0 +1,105 @@
+#!/usr/bin/python
+# Copyright: isaacsim.fleet contributors
+# SPDX-License-Identifier: Apache-2.0 (the collection's license, see galaxy.yml)
+# Apache-2.0 is compatible with the GNU General Public License v3.0 that ansible-core is
+# released under; ansible-test's validate-modules looks for that license's name here.
+
+DOCUMENTATION = r"""
+---
+module: isaac_sim_mirror_seed
+short_description: Copy the fleet's pinned images into its registry mirror once, before any host pulls
+version_added: "0.3.0"
+description:
+  - Runs on the host of the registry mirror (role C(registry_mirror)). For each image pinned on the mirror
+    (C(MIRROR/REPOSITORY@DIGEST)) that its storage does not hold whole, copies it from the mirror's upstream
+    with C(skopeo copy --all --preserve-digests), byte for byte, into the mirror's own storage, through a
+    writable registry of the same package started on the loopback for the copy's time alone.
+  - The proxy then serves the image from its storage and asks the upstream nothing, so the fleet costs the
+    upstream the image once (a proxy asked first fetches each blob twice).
+  - The upstream's credentials are read from the mirror's config; for the copy they are in a root-only file on
+    C(/run), removed after it, failed or not.
+  - An image held whole already is left alone (changed false). Check mode says what would be copied.
+author: isaacsim.fleet contributors (@isaacsim-fleet)
+options:
+  references:
+    description:
+      - The references the hosts pull, C(MIRROR/REPOSITORY@sha256:DIGEST), as C(isaac_sim_image_pin) pinned them.
+    type: list
+    elements: str
+    required: true
+  mirror:
+    description: The mirror as the hosts name it, C(HOST:PORT).
+    type: str
+    required: true
+  ready_timeout:
+    description: Seconds to wait for the loopback registry to answer.
+    type: int
+    default: 30
+"""
+
+EXAMPLES = r"""
+- name: Copy the pinned image into the mirror
+  isaacsim.fleet.isaac_sim_mirror_seed:
+    references: ["10.20.0.9:5443/nvidia/isaac-sim@sha256:0a1b..."]
+    mirror: "10.20.0.9:5443"
+  delegate_to: mirror-01
+  run_once: true
+"""
+
+RETURN = r"""
+copied:
+  description: The references copied from the upstream by this run (in check mode, those it would copy).
+  returned: success
+  type: list
+  elements: str
+held:
+  description: The references the mirror held whole already.
+  returned: success
+  type: list
+  elements: str
+"""
+
+import pwd
+
+from ansible.module_utils.basic import AnsibleModule
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_seed, registry_mirror
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            references=dict(type="list", elements="str", required=True),
+            mirror=dict(type="str", required=True),
+            ready_timeout=dict(type="int", default=30),
+        ),
+        supports_check_mode=True,
+    )
+    p = module.params
+
+    def run(argv):
+        return module.run_command(argv)
+
+    try:
+        images = mirror_seed.wanted(p["references"], p["mirror"])
+        seeder = mirror_seed.Seeder(run)
+        lacking = seeder.lacking(images)
+        name = {image: f"{p['mirror']}/{image[0]}@{image[1]}" for image in images}
+        copied = [name[image] for image in images if image in lacking]
+        held = [name[image] for image in images if image not in lacking]
+        if lacking and not module.check_mode:
+            user = pwd.getpwnam(registry_mirror.USER)
+            seeder.copy([image for image in images if image in lacking], user.pw_uid, user.pw_gid, p["ready_timeout"])
+            still = seeder.lacking(images)
+            if still:
+                module.fail_json(
+                    msg="after the copy the mirror's storage still lacks "
+                    + "; ".join(f"{name[image]}: {', '.join(gaps[:3])}" for image, gaps in still.items())
+                    + f" (under {mirror_seed.STORE}). Fix: see the mirror's journal (journalctl -u {mirror_seed.UNIT})."
+                )
+    except (mirror_seed.SeedError, KeyError) as exc:
+        module.fail_json(msg=str(exc))
+    module.exit_json(changed=bool(copied), copied=copied, held=held)
+
+
+if __name__ == "__main__":
+    main()
