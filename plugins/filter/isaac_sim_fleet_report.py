@@ -13,6 +13,7 @@ description:
     a fleet summary (hosts, instances, running, ready, failed, stray) and the hosts with their instances,
     each with display fields (uptime, GPU text, primary URL, the URL to embed)."
   - A host without a result, or with a failed one, is reported unreachable with the reason.
+  - Keyword options go as C(name=value).
 positional: _input, targets, generated_at
 options:
   _input:
@@ -28,6 +29,12 @@ options:
     description: Time stamp shown in the report.
     type: str
     default: ""
+  mirrors:
+    description:
+      - "C({mirror host: isaac_sim_mirror_info result}) of the fleet's registry mirrors: the report gets C(mirrors),
+        each serving or not (and why) and what its storage holds, and the table a line for each."
+    type: dict
+    default: {}
 """
 
 EXAMPLES = r"""

@@ -58,12 +58,13 @@ def restarts_text(inst: dict) -> str:
     return str(inst.get("restarts") or 0) + (f" (24h: {', '.join(said)})" if said else "")
 
 
-def build(results: dict, targets: list, generated_at: str = "", compare: bool = True) -> dict:
+def build(results: dict, targets: list, generated_at: str = "", compare: bool = True, mirrors=None) -> dict:
     """One report over the hosts asked for; a host without a result is unreachable or failed.
 
     results: {host: isaac_sim_info result, or {"failed": True, "msg": ...}}
     compare: mark instances whose digest differs from the fleet's (fleet_drift); a host's status
     endpoint answers for itself alone and leaves that to the page, which compares its hosts.
+    mirrors: {mirror host: isaac_sim_mirror_info result}, the fleet's registry mirrors.
     """
     hosts, totals = [], {"hosts": 0, "reachable": 0, "instances": 0, "running": 0, "ready": 0, "failed": 0, "stray": 0}
     for host in targets:
@@ -117,7 +118,41 @@ def build(results: dict, targets: list, generated_at: str = "", compare: bool = 
     totals["drift"] = (
         fleet_drift(hosts) if compare else sum(bool(i.get("drift")) for h in hosts for i in h["instances"])
     )
-    return {"generated_at": generated_at, "summary": totals, "hosts": hosts}
+    report = {"generated_at": generated_at, "summary": totals, "hosts": hosts}
+    if mirrors:
+        report["mirrors"] = [mirror_view(host, mirrors[host]) for host in sorted(mirrors)]
+    return report
+
+
+def size_text(count) -> str:
+    """1536 -> "1.5 KiB"."""
+    if count is None:
+        return "-"
+    value = float(count)
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if value < 1024 or unit == "TiB":
+            return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1024
+    return "-"
+
+
+def mirror_view(host: str, res: dict) -> dict:
+    """A registry mirror's line of the report: serving or not (and why), what its storage holds."""
+    state = (res or {}).get("mirror")
+    if not state:
+        detail = (res or {}).get("msg") or "no answer (unreachable, or the status task failed)"
+        return {"host": host, "reachable": False, "healthy": False, "text": f"UNREACHABLE: {detail.strip()[:160]}"}
+    view = dict(state, host=host, reachable=True)
+    repos = len(state.get("repositories") or {})
+    holds = (
+        f"{size_text(state.get('used_bytes'))} held ({state.get('images', 0)} images in {repos} repositories), "
+        f"{size_text(state.get('free_bytes'))} free of {size_text(state.get('size_bytes'))}"
+    )
+    answered = f"HTTP {state['http_status']}" if state.get("http_status") else "no answer"
+    view["text"] = ("serving" if state.get("healthy") else "DOWN") + f" ({answered}), {holds}"
+    if state.get("errors"):
+        view["text"] += ": " + "; ".join(state["errors"])
+    return view
 
 
 def ready_in(inst: dict):
@@ -200,6 +235,7 @@ def table(report: dict) -> list:
         f"{s['running']} running, {s['ready']} ready, {s['failed']} failed, {s['stray']} stray"
         + (f", {s['drift']} on another digest than the fleet's" if s.get("drift") else "")
     )
+    lines += [f"mirror {m['host']}: {m['text']}" for m in report.get("mirrors") or []]
     return lines
 
 

@@ -92,6 +92,35 @@ def test_a_cold_deploy_fetched_the_image_from_upstream_through_the_mirror_alone(
     assert sh(MIRROR, "ls /run | grep -c '^isaac-sim-seed' ; true").strip() == "0"
 
 
+def test_status_says_whether_the_mirror_serves_and_what_its_storage_holds(fleet, tmp_path):
+    repository = pinned(fleet[0]).split("/", 1)[1].split("@")[0]
+
+    def status(where):
+        run = playbook("status.yml", {"fleet_report_dir": str(where)})
+        assert run.returncode == 0, squash(run.stdout + run.stderr)[-3000:]
+        report = json.loads((where / "status.json").read_text())
+        return report, (where / "status.txt").read_text(), (where / "status.html").read_text()
+
+    report, text, page = status(tmp_path / "up")
+    [mirror] = report["mirrors"]
+    assert mirror["host"] == MIRROR and mirror["healthy"] and mirror["http_status"] == 200, mirror
+    assert mirror["repositories"].get(repository, 0) >= 1 and mirror["images"] >= 1, mirror
+    files = sh(MIRROR, "find /var/lib/docker-registry -type f -printf '%s\\n' | awk '{s += $1} END {print s}'")
+    assert mirror["used_bytes"] == int(files) and 0 < mirror["free_bytes"] <= mirror["size_bytes"], mirror
+    assert f"mirror {MIRROR}: serving (HTTP 200), " in text
+    assert f'<p class="mirror" data-mirror="{MIRROR}">' in page
+    # a stopped mirror is reported down with why; the status run itself still succeeds
+    sh(MIRROR, "systemctl stop isaac-sim-mirror.service")
+    try:
+        report, text, page = status(tmp_path / "down")
+        [mirror] = report["mirrors"]
+        assert not mirror["healthy"] and mirror["active"] == "inactive" and mirror["http_status"] is None
+        assert f"mirror {MIRROR}: DOWN (no answer), " in text and "isaac-sim-mirror.service is inactive" in text
+        assert f'<p class="mirror bad" data-mirror="{MIRROR}">' in page
+    finally:
+        sh(MIRROR, "systemctl start isaac-sim-mirror.service")
+
+
 def test_only_the_mirror_holds_the_upstream_key_and_a_host_without_it_deploys(fleet):
     key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
     # on the mirror: in its configuration alone, which only the registry's user reads

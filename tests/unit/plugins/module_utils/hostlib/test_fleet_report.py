@@ -133,3 +133,35 @@ def test_time_to_ready_and_the_caches_it_started_with_reach_the_page_and_the_met
     assert 'isaac_sim_ready_seconds{isaac_sim_instance="0",cache="cold"} 247' in text
     assert 'isaac_sim_ready_seconds{isaac_sim_instance="1",cache="unknown"} 12' in text
     assert 'isaac_sim_ready_seconds{isaac_sim_instance="3"' not in text
+
+
+def test_the_registry_mirror_is_reported_serving_or_down_with_what_its_storage_holds():
+    serving = {
+        "mirror": {
+            "healthy": True,
+            "active": "active",
+            "http_status": 200,
+            "repositories": {"nvidia/isaac-sim": 2, "lib/x": 1},
+            "images": 3,
+            "used_bytes": 3 * 1024**3 + 300 * 1024**2,
+            "free_bytes": 40 * 1024**3,
+            "size_bytes": 250 * 1024**3,
+            "errors": [],
+        }
+    }
+    down = {"mirror": dict(serving["mirror"], healthy=False, active="failed", http_status=None)}
+    down["mirror"]["errors"] = ["isaac-sim-mirror.service is failed", "the registry did not answer on port 5443"]
+    report = fleet_report.build(
+        {"a": host_result()}, ["a"], mirrors={"m1": serving, "m2": down, "m3": {"unreachable": True, "msg": "ssh"}}
+    )
+    assert [m["host"] for m in report["mirrors"]] == ["m1", "m2", "m3"]
+    lines = fleet_report.table(report)[-3:]
+    assert lines[0] == (
+        "mirror m1: serving (HTTP 200), 3.3 GiB held (3 images in 2 repositories), 40.0 GiB free of 250.0 GiB"
+    )
+    assert lines[1].startswith("mirror m2: DOWN (no answer), 3.3 GiB held") and lines[1].endswith(
+        ": isaac-sim-mirror.service is failed; the registry did not answer on port 5443"
+    )
+    assert lines[2] == "mirror m3: UNREACHABLE: ssh" and report["mirrors"][2]["healthy"] is False
+    # without mirrors the report has no such key, and the table no such line
+    assert "mirrors" not in fleet_report.build({"a": host_result()}, ["a"])
