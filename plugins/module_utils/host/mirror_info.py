@@ -16,17 +16,11 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_
 
 
 def held(store: str) -> dict:
-    """{repository: number of manifests} in the registry's storage (the filesystem driver's layout)."""
+    """{repository: number of manifests} in the registry's storage."""
     found = {}
-    top = os.path.join(store, "repositories")
-    for root, dirs, _files in os.walk(top):
-        if "_manifests" in dirs:
-            revisions = os.path.join(root, "_manifests", "revisions", "sha256")
-            count = len(os.listdir(revisions)) if os.path.isdir(revisions) else 0
-            found[os.path.relpath(root, top)] = count
-        # a repository's own directories hold no repository
-        dirs[:] = [d for d in dirs if not d.startswith("_")]
-    return dict(sorted(found.items()))
+    for name, _digest in mirror_seed.manifests(store):
+        found[name] = found.get(name, 0) + 1
+    return found
 
 
 def used_bytes(root: str) -> int:

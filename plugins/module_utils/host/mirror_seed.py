@@ -59,12 +59,12 @@ def wanted(references: list, mirror: str) -> list:
     return found
 
 
-def _blob(digest: str) -> str:
+def blob_path(digest: str) -> str:
     algo, hexd = digest.split(":", 1)
     return f"blobs/{algo}/{hexd[:2]}/{hexd}/data"
 
 
-def _link(name: str, kind: str, digest: str) -> str:
+def link_path(name: str, kind: str, digest: str) -> str:
     algo, hexd = digest.split(":", 1)
     return f"repositories/{name}/{kind}/{algo}/{hexd}/link"
 
@@ -73,14 +73,14 @@ def missing(read, name: str, digest: str) -> list:
     """What the mirror's storage lacks of NAME@DIGEST for the proxy to serve it all itself: the
     manifest, and each image's config and layers (an index's images each). read(path under STORE)
     answers the file's bytes, or None."""
-    if read(_link(name, "_manifests/revisions", digest)) is None or read(_blob(digest)) is None:
+    if read(link_path(name, "_manifests/revisions", digest)) is None or read(blob_path(digest)) is None:
         return [f"manifest {digest}"]
-    manifest = json.loads(read(_blob(digest)))
+    manifest = json.loads(read(blob_path(digest)))
     lacking = []
     for child in manifest.get("manifests") or []:
         lacking += missing(read, name, child["digest"])
     for part in ([manifest["config"]] if manifest.get("config") else []) + (manifest.get("layers") or []):
-        if read(_link(name, "_layers", part["digest"])) is None or read(_blob(part["digest"])) is None:
+        if read(link_path(name, "_layers", part["digest"])) is None or read(blob_path(part["digest"])) is None:
             lacking.append(f"blob {part['digest']}")
     return lacking
 
@@ -150,6 +150,28 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def manifests(store: str) -> list:
+    """[(repository, digest)] of every manifest revision in the storage."""
+    found = []
+    top = os.path.join(store, "repositories")
+    for root, dirs, _files in os.walk(top):
+        if "_manifests" in dirs:
+            revisions = os.path.join(root, "_manifests", "revisions", "sha256")
+            names = sorted(os.listdir(revisions)) if os.path.isdir(revisions) else []
+            found += [(os.path.relpath(root, top), f"sha256:{hexd}") for hexd in names]
+        dirs[:] = [d for d in dirs if not d.startswith("_")]
+    return sorted(found)
+
+
+def read_under(store: str, path: str):
+    """The bytes of a file of the storage, or None."""
+    try:
+        with open(os.path.join(store, path), "rb") as f:
+            return f.read()
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+
+
 class Seeder:
     """The I/O of a seed on the mirror host. run(argv) -> (rc, out, err), as AnsibleModule.run_command."""
 
@@ -160,11 +182,7 @@ class Seeder:
         self.scratch = scratch  # a tmpfs: the key's file never reaches a disk
 
     def read(self, path: str):
-        try:
-            with open(os.path.join(self.store, path), "rb") as f:
-                return f.read()
-        except (FileNotFoundError, NotADirectoryError):
-            return None
+        return read_under(self.store, path)
 
     def lacking(self, images: list) -> dict:
         """{(name, digest): [what is missing]} of the images the storage does not hold whole."""

@@ -121,6 +121,61 @@ def test_status_says_whether_the_mirror_serves_and_what_its_storage_holds(fleet,
         sh(MIRROR, "systemctl start isaac-sim-mirror.service")
 
 
+STORE = "/var/lib/docker-registry/docker/registry/v2"
+
+
+def revisions() -> set:
+    """(repository, digest) of every manifest the mirror's storage holds."""
+    listing = sh(MIRROR, f"cd {STORE}/repositories && find . -path '*/_manifests/revisions/sha256/*' -name link")
+    found = set()
+    for path in listing.split():
+        head, _sep, tail = path[2:].partition("/_manifests/revisions/sha256/")
+        found.add((head, "sha256:" + tail.split("/")[0]))
+    return found
+
+
+def blobs_of(digest: str) -> set:
+    hexd = digest.split(":")[1]
+    manifest = json.loads(sh(MIRROR, f"cat {STORE}/blobs/sha256/{hexd[:2]}/{hexd}/data"))
+    return {layer["digest"] for layer in manifest["layers"]} | {manifest["config"]["digest"]}
+
+
+def held_blobs() -> set:
+    return {"sha256:" + p.split("/")[-2] for p in sh(MIRROR, f"find {STORE}/blobs -name data").split()}
+
+
+def test_the_collection_keeps_what_the_fleet_runs_and_drops_the_rest(fleet):
+    mirror = f"{ip(MIRROR)}:5443"
+    repository, kept = pinned(fleet[0]).split("/", 1)[1].split("@")
+    before = revisions()
+    # an image no instance runs, pulled through the mirror by a host: the proxy keeps it
+    sh(fleet[0], f"docker pull -q {mirror}/{repository}:6.0.1-crash")
+    extra = revisions() - before
+    assert len(extra) == 1, extra
+    [(_name, unused)] = extra
+    only_its = blobs_of(unused) - blobs_of(kept)
+    assert only_its and only_its <= held_blobs() and blobs_of(unused) & blobs_of(kept), "no shared base layer"
+    try:
+        # a collection that does not hear from every host deletes nothing: their image may be on the mirror alone
+        run = playbook("registry_mirror_gc.yml", limit=f"{MIRROR},{fleet[0]}")
+        out = squash(run.stdout + run.stderr)
+        assert run.returncode != 0 and f"Nothing was deleted: {fleet[1]}, {fleet[2]} did not say" in out, out[-2000:]
+        assert revisions() == before | extra
+        run = playbook("registry_mirror_gc.yml")
+        out = squash(run.stdout + run.stderr)
+        assert run.returncode == 0, out[-3000:]
+        assert f"1 images dropped: {repository}@{unused}" in out
+        assert revisions() == before and (repository, kept) in before
+        # the layers only the dropped image used are gone; the kept image's, shared base included, stay
+        assert not only_its & held_blobs() and blobs_of(kept) <= held_blobs()
+        assert sh(MIRROR, "systemctl is-active isaac-sim-mirror.service; true").strip() == "active"
+        again = squash(playbook("registry_mirror_gc.yml").stdout)
+        assert "0 images dropped; 0.0 MiB freed" in again
+        assert re.search(rf"{MIRROR} : ok=\d+ changed=0 ", again), again[-1500:]
+    finally:
+        sh(fleet[0], f"docker rmi -f {mirror}/{repository}:6.0.1-crash; true")
+
+
 def test_only_the_mirror_holds_the_upstream_key_and_a_host_without_it_deploys(fleet):
     key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
     # on the mirror: in its configuration alone, which only the registry's user reads
