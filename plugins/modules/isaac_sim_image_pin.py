@@ -44,7 +44,9 @@ options:
   mirror:
     description:
       - A pull-through mirror (C(HOST:PORT), role C(registry_mirror)) of O(mirror_upstream); images of that registry
-        are asked of the mirror and pinned to the mirror's reference.
+        are asked of the mirror, with a C(HEAD) of the manifest from this host (trusting the system's CAs and Docker's
+        C(certs.d/HOST:PORT/ca.crt)), and pinned to the mirror's reference. Not through Docker, which fetches the
+        image's config blob to tell its platform (a proxy asked a blob it does not hold fetches it upstream twice).
     type: str
     default: ""
   mirror_upstream:

@@ -13,13 +13,26 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import re
+import ssl
+from http.client import HTTPSConnection
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import parse_image
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 
 DOCKER_HUB = "docker.io"
 REFUSED = re.compile(r"unauthorized|authentication required|denied", re.IGNORECASE)
+# what Docker accepts of a registry, so the digest is the one Docker itself would pin (an index's, for
+# a multi-platform image)
+MANIFEST_TYPES = ", ".join(
+    (
+        "application/vnd.docker.distribution.manifest.list.v2+json",
+        "application/vnd.oci.image.index.v1+json",
+        "application/vnd.docker.distribution.manifest.v2+json",
+        "application/vnd.oci.image.manifest.v1+json",
+    )
+)
 
 
 def registry_of(repository: str) -> str:
@@ -85,6 +98,46 @@ def resolve(docker, image: str, username: str = "", password: str = "", asked_fr
     return {"image": image, "pinned": f"{repository}@{found}", "digest": found}
 
 
+def ask_mirror(reference: str, certs_dir: str = "/etc/docker/certs.d", timeout: float = 60.0, connect=None) -> dict:
+    """Resolve MIRROR/NAME:TAG on the fleet's mirror with a HEAD of its manifest (Docker-Content-Digest).
+
+    Not through Docker's /distribution: to tell an image's platform Docker fetches its config blob,
+    and a proxy asked for a blob it does not hold fetches it from the upstream twice, before the
+    deploy has copied the image in (host/mirror_seed.py). Trusts what Docker trusts for the mirror:
+    the system's CAs and certs.d/MIRROR/ca.crt."""
+    parsed = parse_image(reference)
+    if parsed is None:
+        raise PinError(f"isaac_sim_image: {reference!r} is not a valid image reference.")
+    repository, tag, digest = parsed
+    if digest:
+        return {"image": reference, "pinned": f"{repository}@{digest}", "digest": digest}
+    host, _slash, name = repository.partition("/")
+    tag = tag or "latest"
+    context = ssl.create_default_context()
+    ca = os.path.join(certs_dir, host, "ca.crt")
+    if os.path.exists(ca):
+        context.load_verify_locations(ca)
+    conn = (connect or HTTPSConnection)(host, context=context, timeout=timeout)
+    try:
+        conn.request("HEAD", f"/v2/{name}/manifests/{tag}", headers={"Accept": MANIFEST_TYPES})
+        answer = conn.getresponse()
+        status, digest = answer.status, answer.getheader("Docker-Content-Digest") or ""
+    except (OSError, ssl.SSLError) as exc:
+        raise PinError(
+            f"could not ask the registry mirror {host} which digest {reference} names: {exc}. Fix: check that "
+            "the mirror runs (status.yml reports it) and that this host reaches it and trusts its certificate."
+        ) from exc
+    finally:
+        conn.close()
+    if status != 200 or not re.match(r"^sha256:[0-9a-f]{64}$", digest):
+        raise PinError(
+            f"the registry mirror {host} answered HTTP {status}{' with no digest' if status == 200 else ''} when "
+            f"asked which digest {reference} names. Fix: check that the image and tag exist upstream and that the "
+            "mirror reaches its upstream (its journal: journalctl -u isaac-sim-mirror.service)."
+        )
+    return {"image": reference, "pinned": f"{repository}@{digest}", "digest": digest}
+
+
 def pin_fleet(
     docker,
     images: dict,
@@ -94,6 +147,7 @@ def pin_fleet(
     asked_from: str = "",
     mirror: str = "",
     upstream: str = "",
+    ask=ask_mirror,
 ) -> dict:
     """Each distinct image of the play resolved once; what every host will run and which it moves.
 
@@ -111,7 +165,7 @@ def pin_fleet(
         through = registry_mirror.mirror_reference(image, mirror, upstream) if mirror else None
         if through:
             # the mirror serves anonymously to the fleet: no credentials leave the controller for it
-            pin = resolve(docker, through, "", "", asked_from)
+            pin = ask(through)
             found[image] = dict(pin, image=image)
         else:
             found[image] = resolve(docker, image, username, password, asked_from)

@@ -130,9 +130,74 @@ def test_each_image_of_the_fleet_is_asked_once_and_the_deploy_says_whom_it_moves
 def test_an_image_of_the_mirror_s_upstream_is_asked_of_the_mirror_without_credentials():
     docker = Docker()
     images = {"gpu-01": "nvcr.io/nvidia/isaac-sim:6.0.1", "gpu-02": "reg.lab/other:1"}
-    found = image_pin.pin_fleet(docker, images, {}, "$oauthtoken", "k", "gpu-01", "m.lab:5443", "https://nvcr.io")
-    assert docker.asked == [("m.lab:5443/nvidia/isaac-sim:6.0.1", ""), ("reg.lab/other:1", docker.asked[1][1])]
-    assert docker.asked[1][1]  # another registry: asked directly, with the credentials
+    asked = []
+
+    def ask(reference):
+        asked.append(reference)
+        return {"image": reference, "pinned": reference.split(":6")[0] + f"@{DIGEST}", "digest": DIGEST}
+
+    found = image_pin.pin_fleet(
+        docker, images, {}, "$oauthtoken", "k", "gpu-01", "m.lab:5443", "https://nvcr.io", ask=ask
+    )
+    # the mirror with a HEAD of its manifest (ask_mirror), never through Docker and with no credentials
+    assert asked == ["m.lab:5443/nvidia/isaac-sim:6.0.1"] and docker.asked == [("reg.lab/other:1", docker.asked[0][1])]
+    assert docker.asked[0][1]  # another registry: asked directly, with the credentials
     assert found["pinned"] == {"gpu-01": f"m.lab:5443/nvidia/isaac-sim@{DIGEST}", "gpu-02": f"reg.lab/other@{DIGEST}"}
     # the reports name the image as written
     assert found["summary"][0].startswith(f"nvcr.io/nvidia/isaac-sim:6.0.1 is {DIGEST} now")
+
+
+class Conn:
+    """An HTTPSConnection to the mirror: records the request, answers a recorded one."""
+
+    def __init__(self, status=200, digest=DIGEST, error=None):
+        self.status, self.digest, self.error, self.seen = status, digest, error, {}
+
+    def __call__(self, host, context, timeout):
+        self.seen.update(host=host, context=context, timeout=timeout)
+        return self
+
+    def request(self, method, path, headers):
+        if self.error:
+            raise self.error
+        self.seen.update(method=method, path=path, accept=headers["Accept"])
+
+    def getresponse(self):
+        return self
+
+    def getheader(self, name):
+        return self.digest if name == "Docker-Content-Digest" else None
+
+    def close(self):
+        self.seen["closed"] = True
+
+
+def test_the_mirror_is_asked_with_a_head_of_the_manifest_never_a_blob(tmp_path):
+    conn = Conn()
+    pin = image_pin.ask_mirror("m.lab:5443/nvidia/isaac-sim:6.0.1", str(tmp_path), connect=conn)
+    assert pin == {
+        "image": "m.lab:5443/nvidia/isaac-sim:6.0.1",
+        "pinned": f"m.lab:5443/nvidia/isaac-sim@{DIGEST}",
+        "digest": DIGEST,
+    }
+    assert (conn.seen["host"], conn.seen["method"], conn.seen["path"]) == (
+        "m.lab:5443",
+        "HEAD",
+        "/v2/nvidia/isaac-sim/manifests/6.0.1",
+    )
+    # an index's digest where the image has one, as Docker's own pin
+    assert (
+        conn.seen["accept"].startswith("application/vnd.docker.distribution.manifest.list.v2+json")
+        and conn.seen["closed"]
+    )
+    assert image_pin.ask_mirror("m.lab:5443/n/x", str(tmp_path), connect=conn)["image"] == "m.lab:5443/n/x"
+    assert conn.seen["path"] == "/v2/n/x/manifests/latest"
+
+
+def test_a_mirror_that_fails_to_answer_names_itself_and_the_fix(tmp_path):
+    with pytest.raises(image_pin.PinError, match=r"m.lab:5443 answered HTTP 404 when asked .* image and tag exist"):
+        image_pin.ask_mirror("m.lab:5443/n/x:1", str(tmp_path), connect=Conn(status=404))
+    with pytest.raises(image_pin.PinError, match="answered HTTP 200 with no digest"):
+        image_pin.ask_mirror("m.lab:5443/n/x:1", str(tmp_path), connect=Conn(digest=None))
+    with pytest.raises(image_pin.PinError, match="could not ask the registry mirror m.lab:5443 .* refused"):
+        image_pin.ask_mirror("m.lab:5443/n/x:1", str(tmp_path), connect=Conn(error=ConnectionRefusedError("refused")))
