@@ -67,12 +67,9 @@ def resolve(docker, image: str, username: str = "", password: str = "", asked_fr
     docker: the Engine API (DockerSocket). An image already named by digest is pinned as written,
     without asking. Raises PinError with what went wrong and the fix; the password is never in it.
     """
-    parsed = parse_image(image)
-    if parsed is None:
-        raise PinError(f"isaac_sim_image: {image!r} is not a valid image reference.")
-    repository, _tag, digest = parsed
+    repository, _tag, digest = _parsed(image)
     if digest:
-        return {"image": image, "pinned": f"{repository}@{digest}", "digest": digest}
+        return _pin(image, repository, digest)
     server = registry_of(repository)
     auth = auth_header(username, password, server) if password else ""
     try:
@@ -95,7 +92,7 @@ def resolve(docker, image: str, username: str = "", password: str = "", asked_fr
     found = digest_of(answer)
     if not found:
         raise PinError(f"{server} answered without a digest for {image}: {json.dumps(answer)[:300]}")
-    return {"image": image, "pinned": f"{repository}@{found}", "digest": found}
+    return _pin(image, repository, found)
 
 
 def ask_mirror(reference: str, certs_dir: str = "/etc/docker/certs.d", timeout: float = 60.0, connect=None) -> dict:
@@ -105,12 +102,9 @@ def ask_mirror(reference: str, certs_dir: str = "/etc/docker/certs.d", timeout: 
     and a proxy asked for a blob it does not hold fetches it from the upstream twice, before the
     deploy has copied the image in (host/mirror_seed.py). Trusts what Docker trusts for the mirror:
     the system's CAs and certs.d/MIRROR/ca.crt."""
-    parsed = parse_image(reference)
-    if parsed is None:
-        raise PinError(f"isaac_sim_image: {reference!r} is not a valid image reference.")
-    repository, tag, digest = parsed
+    repository, tag, digest = _parsed(reference)
     if digest:
-        return {"image": reference, "pinned": f"{repository}@{digest}", "digest": digest}
+        return _pin(reference, repository, digest)
     host, _slash, name = repository.partition("/")
     tag = tag or "latest"
     context = ssl.create_default_context()
@@ -135,7 +129,19 @@ def ask_mirror(reference: str, certs_dir: str = "/etc/docker/certs.d", timeout: 
             f"asked which digest {reference} names. Fix: check that the image and tag exist upstream and that the "
             "mirror reaches its upstream (its journal: journalctl -u isaac-sim-mirror.service)."
         )
-    return {"image": reference, "pinned": f"{repository}@{digest}", "digest": digest}
+    return _pin(reference, repository, digest)
+
+
+def _parsed(image: str) -> tuple:
+    """(repository, tag, digest) of a reference, or PinError naming the variable."""
+    parsed = parse_image(image)
+    if parsed is None:
+        raise PinError(f"isaac_sim_image: {image!r} is not a valid image reference.")
+    return parsed
+
+
+def _pin(image: str, repository: str, digest: str) -> dict:
+    return {"image": image, "pinned": f"{repository}@{digest}", "digest": digest}
 
 
 def pin_fleet(
