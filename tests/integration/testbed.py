@@ -34,7 +34,8 @@ def sh(host, command: str, check=True):
 
 
 def name(host) -> str:
-    return host.backend.get_hostname()
+    """A testinfra host's name; a name as it is (the fleet's tests name their hosts)."""
+    return host if isinstance(host, str) else host.backend.get_hostname()
 
 
 def host_ip(host) -> str:

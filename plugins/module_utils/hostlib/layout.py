@@ -72,6 +72,10 @@ RUN_UNIT_DIR = "/run/systemd/system"
 RUN_PREFIX = "isaac-sim-run-"
 LABEL_RUN = "org.isaacsim.fleet.run"
 LABEL_RUN_SERVICE = "org.isaacsim.fleet.run-service"
+# the one-off container that warms a cache before the first start of instances (instance/warm_cache.py);
+# no "isaac-sim-" in its name: what looks for instances by name (a substring for Docker) never takes it for one
+LABEL_WARM = "org.isaacsim.fleet.warm"
+WARM_CONTAINER_PREFIX = "isaacsim-warm-"
 RUN_OUTPUTS = "/isaacsim-fleet/outputs"
 RUN_ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,62}$")
 
@@ -198,6 +202,11 @@ def run_dir(run: str, data_root: str = DATA_ROOT) -> str:
     return os.path.join(data_root, "runs", run)
 
 
+def warm_dir(data_root: str = DATA_ROOT) -> str:
+    """The host's warmed caches, one archive per cache key (instance/warm_cache.py)."""
+    return os.path.join(data_root, "warm-caches")
+
+
 def instance_id(pattern: re.Pattern, name: str):
     """The instance number in a unit, env-file or marker name, else None."""
     match = pattern.match(os.path.basename(name))
@@ -213,6 +222,7 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "lib_dir": LIB_DIR,
         "run_dir": RUN_DIR,
         "data_root": data_root,
+        "warm_dir": warm_dir(data_root),
         "unit_template": UNIT_TEMPLATE,
         "target": TARGET,
         "container_prefix": CONTAINER_PREFIX,

@@ -11,9 +11,11 @@ still deploys (it pulls through the mirror, which holds the key).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
+import tarfile
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -90,6 +92,34 @@ def test_a_cold_deploy_fetched_the_image_from_upstream_through_the_mirror_alone(
     # the copy's writable registry is gone with it, and its key's file too
     assert sh(MIRROR, "systemctl is-active isaac-sim-mirror-seed.service; true").strip() != "active"
     assert sh(MIRROR, "ls /run | grep -c '^isaac-sim-seed' ; true").strip() == "0"
+
+
+def test_every_instance_of_the_cold_fleet_started_warm_from_one_warm_run(fleet):
+    """Warm before first start: one warm run for the fleet's one key (release, image; no GPU here), its
+    archive kept by the controller and copied to the other hosts, every instance's very first start warm."""
+    kept = sorted((Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "warm-caches").glob("*.tar"))
+    assert len(kept) == 1, kept
+    controller = hashlib.sha256(kept[0].read_bytes()).hexdigest()
+    with tarfile.open(kept[0]) as tar:
+        key = json.load(tar.extractfile("key.json"))
+        # the stand-in adds a line to its cache's marker at each start: the archive holds one start, the warm run
+        marker = tar.extractfile("cache/main/ov/standin-shader-cache").read().decode().split()
+    assert key["release"] == "6.x" and key["gpu_model"] == "" and len(marker) == 1, (key, marker)
+    for h in fleet:
+        # byte for byte the controller's archive on every host: made once, copied, never warmed again
+        held = sh(h, f"sha256sum /var/lib/isaac-sim/warm-caches/{kept[0].name}").split()[0]
+        assert held == controller, h
+        image_id = json.loads(sh(h, "docker inspect isaac-sim-0"))[0]["Image"]
+        assert key["image_id"] == image_id, (key, image_id)
+        # the warm run left no container and no scratch directory
+        assert sh(h, "docker ps -aq --filter label=org.isaacsim.fleet.warm").strip() == "", h
+        assert sh(h, "ls -A /var/lib/isaac-sim/warm-caches").split() == [kept[0].name], h
+        for i in range(4):
+            first = sh(h, f"journalctl -u isaac-sim@{i} --no-pager | grep 'starting as' | head -n 1")
+            assert "shader cache warm" in first, (h, i, first)
+        # status says so, beside the time each took to its ready line
+        for inst in testbed.info(h)["instances"]:
+            assert inst["cache_at_start"] == "warm" and inst["ready_after_s"] is not None, (h, inst)
 
 
 def test_status_says_whether_the_mirror_serves_and_what_its_storage_holds(fleet, tmp_path):
