@@ -23,6 +23,12 @@ options:
     type: list
     elements: str
     required: true
+  lock_timeout:
+    description:
+      - Seconds to wait while another run changes the mirror's storage (a deploy's seed); the mirror holds one such
+        change at a time.
+    type: int
+    default: 3600
 """
 
 EXAMPLES = r"""
@@ -46,29 +52,34 @@ freed_bytes:
 import re
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_gc
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_gc, mirror_lock
 
 _DIGEST = re.compile(r"^sha256:[0-9a-f]{64}$")
 
 
 def main():
     module = AnsibleModule(
-        argument_spec=dict(keep=dict(type="list", elements="str", required=True)),
+        argument_spec=dict(
+            keep=dict(type="list", elements="str", required=True),
+            lock_timeout=dict(type="int", default=3600),
+        ),
         supports_check_mode=True,
     )
     bad = [d for d in module.params["keep"] if not _DIGEST.match(d)]
     if bad:
         module.fail_json(msg=f"keep: {', '.join(bad)} not a digest (sha256:<64 hex>). Fix: pass manifest digests.")
     collector = mirror_gc.Collector(module.run_command)
-    images = collector.plan(module.params["keep"])
-    dropped = [f"{name}@{digest}" for name, digest in images]
-    freed = 0
-    if images and not module.check_mode:
-        try:
-            freed = collector.collect(images)
-        except mirror_gc.GcError as exc:
-            module.fail_json(msg=str(exc), dropped=dropped)
-    module.exit_json(changed=bool(images), dropped=dropped, freed_bytes=freed)
+    dropped, freed = [], 0
+    try:
+        # a seed running meanwhile would copy what the plan below takes for unused
+        with mirror_lock.held("a garbage collection", module.params["lock_timeout"]):
+            images = collector.plan(module.params["keep"])
+            dropped = [f"{name}@{digest}" for name, digest in images]
+            if images and not module.check_mode:
+                freed = collector.collect(images)
+    except (mirror_gc.GcError, mirror_lock.MirrorBusyError) as exc:
+        module.fail_json(msg=str(exc), dropped=dropped)
+    module.exit_json(changed=bool(dropped), dropped=dropped, freed_bytes=freed)
 
 
 if __name__ == "__main__":

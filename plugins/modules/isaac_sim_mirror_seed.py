@@ -19,6 +19,7 @@ description:
   - The upstream's credentials are read from the mirror's config; for the copy they are in a root-only file on
     C(/run), removed after it, failed or not.
   - An image held whole already is left alone (changed false). Check mode says what would be copied.
+  - One change of the mirror's storage at a time - a seed waits while another run seeds or collects garbage.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   references:
@@ -35,6 +36,12 @@ options:
     description: Seconds to wait for the loopback registry to answer.
     type: int
     default: 30
+  lock_timeout:
+    description:
+      - Seconds to wait while another run changes the mirror's storage (a seed from another inventory, a garbage
+        collection); the mirror holds one such change at a time.
+    type: int
+    default: 3600
 """
 
 EXAMPLES = r"""
@@ -62,7 +69,7 @@ held:
 import pwd
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_seed, registry_mirror
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_lock, mirror_seed, registry_mirror
 
 
 def main():
@@ -71,6 +78,7 @@ def main():
             references=dict(type="list", elements="str", required=True),
             mirror=dict(type="str", required=True),
             ready_timeout=dict(type="int", default=30),
+            lock_timeout=dict(type="int", default=3600),
         ),
         supports_check_mode=True,
     )
@@ -82,23 +90,30 @@ def main():
     try:
         images = mirror_seed.wanted(p["references"], p["mirror"])
         seeder = mirror_seed.Seeder(run)
-        lacking = seeder.lacking(images)
-        name = {image: f"{p['mirror']}/{image[0]}@{image[1]}" for image in images}
-        copied = [name[image] for image in images if image in lacking]
-        held = [name[image] for image in images if image not in lacking]
-        if lacking and not module.check_mode:
-            user = pwd.getpwnam(registry_mirror.USER)
-            seeder.copy([image for image in images if image in lacking], user.pw_uid, user.pw_gid, p["ready_timeout"])
-            still = seeder.lacking(images)
-            if still:
-                module.fail_json(
-                    msg="after the copy the mirror's storage still lacks "
-                    + "; ".join(f"{name[image]}: {', '.join(gaps[:3])}" for image, gaps in still.items())
-                    + f" (under {mirror_seed.STORE}). Fix: see the mirror's journal (journalctl -u {mirror_seed.UNIT})."
-                )
-    except (mirror_seed.SeedError, KeyError) as exc:
+        with mirror_lock.held("a seed of the pinned images", p["lock_timeout"]):
+            copied, held = _seed(module, seeder, images, p)
+    except (mirror_seed.SeedError, mirror_lock.MirrorBusyError, KeyError) as exc:
         module.fail_json(msg=str(exc))
     module.exit_json(changed=bool(copied), copied=copied, held=held)
+
+
+def _seed(module, seeder, images, p):
+    """Under the mirror's lock: what the storage lacks (another run may have copied it meanwhile), copied."""
+    lacking = seeder.lacking(images)
+    name = {image: f"{p['mirror']}/{image[0]}@{image[1]}" for image in images}
+    copied = [name[image] for image in images if image in lacking]
+    held = [name[image] for image in images if image not in lacking]
+    if lacking and not module.check_mode:
+        user = pwd.getpwnam(registry_mirror.USER)
+        seeder.copy([image for image in images if image in lacking], user.pw_uid, user.pw_gid, p["ready_timeout"])
+        still = seeder.lacking(images)
+        if still:
+            raise mirror_seed.SeedError(
+                "after the copy the mirror's storage still lacks "
+                + "; ".join(f"{name[image]}: {', '.join(gaps[:3])}" for image, gaps in still.items())
+                + f" (under {mirror_seed.STORE}). Fix: see the mirror's journal (journalctl -u {mirror_seed.UNIT})."
+            )
+    return copied, held
 
 
 if __name__ == "__main__":

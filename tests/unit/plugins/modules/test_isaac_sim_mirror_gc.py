@@ -4,10 +4,18 @@ is refused before anything."""
 from __future__ import annotations
 
 import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_lock
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_mirror_gc
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import run_module
 
 KEEP, DROP = "sha256:" + "aa" * 32, "sha256:" + "bb" * 32
+
+
+@pytest.fixture(autouse=True)
+def lock_file(monkeypatch, tmp_path):
+    """The mirror's lock in the test's own directory, not the machine's /run/lock."""
+    monkeypatch.setattr(mirror_lock, "LOCK", str(tmp_path / "mirror.lock"))
+    return tmp_path / "mirror.lock"
 
 
 @pytest.fixture()
@@ -45,4 +53,11 @@ def test_check_mode_says_what_it_would_drop_and_drops_nothing(collector, capsys)
 def test_a_keep_that_is_not_a_digest_is_refused_before_anything(collector, capsys):
     result = run_module(isaac_sim_mirror_gc.main, {"keep": ["nvcr.io/nvidia/isaac-sim:6.0.1"]}, capsys)
     assert result["failed"] and "keep: nvcr.io/nvidia/isaac-sim:6.0.1 not a digest" in result["msg"]
+    assert collector["collected"] == []
+
+
+def test_a_collection_waits_while_a_seed_runs_and_drops_nothing_meanwhile(collector, capsys):
+    with mirror_lock.held("a seed of the pinned images", 0):
+        result = run_module(isaac_sim_mirror_gc.main, {"keep": [KEEP], "lock_timeout": 0}, capsys)
+    assert result["failed"] and "busy with a seed of the pinned images" in result["msg"]
     assert collector["collected"] == []

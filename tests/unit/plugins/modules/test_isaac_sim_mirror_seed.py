@@ -4,11 +4,19 @@ mode copies nothing, and a copy that leaves a gap fails naming it."""
 from __future__ import annotations
 
 import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_lock
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_mirror_seed
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import run_module
 
 MIRROR = "10.0.0.9:5443"
 HELD, NEW = "sha256:" + "aa" * 32, "sha256:" + "bb" * 32
+
+
+@pytest.fixture(autouse=True)
+def lock_file(monkeypatch, tmp_path):
+    """The mirror's lock in the test's own directory, not the machine's /run/lock."""
+    monkeypatch.setattr(mirror_lock, "LOCK", str(tmp_path / "mirror.lock"))
+    return tmp_path / "mirror.lock"
 
 
 @pytest.fixture()
@@ -61,3 +69,11 @@ def test_a_copy_that_leaves_a_gap_fails_naming_it(seeder, capsys):
 def test_a_reference_not_on_the_mirror_fails_before_any_copy(seeder, capsys):
     result = run_module(isaac_sim_mirror_seed.main, args(references=["nvcr.io/n/sim:6.0.1"]), capsys)
     assert result["failed"] and "is not an image pinned on the mirror" in result["msg"] and seeder["copied"] == []
+
+
+def test_a_seed_waits_for_another_change_of_the_mirror_and_says_who_holds_it(seeder, lock_file, capsys):
+    with mirror_lock.held("a garbage collection", 0):
+        result = run_module(isaac_sim_mirror_seed.main, args(lock_timeout=0), capsys)
+    assert result["failed"] and "the mirror is busy with a garbage collection (pid" in result["msg"]
+    assert seeder["copied"] == []
+    assert run_module(isaac_sim_mirror_seed.main, args(lock_timeout=0), capsys)["changed"] is True
