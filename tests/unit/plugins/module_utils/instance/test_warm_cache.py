@@ -217,7 +217,7 @@ def test_the_module_call_warms_then_seeds_every_cold_instance_of_the_key(tmp_pat
 
     params = {"plan": p, "image_id": "sha256:aa", "gpus": [], "driver": "", "key": None}
     probe = warm_cache.call(dict(params, state="probe"), False, run)
-    ((kid, ids),) = probe["cold"].items()
+    [(kid, ids)] = list(probe["cold"].items())
     assert ids == [0, 1] and probe["held"] == [] and probe["changed"] is False
     with pytest.raises(warm_cache.WarmError, match="no instance"):
         warm_cache.call(dict(params, state="warm", key="0" * 16), False, run)
