@@ -18,6 +18,8 @@ description:
     release's ready line, is stopped cleanly, and what its cache mounts hold is kept.
   - C(state=seed) unpacks the archive of each such instance's key, where the host keeps it, into its cache
     directories, owned by the container's user. A running instance, or one with any cached file, is left alone.
+    A seed that fails for an instance is a warning, and that instance starts cold; a broken archive is removed.
+  - C(state=probe) also removes a warm run a killed deploy left behind.
   - Nothing here starts, stops or restarts an instance; the lifecycle starts them afterwards.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
@@ -112,6 +114,8 @@ def main():
         result = warm_cache.call(p, module.check_mode, module.run_command)
     except (warm_cache.WarmError, OSError, KeyError) as exc:
         module.fail_json(msg=f"warming the instances' caches: {exc}")
+    for warning in result.pop("warnings", []):
+        module.warn(warning)
     module.exit_json(**result)
 
 

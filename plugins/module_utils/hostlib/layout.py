@@ -223,6 +223,7 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "run_dir": RUN_DIR,
         "data_root": data_root,
         "warm_dir": warm_dir(data_root),
+        "label_warm": LABEL_WARM,
         "unit_template": UNIT_TEMPLATE,
         "target": TARGET,
         "container_prefix": CONTAINER_PREFIX,

@@ -19,6 +19,7 @@ keeps is overwritten. An instance of another key (another image, GPU model or dr
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import posixpath
@@ -41,10 +42,16 @@ class WarmError(Exception):
     pass
 
 
-def key(release: str, image_id: str, gpu_model: str, driver: str) -> dict:
-    """What a cache is valid for: the release and image that compiled it, the GPU model and driver it was
-    compiled for (a driver or GPU of another kind recompiles)."""
-    return {"release": str(release), "image_id": str(image_id), "gpu_model": gpu_model or "", "driver": driver or ""}
+def key(release: str, image_id: str, gpu_model: str, driver: str, profile: str = "streaming") -> dict:
+    """What a cache is valid for: the release, image and way of running (isaac_sim_profile: its launch script)
+    that compiled it, the GPU model and driver it was compiled for (a driver or GPU of another kind recompiles)."""
+    return {
+        "release": str(release),
+        "image_id": str(image_id),
+        "profile": str(profile),
+        "gpu_model": gpu_model or "",
+        "driver": driver or "",
+    }
 
 
 def key_id(k: dict) -> str:
@@ -58,14 +65,20 @@ def instance_keys(plan: dict, image_id: str, gpus: list, driver: str) -> dict:
     for inst in plan["instances"]:
         gpu = inst.get("gpu")
         model, drv = (models.get(gpu, ""), driver) if gpu is not None else ("", "")
-        k = key(plan["release"], image_id, model, drv)
+        k = key(plan["release"], image_id, model, drv, inst.get("profile", "streaming"))
         out[inst["id"]] = (key_id(k), k)
     return out
 
 
 def has_file(path: str) -> bool:
-    """Whether a directory holds any file below it (isaac-sim-cache-state's test of a warm cache)."""
-    return any(files for _root, _dirs, files in os.walk(path))
+    """Whether a directory holds a regular file below it, as isaac-sim-cache-state's `find DIR -type f` tells
+    a warm cache: links are not files, and a directory that is a link is not looked into."""
+    if os.path.islink(path):
+        return False
+    for root, _dirs, files in os.walk(path):
+        if any(os.path.isfile(os.path.join(root, f)) and not os.path.islink(os.path.join(root, f)) for f in files):
+            return True
+    return False
 
 
 def cold(plan: dict, image_id: str, gpus: list, driver: str, active: set, holds=has_file) -> tuple[dict, dict]:
@@ -104,25 +117,77 @@ def _rel(inst: dict, source: str) -> str:
     return source[len(root) :] if source.startswith(root) else "shared/" + os.path.basename(source.rstrip("/"))
 
 
+# docker run's options that take a value, which a user may give as the next word (--label a=b)
+_VALUED = frozenset({
+    "--label", "-l", "--network", "--net", "--ip", "--ip6", "--publish", "-p", "--expose", "--env", "-e",
+    "--env-file", "--volume", "-v", "--mount", "--tmpfs", "--health-cmd", "--health-interval", "--health-timeout",
+    "--health-retries", "--health-start-period", "--health-start-interval", "--memory", "-m", "--memory-swap",
+    "--memory-reservation", "--shm-size", "--cpus", "--cpuset-cpus", "--cpu-shares", "-c", "--user", "-u",
+    "--group-add", "--entrypoint", "--workdir", "-w", "--hostname", "-h", "--domainname", "--add-host", "--dns",
+    "--dns-search", "--dns-option", "--security-opt", "--gpus", "--runtime", "--cap-add", "--cap-drop", "--device",
+    "--device-cgroup-rule", "--ulimit", "--sysctl", "--pid", "--ipc", "--uts", "--userns", "--cgroupns",
+    "--log-driver", "--log-opt", "--restart", "--stop-signal", "--stop-timeout", "--pull", "--platform", "--name",
+    "--mac-address", "--storage-opt", "--cgroup-parent", "--oom-score-adj", "--pids-limit",
+})  # fmt: skip
+
+
+def words(args) -> list:
+    """(argument as one word, option, value) of docker run arguments; a value given as the next word joins
+    its option (--label a=b: ("--label=a=b", "--label", "a=b")); a flag has value None."""
+    out, items, i = [], [str(a) for a in args or []], 0
+    while i < len(items):
+        word = items[i]
+        if word.startswith("--") and "=" in word:
+            opt, value = word.split("=", 1)
+        elif word in _VALUED and i + 1 < len(items):
+            opt, value, i = word, items[i + 1], i + 1
+        elif len(word) > 2 and word[0] == "-" and word[1] != "-" and word[:2] in _VALUED:
+            opt, value = word[:2], word[2:]
+        else:
+            opt, value = word, None
+        opt = {"-v": "--volume", "-e": "--env", "-l": "--label", "-p": "--publish"}.get(opt, opt)
+        out.append((opt if value is None else f"{opt}={value}", opt, value))
+        i += 1
+    return out
+
+
+def _read_only(opt: str, value: str) -> str:
+    """A mount of the user's own (not the instance's directories) for the warm run: read-only, so the
+    one-off start writes nothing into the user's data."""
+    if opt == "--volume":
+        parts = value.split(":")
+        if len(parts) == 2:
+            return f"--volume={value}:ro"
+        modes = [m for m in parts[2].split(",") if m not in ("rw", "ro")] + ["ro"]
+        return f"--volume={':'.join(parts[:2])}:{','.join(modes)}"
+    fields = [f for f in value.split(",") if f not in ("readonly", "ro", "readonly=false", "readonly=true")]
+    return f"--mount={','.join(fields + ['readonly'])}"
+
+
 def run_argv(plan: dict, inst: dict, image_id: str, scratch: str, name: str, kid: str) -> tuple[list, list]:
     """(docker run argv, scratch subdirectories) of the warm run of `inst`: its own arguments, environment
-    (secrets left out) and GPU, every mount on scratch, Docker's bridge network, no healthcheck."""
+    (secrets left out) and GPU, its mounts on scratch and the user's read-only, Docker's bridge network with
+    nothing published, no healthcheck."""
     public = inst.get("address") or plan.get("public_address") or ""
     env = dict(inst.get("container_env") or {})
     secret = set(inst.get("secret_env_names") or [])
     argv = ["docker", "run", "--detach", f"--name={name}", f"--label={layout.LABEL_WARM}={kid}", "--network=bridge"]
     subdirs = []
-    for arg in inst["docker_args"]:
-        opt, _sep, value = arg.partition("=")
-        if opt in ("--network", "--net", "--ip", "--ip6", "--label") or opt.startswith("--health-"):
+    dropped = ("--network", "--net", "--ip", "--ip6", "--label", "--publish", "--publish-all", "-P", "--name")
+    for arg, opt, value in words(inst["docker_args"]):
+        if opt in dropped or opt.startswith("--health-") or opt == "--no-healthcheck":
             continue
-        if opt in ("--volume", "-v"):
+        if opt == "--volume" and value is not None:
             source, _sep, rest = value.partition(":")
             if source in inst.get("dirs", []):
                 sub = _rel(inst, source)
                 subdirs.append(sub)
                 arg = f"--volume={scratch}/{sub}:{rest}"
-        elif opt in ("--env", "-e") and "=" not in value:
+            else:
+                arg = _read_only(opt, value)
+        elif opt == "--mount" and value is not None:
+            arg = _read_only(opt, value)
+        elif opt == "--env" and value is not None and "=" not in value:
             if value in secret:
                 continue
             if value in env:
@@ -147,32 +212,34 @@ def safe_member(member: tarfile.TarInfo) -> str | None:
 
 
 def pack(scratch: str, dest: str, k: dict) -> int:
-    """Write the scratch directory's cache mounts and the key to `dest` (through a temporary name); its size."""
+    """Write the scratch directory's cache mounts and the key to `dest` (through a temporary name); its size.
+    Every file goes in as a regular member, a hard link's too; links and special files stay out."""
     tmp = f"{dest}.partial"
     with tarfile.open(tmp, "w") as tar:
         data = json.dumps(k, sort_keys=True).encode()
         info = tarfile.TarInfo(KEY_MEMBER)
         info.size, info.mode, info.mtime = len(data), 0o644, int(time.time())
-        tar.addfile(info, _bytes(data))
+        tar.addfile(info, io.BytesIO(data))
         for sub in WARM_CACHES:
             top = os.path.join(scratch, sub)
             for root, dirs, files in os.walk(top):
                 dirs.sort()
                 for entry in sorted(files) + dirs:
                     path = os.path.join(root, entry)
-                    # links and special files stay out: an archive only ever holds files and directories
-                    if os.path.islink(path) or not (os.path.isfile(path) or os.path.isdir(path)):
+                    if os.path.islink(path):
                         continue
-                    tar.add(path, arcname=os.path.relpath(path, scratch), recursive=False)
-    os.chmod(tmp, 0o600)
+                    arcname = os.path.relpath(path, scratch)
+                    if os.path.isdir(path):
+                        tar.add(path, arcname=arcname, recursive=False)
+                    elif os.path.isfile(path):
+                        info = tar.gettarinfo(path, arcname)
+                        info.type, info.linkname, info.size = tarfile.REGTYPE, "", os.path.getsize(path)
+                        with open(path, "rb") as f:
+                            tar.addfile(info, f)
+    # the caches are no secret (the warm run had none): readable, so the controller fetches it as itself
+    os.chmod(tmp, 0o644)
     os.replace(tmp, dest)
     return os.path.getsize(dest)
-
-
-def _bytes(data: bytes):
-    import io
-
-    return io.BytesIO(data)
 
 
 def read_key(path: str) -> dict:
@@ -183,28 +250,52 @@ def read_key(path: str) -> dict:
 
 def seed(path: str, root: str, uid: int, gid: int, want: dict) -> int:
     """Unpack the cache archive at `path` into an instance's directory `root` (its cache mounts only), owned
-    by the container's user; the number of files. Refuses an archive of another key than `want`."""
-    found = read_key(path)
+    by the container's user; the number of files. Refuses an archive of another key than `want`.
+
+    Unpacked into a scratch directory beside them first, then each cache directory moved into place, where
+    the instance has it empty (a directory with anything in it, or a link, is left as it is): a seed that
+    fails half-way (a full disk, a broken archive) leaves the caches as they were."""
+    try:
+        found = read_key(path)
+    except (tarfile.TarError, KeyError, ValueError, OSError) as exc:
+        raise WarmError(f"{path} is no cache archive ({exc})") from exc
     if found != want:
         raise WarmError(f"{path} holds the cache of {found}, not of {want}")
-    count = 0
     if not os.path.isdir(root):
         os.makedirs(os.path.dirname(root), exist_ok=True)
         _dirs_to(root, os.path.dirname(root), uid, gid)
-    with tarfile.open(path) as tar:
-        for member in tar:
-            name = safe_member(member)
-            if name is None:
+    scratch = tempfile.mkdtemp(prefix=".warm-seed.", dir=root)
+    count = 0
+    try:
+        with tarfile.open(path) as tar:
+            for member in tar:
+                name = safe_member(member)
+                if name is None:
+                    continue
+                target = os.path.join(scratch, name)
+                _dirs_to(os.path.dirname(target) if member.isfile() else target, scratch, uid, gid)
+                if member.isfile():
+                    with tar.extractfile(member) as src, open(target, "xb") as dst:
+                        shutil.copyfileobj(src, dst)
+                    os.chown(target, uid, gid)
+                    os.chmod(target, member.mode & 0o755 | 0o600)
+                    os.utime(target, (member.mtime, member.mtime))
+                    count += 1
+        for sub in WARM_CACHES:
+            made, place = os.path.join(scratch, sub), os.path.join(root, sub)
+            if not os.path.isdir(made) or os.path.islink(place):
                 continue
-            target = os.path.join(root, name)
-            _dirs_to(os.path.dirname(target) if member.isfile() else target, root, uid, gid)
-            if member.isfile():
-                with tar.extractfile(member) as src, open(target, "wb") as dst:
-                    shutil.copyfileobj(src, dst)
-                os.chown(target, uid, gid)
-                os.chmod(target, member.mode & 0o755 | 0o600)
-                os.utime(target, (member.mtime, member.mtime))
-                count += 1
+            if os.path.isdir(place):
+                try:
+                    os.rmdir(place)  # only an empty one: a cache with anything in it is kept as it is
+                except OSError:
+                    continue
+            _dirs_to(os.path.dirname(place), root, uid, gid)
+            os.rename(made, place)
+    except tarfile.TarError as exc:
+        raise WarmError(f"{path} is a broken cache archive ({exc}); nothing was unpacked") from exc
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     return count
 
 
@@ -244,7 +335,7 @@ class Warmer:
 
     def warm(self, plan: dict, inst: dict, image_id: str, store: str, kid: str, k: dict) -> dict:
         """Start the warm run of `inst`, wait for the ready line, stop it cleanly, keep its caches in the store."""
-        os.makedirs(store, mode=0o700, exist_ok=True)
+        os.makedirs(store, mode=0o755, exist_ok=True)
         self.sweep(store)
         scratch = tempfile.mkdtemp(prefix=f".{kid}.", dir=store)
         name = layout.WARM_CONTAINER_PREFIX + kid
@@ -301,7 +392,9 @@ def active(systemctl_show: str) -> set:
 
 
 def call(p: dict, check: bool, run) -> dict:
-    """The module isaac_sim_warm_cache: probe, warm one key, or seed (see its documentation)."""
+    """The module isaac_sim_warm_cache: probe, warm one key, or seed (see its documentation). A seed that
+    fails for one instance is said in `warnings` and that instance starts cold; a broken archive is removed
+    from the host, so the next deploy copies it again."""
     plan = p["plan"]
     store = layout.warm_dir(plan["layout"]["data_root"])
     running = set()
@@ -311,23 +404,34 @@ def call(p: dict, check: bool, run) -> dict:
         # systemd unreachable: every instance counts as running, so none is touched
         running = active(out) if rc == 0 else {i["id"] for i in plan["instances"]}
     found, keys = cold(plan, p["image_id"], p["gpus"], p["driver"], running)
-    result = {"cold": found, "keys": keys, "held": held(store), "store": store, "changed": False}
+    result = {"cold": found, "keys": keys, "held": held(store), "store": store, "changed": False, "warnings": []}
     by_id = {inst["id"]: inst for inst in plan["instances"]}
-    if p["state"] == "warm":
+    warmer = Warmer(run)
+    if p["state"] == "probe" and not check:
+        # a warm run a killed deploy left (this run holds the host's lock): it must not keep a GPU
+        warmer.sweep(store)
+    elif p["state"] == "warm":
         if p["key"] not in found:
             raise WarmError(f"no instance of this host would start on empty caches with the cache key {p['key']}")
         if not check:
             inst = by_id[found[p["key"]][0]]
-            result.update(Warmer(run).warm(plan, inst, p["image_id"], store, p["key"], keys[p["key"]]))
+            result.update(warmer.warm(plan, inst, p["image_id"], store, p["key"], keys[p["key"]]))
             result["held"] = held(store)
         result["changed"] = True
     elif p["state"] == "seed":
         seeded = {}
         for kid, ids in found.items():
-            if kid in result["held"]:
-                for i in ids:
-                    path = archive(store, kid)
+            if kid not in result["held"]:
+                continue
+            path = archive(store, kid)
+            for i in ids:
+                try:
                     seeded[i] = 0 if check else seed(path, by_id[i]["root"], plan["uid"], plan["gid"], keys[kid])
+                except (WarmError, OSError) as exc:
+                    result["warnings"].append(f"instance {i} starts on empty caches: {exc}")
+                    if isinstance(exc, WarmError) and "cache archive" in str(exc) and os.path.exists(path):
+                        os.unlink(path)
+                        break
         result.update(seeded=seeded, changed=bool(seeded))
     return result
 

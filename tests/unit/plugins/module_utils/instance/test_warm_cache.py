@@ -33,6 +33,7 @@ def test_a_key_is_release_image_gpu_model_and_driver_and_an_instance_without_gpu
     assert keys[0][1] == {
         "release": "6.x",
         "image_id": "sha256:aa",
+        "profile": "streaming",
         "gpu_model": "NVIDIA H100 80GB HBM3",
         "driver": "580.65",
     }
@@ -42,6 +43,9 @@ def test_a_key_is_release_image_gpu_model_and_driver_and_an_instance_without_gpu
     assert warm_cache.instance_keys(p, "sha256:aa", H100, "580.76")[0][0] != keys[0][0]
     bare = warm_cache.instance_keys(_plan(tmp_path), "sha256:aa", [], "580.65")
     assert bare[0][1]["gpu_model"] == "" and bare[0][1]["driver"] == "" and bare[0][0] == bare[1][0]
+    # a headless instance runs another launch script: a cache of its own
+    mixed = warm_cache.instance_keys(_plan(tmp_path, instance_profiles={1: "headless"}), "sha256:aa", [], "")
+    assert mixed[0][0] != mixed[1][0] and mixed[1][1]["profile"] == "headless"
 
 
 def test_cold_means_not_running_and_no_file_in_any_cache(tmp_path):
@@ -51,6 +55,9 @@ def test_cold_means_not_running_and_no_file_in_any_cache(tmp_path):
     # a file anywhere under one cache of instance 1 makes it warm; instance 0 runs: neither is touched
     deep = os.path.join(p["instances"][1]["caches"][0], "a", "b")
     os.makedirs(deep)
+    assert warm_cache.cold(p, "sha256:aa", [], "", active=set())[0] == {next(iter(found)): [0, 1]}
+    # a link is no file (isaac-sim-cache-state's find -type f says so too)
+    os.symlink("/etc/hostname", os.path.join(deep, "link"))
     assert warm_cache.cold(p, "sha256:aa", [], "", active=set())[0] == {next(iter(found)): [0, 1]}
     open(os.path.join(deep, "shader.bin"), "w").close()
     assert warm_cache.cold(p, "sha256:aa", [], "", active={0})[0] == {}
@@ -67,15 +74,26 @@ def test_the_running_units_are_read_from_systemctl_show():
 
 
 def test_the_warm_run_is_the_instance_s_own_start_on_scratch_with_no_secret_and_its_own_network(tmp_path):
-    p = _plan(tmp_path, gpu_enabled=True, gpu_map={0: 1, 1: 0}, docker_args=["--volume=/datasets:/datasets:ro"])
+    user = [
+        "--volume=/datasets:/datasets:rw",
+        "--label",
+        "team=a b",
+        "-p",
+        "8080:80",
+        "--mount=type=bind,src=/m,dst=/m",
+    ]
+    p = _plan(tmp_path, gpu_enabled=True, gpu_map={0: 1, 1: 0}, docker_args=user)
     inst = p["instances"][0]
     argv, subdirs = warm_cache.run_argv(p, inst, "sha256:aa", "/scratch", "warm-isaac-sim-k", "k")
     joined = " ".join(argv)
     assert argv[:2] == ["docker", "run"] and "--network=bridge" in argv and "--network=host" not in argv
     assert f"--label={layout.LABEL_WARM}=k" in argv and f"--label={layout.LABEL_INSTANCE}=0" not in argv
     assert "--health-cmd" not in joined and "--gpus=device=1" in argv and "--runtime=nvidia" in argv
-    # every mount of the instance on scratch, the user's own mount kept as it is
+    # every mount of the instance on scratch, the user's own read-only; a two-word label and a published
+    # port (host ports, on a bridge) dropped whole
     assert inst["root"] not in joined and "--volume=/datasets:/datasets:ro" in argv
+    assert "--mount=type=bind,src=/m,dst=/m,readonly" in argv
+    assert "team=a b" not in argv and "8080:80" not in joined and "-p" not in argv
     assert "--volume=/scratch/cache/main:/isaac-sim/.cache:rw" in argv and "cache/main" in subdirs
     # its environment by value, the host's address replaced by the warm run's own; no secret at all
     assert "--env=ACCEPT_EULA=Y" in argv and "--env=NGC_KEY" not in joined
@@ -102,6 +120,7 @@ class FakeDocker:
             os.makedirs(os.path.join(main, "ov", "shaders"))
             with open(os.path.join(main, "ov", "shaders", "s.bin"), "w") as fh:
                 fh.write("compiled")
+            os.link(os.path.join(main, "ov", "shaders", "s.bin"), os.path.join(main, "ov", "shaders", "hard.bin"))
             os.symlink("/etc/shadow", os.path.join(main, "ov", "link"))
             os.mkfifo(os.path.join(main, "fifo"))
             with open(os.path.join(next(m for m in mounts if m.endswith("/logs")), "kit.log"), "w") as fh:
@@ -131,6 +150,10 @@ def test_a_warm_run_keeps_only_files_of_the_cache_mounts_and_leaves_nothing_behi
         names = tar.getnames()
     assert names[0] == "key.json" and "cache/main/ov/shaders/s.bin" in names
     assert not any("link" in n or "fifo" in n or "logs" in n for n in names), names
+    # a hard link goes in as a file of its own, with its content
+    with tarfile.open(os.path.join(store, kid + ".tar")) as tar:
+        hard = tar.getmember("cache/main/ov/shaders/hard.bin")
+        assert hard.isfile() and tar.extractfile(hard).read() == b"compiled"
     # stopped cleanly (the plan's stop timeout), then removed
     assert ["docker", "stop", "-t", "60", layout.WARM_CONTAINER_PREFIX + kid] in docker.calls
     assert docker.calls[-1] == ["docker", "rm", "-f", layout.WARM_CONTAINER_PREFIX + kid]
@@ -189,19 +212,6 @@ def test_seeding_unpacks_files_under_the_cache_mounts_only(tmp_path):
         warm_cache.seed(path, root, os.getuid(), os.getgid(), dict(k, driver="580"))
 
 
-def test_seeding_never_follows_a_link_in_the_instance_s_directory(tmp_path):
-    k = warm_cache.key("6.x", "sha256:aa", "", "")
-    path = str(tmp_path / "k.tar")
-    _archive(path, k, [("cache/main/ov/s.bin", b"compiled", tarfile.REGTYPE)])
-    root = tmp_path / "instance-0"
-    (root / "cache").mkdir(parents=True)
-    (tmp_path / "elsewhere").mkdir()
-    (root / "cache" / "main").symlink_to(tmp_path / "elsewhere")
-    with pytest.raises(warm_cache.WarmError, match="is a link"):
-        warm_cache.seed(path, str(root), os.getuid(), os.getgid(), k)
-    assert os.listdir(tmp_path / "elsewhere") == []
-
-
 def test_the_module_call_warms_then_seeds_every_cold_instance_of_the_key(tmp_path):
     p = _plan(tmp_path)
     docker = FakeDocker(ready_after=1)
@@ -225,7 +235,7 @@ def test_the_module_call_warms_then_seeds_every_cold_instance_of_the_key(tmp_pat
     assert warmed["changed"] and warmed["held"] == [kid]
     assert warm_cache.call(dict(params, state="seed"), True, run)["seeded"] == {0: 0, 1: 0}
     seeded = warm_cache.call(dict(params, state="seed"), False, run)
-    assert seeded["seeded"] == {0: 1, 1: 1} and seeded["changed"]
+    assert seeded["seeded"] == {0: 2, 1: 2} and seeded["changed"]
     # warm now: a second seed finds nothing cold, and changes nothing
     again = warm_cache.call(dict(params, state="seed"), False, run)
     assert again["cold"] == {} and again["changed"] is False
@@ -247,3 +257,39 @@ def test_the_fleet_warms_each_key_once_and_gives_it_to_the_others():
     assert out["h3"] == {"warm": [], "fetch": ["b"], "copy": []}
     assert out["h4"] == {"warm": [], "fetch": [], "copy": ["c"]}
     assert warm_cache.fleet_plan([("h1", [], [])], kept=[]) == {"h1": {"warm": [], "fetch": [], "copy": []}}
+
+
+def test_a_cache_that_holds_anything_or_is_a_link_is_left_and_a_broken_archive_changes_nothing(tmp_path):
+    k = warm_cache.key("6.x", "sha256:aa", "", "")
+    path = str(tmp_path / "k.tar")
+    _archive(
+        path, k, [("cache/main/ov/s.bin", b"compiled", tarfile.REGTYPE), ("cache/kit/k.bin", b"k", tarfile.REGTYPE)]
+    )
+    root = tmp_path / "instance-0"
+    (root / "cache" / "main").mkdir(parents=True)
+    (root / "cache" / "main" / "mine.txt").write_text("the user's")
+    (tmp_path / "elsewhere").mkdir()
+    (root / "cache" / "kit").symlink_to(tmp_path / "elsewhere")
+    assert warm_cache.seed(path, str(root), os.getuid(), os.getgid(), k) == 2
+    assert os.listdir(root / "cache" / "main") == ["mine.txt"] and os.listdir(tmp_path / "elsewhere") == []
+    assert not [n for n in os.listdir(root) if n.startswith(".warm-seed")]
+    broken = tmp_path / "broken.tar"
+    with open(path, "rb") as f:
+        broken.write_bytes(f.read()[:700])
+    with pytest.raises(warm_cache.WarmError, match="cache archive"):
+        warm_cache.seed(str(broken), str(tmp_path / "instance-1"), os.getuid(), os.getgid(), k)
+    assert not (tmp_path / "instance-1" / "cache").exists()
+
+
+def test_a_broken_archive_is_a_warning_the_instances_start_cold_and_it_is_removed(tmp_path):
+    p = _plan(tmp_path)
+    run = lambda argv: (0, "", "") if argv[0] == "systemctl" else FakeDocker()(argv)  # noqa: E731
+    params = {"plan": p, "image_id": "sha256:aa", "gpus": [], "driver": "", "key": None}
+    [kid] = warm_cache.call(dict(params, state="probe"), False, run)["cold"]
+    store = layout.warm_dir(p["layout"]["data_root"])
+    os.makedirs(store)
+    with open(os.path.join(store, kid + ".tar"), "wb") as f:
+        f.write(b"not a tar")
+    out = warm_cache.call(dict(params, state="seed"), False, run)
+    assert out["seeded"] == {} and out["changed"] is False and "instance 0 starts on empty caches" in out["warnings"][0]
+    assert os.listdir(store) == []
