@@ -283,9 +283,13 @@ def test_a_cache_that_holds_anything_or_is_a_link_is_left_and_a_broken_archive_c
 
 def test_a_broken_archive_is_a_warning_the_instances_start_cold_and_it_is_removed(tmp_path):
     p = _plan(tmp_path)
-    run = lambda argv: (0, "", "") if argv[0] == "systemctl" else FakeDocker()(argv)  # noqa: E731
+    docker = FakeDocker()
+
+    def run(argv):
+        return (0, "", "") if argv[0] == "systemctl" else docker(argv)
+
     params = {"plan": p, "image_id": "sha256:aa", "gpus": [], "driver": "", "key": None}
-    [kid] = warm_cache.call(dict(params, state="probe"), False, run)["cold"]
+    [kid] = list(warm_cache.call(dict(params, state="probe"), False, run)["cold"])
     store = layout.warm_dir(p["layout"]["data_root"])
     os.makedirs(store)
     with open(os.path.join(store, kid + ".tar"), "wb") as f:
