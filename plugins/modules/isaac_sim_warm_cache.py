@@ -10,7 +10,8 @@ module: isaac_sim_warm_cache
 short_description: Give instances that would start on empty caches a cache warmed once for the fleet
 version_added: "0.3.0"
 description:
-  - A cache is valid for a key - the release, the image (its id), the GPU model and the driver version.
+  - A cache is valid for a key - the release, the image (its id), the instance's profile, the GPU model and the
+    driver version.
   - C(state=probe) finds the planned instances that are not running and whose cache directories hold no file,
     with the key each needs, and the keys whose archive the host keeps.
   - C(state=warm) makes the archive of one key on this host - a one-off container of the first such instance

@@ -29,7 +29,7 @@ import tarfile
 import tempfile
 import time
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import WARM_CACHES
 
 KEY_MEMBER = "key.json"
@@ -40,6 +40,10 @@ WARM_ADDRESS = "127.0.0.1"
 
 class WarmError(Exception):
     pass
+
+
+class BrokenArchiveError(WarmError):
+    """An archive that cannot be read: the host's copy is removed, so the next deploy copies it again."""
 
 
 def key(release: str, image_id: str, gpu_model: str, driver: str, profile: str = "streaming") -> dict:
@@ -87,10 +91,11 @@ def cold(plan: dict, image_id: str, gpus: list, driver: str, active: set, holds=
     found, keys = {}, {}
     if not image_id or image_id == "unknown":
         return found, keys
+    every = instance_keys(plan, image_id, gpus, driver)
     for inst in plan["instances"]:
         if inst["id"] in active or any(holds(path) for path in inst.get("caches") or []):
             continue
-        kid, k = instance_keys(plan, image_id, gpus, driver)[inst["id"]]
+        kid, k = every[inst["id"]]
         found.setdefault(kid, []).append(inst["id"])
         keys[kid] = k
     return found, keys
@@ -258,7 +263,7 @@ def seed(path: str, root: str, uid: int, gid: int, want: dict) -> int:
     try:
         found = read_key(path)
     except (tarfile.TarError, KeyError, ValueError, OSError) as exc:
-        raise WarmError(f"{path} is no cache archive ({exc})") from exc
+        raise BrokenArchiveError(f"{path} is no cache archive ({exc})") from exc
     if found != want:
         raise WarmError(f"{path} holds the cache of {found}, not of {want}")
     if not os.path.isdir(root):
@@ -293,7 +298,7 @@ def seed(path: str, root: str, uid: int, gid: int, want: dict) -> int:
             _dirs_to(os.path.dirname(place), root, uid, gid)
             os.rename(made, place)
     except tarfile.TarError as exc:
-        raise WarmError(f"{path} is a broken cache archive ({exc}); nothing was unpacked") from exc
+        raise BrokenArchiveError(f"{path} is a broken cache archive ({exc}); nothing was unpacked") from exc
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return count
@@ -382,13 +387,12 @@ def _tail(text: str) -> str:
 
 def active(systemctl_show: str) -> set:
     """The instance ids whose unit runs or starts, from `systemctl show -p Id -p ActiveState UNIT...`."""
-    out = set()
-    for block in systemctl_show.strip().split("\n\n"):
-        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-        match = layout.UNIT_RE.match(fields.get("Id", ""))
-        if match and fields.get("ActiveState") in ("active", "activating", "reloading", "deactivating"):
-            out.add(int(match.group(1)))
-    return out
+    running = ("active", "activating", "reloading", "deactivating")
+    return {
+        i
+        for i, props in fleet_status.parse_systemctl_show(systemctl_show).items()
+        if props.get("ActiveState") in running
+    }
 
 
 def call(p: dict, check: bool, run) -> dict:
@@ -429,7 +433,7 @@ def call(p: dict, check: bool, run) -> dict:
                     seeded[i] = 0 if check else seed(path, by_id[i]["root"], plan["uid"], plan["gid"], keys[kid])
                 except (WarmError, OSError) as exc:
                     result["warnings"].append(f"instance {i} starts on empty caches: {exc}")
-                    if isinstance(exc, WarmError) and "cache archive" in str(exc) and os.path.exists(path):
+                    if isinstance(exc, BrokenArchiveError) and os.path.exists(path):
                         os.unlink(path)
                         break
         result.update(seeded=seeded, changed=bool(seeded))
