@@ -61,14 +61,15 @@ def actions(state: str, show: dict, files_changed: list, removable: list, direct
 
     started: its directories made first (they may be a container's mounts), enabled and running,
     restarted when one of its files or directories changed while it ran.
-    absent: stopped and disabled, before its files go.
+    absent: stopped and disabled, before its files go; a timer's service (Triggers) is stopped with
+    it while files remain, or a run it started may write them again after they went.
     """
     units_changed = any(is_unit_file(p) for p in files_changed + (removable if state == "absent" else []))
     active = show.get("ActiveState") in ("active", "activating", "reloading")
     enabled = show.get("UnitFileState") == "enabled"
     verbs = []
     if state == "absent":
-        if active:
+        if active or (show.get("Triggers") and removable):
             verbs.append("stop")
         if enabled:
             verbs.append("disable")
@@ -174,16 +175,19 @@ class Service:
         self.files = wanted_files(params)
         self.systemctl = systemctl
         self.run = run
+        self.triggers = []
 
     def show(self) -> dict:
         rc, out, _err = self.run(
-            [self.systemctl, "show", "-p", "ActiveState", "-p", "UnitFileState", "-p", "LoadState", self.p["name"]]
+            [self.systemctl, "show", "-p", "ActiveState", "-p", "UnitFileState", "-p", "LoadState", "-p", "Triggers"]
+            + [self.p["name"]]
         )
         return dict(line.split("=", 1) for line in out.splitlines() if "=" in line) if rc == 0 else {}
 
     def apply(self, check: bool) -> dict:
         """What changed (changed, actions, changed_files, diff); nothing is done in check mode."""
         p, show = self.p, self.show()
+        self.triggers = show.get("Triggers", "").split()
         fix = []
         if p["state"] == "absent":
             changed = [path for path in list(self.files) + p["remove"] if os.path.lexists(path)]
@@ -214,7 +218,8 @@ class Service:
                 remove(path)
         else:
             name = self.p["name"]
-            rc, out, err = self.run([self.systemctl, verb] + ([] if verb == "daemon-reload" else [name]))
+            units = {"daemon-reload": [], "stop": [name] + self.triggers}.get(verb, [name])
+            rc, out, err = self.run([self.systemctl, verb] + units)
             if rc != 0:
                 raise ServiceError(
                     f"systemctl {verb} {name} failed: {(err or out).strip()}. "

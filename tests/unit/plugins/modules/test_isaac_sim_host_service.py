@@ -15,14 +15,16 @@ from ansible_collections.isaacsim.fleet.tests.unit.helpers import run_module
 @pytest.fixture
 def systemctl(monkeypatch):
     """Records every systemctl call and keeps the unit's state as systemd would."""
-    unit = {"ActiveState": "inactive", "UnitFileState": "", "LoadState": "not-found", "fail": None}
+    unit = {"ActiveState": "inactive", "UnitFileState": "", "LoadState": "not-found", "Triggers": "", "fail": None}
     calls = []
 
     def run_command(self, args, **kwargs):
         verb = args[1]
         calls.append(verb)
+        unit.setdefault("argvs", []).append(list(args))
         if verb == "show":
-            return 0, "".join(f"{k}={unit[k]}\n" for k in ("ActiveState", "UnitFileState", "LoadState")), ""
+            keys = [args[i + 1] for i, a in enumerate(args) if a == "-p"]
+            return 0, "".join(f"{k}={unit[k]}\n" for k in keys), ""
         if verb == unit["fail"]:
             return 1, "", "Job for x.service failed because the control process exited with error code."
         unit.update(
@@ -95,7 +97,20 @@ def test_absent_stops_disables_and_removes_files_but_keeps_directories(tmp_path,
     )
     assert result["actions"] == ["stop", "disable", "remove", "daemon-reload"]
     assert calls == ["show", "stop", "disable", "daemon-reload"]
+    assert ["/usr/bin/systemctl", "stop", "x.service"] in unit["argvs"]
     assert sorted(os.listdir(tmp_path)) == ["state"]
+
+
+def test_a_timer_going_away_stops_the_service_it_triggers_in_the_same_call(tmp_path, systemctl, capsys):
+    unit, calls = systemctl
+    timer = {"name": "x.timer", "files": {str(tmp_path / "x.timer"): {"content": "[Timer]\n"}}}
+    run_module(isaac_sim_host_service.main, args(tmp_path, **timer), capsys)
+    unit["Triggers"] = "x.service"
+    calls.clear()
+    result = run_module(isaac_sim_host_service.main, {**args(tmp_path, **timer), "state": "absent"}, capsys)
+    assert result["actions"] == ["stop", "disable", "remove", "daemon-reload"]
+    assert calls == ["show", "stop", "disable", "daemon-reload"]
+    assert ["/usr/bin/systemctl", "stop", "x.timer", "x.service"] in unit["argvs"]
 
 
 @pytest.mark.parametrize(

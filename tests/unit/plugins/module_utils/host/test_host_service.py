@@ -51,6 +51,19 @@ def test_absent_stops_and_disables_before_removing():
     assert host_service.actions("absent", NEW, [], []) == []
 
 
+def test_a_timer_going_away_stops_its_service_while_its_files_remain():
+    """The metrics timer stopped mid-run of its service: the service would write its file again
+    after it was removed (seen in CI), so the service is stopped too, before anything goes."""
+    timer = dict(RUNNING, Triggers="isaac-sim-metrics.service")
+    prom = "/var/lib/prometheus/node-exporter/isaac_sim.prom"
+    assert host_service.actions("absent", timer, [], [prom])[:1] == ["stop"]
+    # a timer stopped earlier whose service may still run: stopped all the same
+    stopped = dict(timer, ActiveState="inactive", UnitFileState="disabled")
+    assert host_service.actions("absent", stopped, [], [prom]) == ["stop", "remove"]
+    # nothing left: nothing to do, a re-run changes nothing
+    assert host_service.actions("absent", stopped, [], []) == []
+
+
 def test_changed_files_compare_content_and_mode(tmp_path):
     same, other, mode, missing = (str(tmp_path / n) for n in ("same", "other", "mode", "missing"))
     for path in (same, other, mode):
