@@ -146,3 +146,20 @@ def server() -> tuple:
         ("SystemCallErrorNumber", "EPERM"),
         ("UMask", "0077"),
     )
+
+
+def web_server() -> tuple:
+    """The front door's nginx: its master binds the HTTP(S) ports, reads the certificate's key as
+    root and drops its workers to the web user (setuid, and chown of its temporary directories);
+    no PrivateUsers, as that user must exist inside. It writes only its runtime directory and
+    reaches the hosts behind it over IP, the login service and the journal's socket."""
+    return (
+        *_COMMON,
+        ("CapabilityBoundingSet", "CAP_NET_BIND_SERVICE CAP_SETUID CAP_SETGID CAP_CHOWN"),
+        ("ProtectHome", "yes"),
+        ("PrivateTmp", "yes"),
+        ("PrivateDevices", "yes"),
+        ("ProtectKernelModules", "yes"),
+        ("RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6"),
+        ("SystemCallErrorNumber", "EPERM"),
+    )

@@ -1,0 +1,305 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The front door's login service (roles/front_door).
+
+nginx asks it about every request before passing it on (auth_request: 204 passes, 401 goes to the
+login page, 403 is refused), and it serves the login page itself. It listens on 127.0.0.1 only and
+is copied to the front door host as this one file (the standard library alone), run by
+isaac-sim-front-door-auth.service.
+
+Users come from a JSON file of the role's ({name: {role, hash}}, root's alone): the hash is
+PBKDF2-SHA256 in passlib's format ($pbkdf2-sha256$ROUNDS$SALT$SUM, as Ansible's
+password_hash('pbkdf2_sha256') and the isaac_sim_password_hash filter write it), so no plain
+password is ever on a host. A session is a cookie signed with a key the service makes once and
+keeps (HMAC-SHA256 over user, role and expiry); a user removed or given another role loses the
+session at the next request. Every login, every refused login and every refused request is a line
+on stdout (the journal) with the user's name and the client's address.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import html
+import json
+import os
+import re
+import sys
+import time
+import urllib.parse
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+COOKIE = "fleet_session"
+SCHEME = "$pbkdf2-sha256$"
+ROLES = ("viewer", "operator")
+# paths only an operator opens (logs and actions); everything else is for any user logged in
+OPERATOR_PREFIXES = ("/operator/",)
+_NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
+MIN_ROUNDS = 10000
+
+
+def _ab64_decode(text: str) -> bytes:
+    """passlib's adapted base64: '.' for '+', no padding."""
+    text = text.replace(".", "+")
+    return base64.b64decode(text + "=" * (-len(text) % 4), validate=True)
+
+
+def _ab64_encode(data: bytes) -> str:
+    return base64.b64encode(data).decode().rstrip("=").replace("+", ".")
+
+
+def hash_password(password: str, rounds: int = 29000, salt: bytes | None = None) -> str:
+    """A hash in passlib's pbkdf2_sha256 format (its default rounds)."""
+    salt = os.urandom(16) if salt is None else salt
+    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, rounds)
+    return f"{SCHEME}{rounds}${_ab64_encode(salt)}${_ab64_encode(digest)}"
+
+
+def parse_hash(stored: str):
+    """(rounds, salt, digest), or None for anything that is not a pbkdf2_sha256 hash."""
+    if not isinstance(stored, str) or not stored.startswith(SCHEME):
+        return None
+    parts = stored[len(SCHEME) :].split("$")
+    if len(parts) != 3 or not parts[0].isdigit():
+        return None
+    try:
+        salt, digest = _ab64_decode(parts[1]), _ab64_decode(parts[2])
+    except ValueError:
+        return None
+    if len(digest) != 32 or not salt:
+        return None
+    return int(parts[0]), salt, digest
+
+
+def hash_error(stored) -> str | None:
+    """What is wrong with a user's hash, or None (the role's check, before anything changes)."""
+    parsed = parse_hash(stored)
+    if parsed is None:
+        return "is not a PBKDF2-SHA256 hash ($pbkdf2-sha256$ROUNDS$SALT$SUM)"
+    if parsed[0] < MIN_ROUNDS:
+        return f"has {parsed[0]} rounds, fewer than {MIN_ROUNDS}"
+    return None
+
+
+def verify_password(password: str, stored: str) -> bool:
+    parsed = parse_hash(stored)
+    if parsed is None:
+        return False
+    rounds, salt, digest = parsed
+    return hmac.compare_digest(hashlib.pbkdf2_hmac("sha256", password.encode(), salt, rounds), digest)
+
+
+def _b64url(data: bytes) -> str:
+    return base64.urlsafe_b64encode(data).decode().rstrip("=")
+
+
+def _unb64url(text: str) -> bytes:
+    return base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
+
+
+def make_session(user: str, role: str, key: bytes, expires: int) -> str:
+    payload = _b64url(json.dumps([user, role, int(expires)], separators=(",", ":")).encode())
+    sig = _b64url(hmac.new(key, payload.encode(), hashlib.sha256).digest())
+    return f"{payload}.{sig}"
+
+
+def read_session(token: str, key: bytes, users: dict, now: float):
+    """(user, role) of a valid, unexpired session whose user still has that role; else None."""
+    payload, _dot, sig = (token or "").partition(".")
+    want = _b64url(hmac.new(key, payload.encode(), hashlib.sha256).digest())
+    if not sig or not hmac.compare_digest(sig, want):
+        return None
+    try:
+        user, role, expires = json.loads(_unb64url(payload))
+    except (ValueError, TypeError):
+        return None
+    if now >= expires or (users.get(user) or {}).get("role") != role:
+        return None
+    return user, role
+
+
+def cookie_value(header: str) -> str:
+    for part in (header or "").split(";"):
+        name, _eq, value = part.strip().partition("=")
+        if name == COOKIE:
+            return value
+    return ""
+
+
+def safe_next(target: str) -> str:
+    """Where to go after login: a path on this front door only (never another site)."""
+    target = target or "/"
+    if not target.startswith("/") or target.startswith("//") or "\\" in target or any(c < " " for c in target):
+        return "/"
+    return target
+
+
+def may_open(role: str, path: str) -> bool:
+    return role == "operator" or not any(path.startswith(p) for p in OPERATOR_PREFIXES)
+
+
+def shown(name) -> str:
+    """A user name as the journal gets it (never a forged line)."""
+    return name if isinstance(name, str) and _NAME_RE.match(name) else "<invalid>"
+
+
+LOGIN_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>Isaac Sim fleet: log in</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>body{{font-family:system-ui,sans-serif;max-width:22em;margin:4em auto}}
+label,input,button{{display:block;width:100%;margin:.4em 0}}.error{{color:#b00020}}</style></head>
+<body><h1>Isaac Sim fleet</h1>{message}
+<form method="post" action="/login">
+<input type="hidden" name="next" value="{next}">
+<label>User <input name="user" autocomplete="username" required autofocus></label>
+<label>Password <input name="password" type="password" autocomplete="current-password" required></label>
+<button type="submit">Log in</button></form></body></html>
+"""
+
+
+def say(line: str) -> None:
+    """A line for the journal (the unit's stdout), at once."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+
+
+class Door:
+    """The service's state: users (reloaded when their file changes), the session key, the clock."""
+
+    def __init__(self, users_file: str, key_file: str, hours: float, log=say, clock=time.time):
+        self.users_file, self.hours, self.log, self.clock = users_file, hours, log, clock
+        self.key = self._key(key_file)
+        self._users, self._mtime = {}, None
+
+    @staticmethod
+    def _key(path: str) -> bytes:
+        try:
+            with open(path, "rb") as f:
+                key = f.read()
+            if len(key) >= 32:
+                return key
+        except FileNotFoundError:
+            pass
+        key = os.urandom(32)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            f.write(key)
+        return key
+
+    def users(self) -> dict:
+        mtime = os.stat(self.users_file).st_mtime_ns
+        if mtime != self._mtime:
+            with open(self.users_file, encoding="utf-8") as f:
+                self._users, self._mtime = json.load(f), mtime
+        return self._users
+
+    def check(self, cookie_header: str, path: str, client: str):
+        """(status, user) for nginx: 204 passes, 401 means log in, 403 refused for the role."""
+        session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
+        if session is None:
+            self.log(f"refused user=- path={path!r} from={client} (no valid session)")
+            return 401, None
+        user, role = session
+        if not may_open(role, path):
+            self.log(f"refused user={user} path={path!r} from={client} (role {role})")
+            return 403, user
+        return 204, user
+
+    def login(self, user: str, password: str, client: str):
+        """The session cookie's value, or None for a refused login (logged either way)."""
+        record = self.users().get(user) if isinstance(user, str) else None
+        if not record or not verify_password(password or "", record.get("hash", "")):
+            why = "wrong password" if record else "unknown user"
+            self.log(f"login refused user={shown(user)} from={client} ({why})")
+            return None
+        self.log(f"login user={user} role={record['role']} from={client}")
+        return make_session(user, record["role"], self.key, int(self.clock() + self.hours * 3600))
+
+
+def handler(door: Door):
+    class Handler(BaseHTTPRequestHandler):
+        server_version = "isaac-sim-front-door"
+        sys_version = ""
+
+        def _client(self) -> str:
+            return self.headers.get("X-Real-IP") or self.client_address[0]
+
+        def _send(self, code: int, body: bytes = b"", headers=()):
+            self.send_response(code)
+            for name, value in headers:
+                self.send_header(name, value)
+            if body:
+                self.send_header("Content-Type", "text/html; charset=utf-8")
+                self.send_header(
+                    "Content-Security-Policy", "default-src 'none'; style-src 'unsafe-inline'; form-action 'self'"
+                )
+            self.send_header("Cache-Control", "no-store")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def _page(self, code: int, target: str, message: str = ""):
+            text = LOGIN_PAGE.format(
+                message=f'<p class="error">{html.escape(message)}</p>' if message else "",
+                next=html.escape(safe_next(target), quote=True),
+            )
+            self._send(code, text.encode())
+
+        def do_GET(self):  # noqa: N802 - http.server's naming
+            url = urllib.parse.urlsplit(self.path)
+            if url.path == "/auth":
+                code, user = door.check(
+                    self.headers.get("Cookie", ""), self.headers.get("X-Original-URI", "/"), self._client()
+                )
+                self._send(code, headers=[("X-Fleet-User", user)] if user else [])
+            elif url.path == "/login":
+                self._page(200, urllib.parse.parse_qs(url.query).get("next", ["/"])[0])
+            elif url.path == "/logout":
+                self._send(
+                    303,
+                    headers=[
+                        ("Location", "/login"),
+                        ("Set-Cookie", f"{COOKIE}=; Path=/; Max-Age=0; Secure; HttpOnly; SameSite=Lax"),
+                    ],
+                )
+            else:
+                self._send(404)
+
+        def do_POST(self):  # noqa: N802
+            if urllib.parse.urlsplit(self.path).path != "/login":
+                self._send(404)
+                return
+            length = min(int(self.headers.get("Content-Length") or 0), 8192)
+            form = urllib.parse.parse_qs(self.rfile.read(length).decode("utf-8", "replace"))
+            user, password = form.get("user", [""])[0], form.get("password", [""])[0]
+            target = form.get("next", ["/"])[0]
+            token = door.login(user, password, self._client())
+            if token is None:
+                self._page(401, target, "Wrong user name or password.")
+                return
+            max_age = int(door.hours * 3600)
+            cookie = f"{COOKIE}={token}; Path=/; Max-Age={max_age}; Secure; HttpOnly; SameSite=Lax"
+            self._send(303, headers=[("Location", safe_next(target)), ("Set-Cookie", cookie)])
+
+        def log_message(self, *args):
+            pass  # the lines that matter are Door's
+
+    return Handler
+
+
+def main(argv=None):
+    import argparse
+
+    parser = argparse.ArgumentParser(description="The front door's login service (isaacsim.fleet)")
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--users", required=True)
+    parser.add_argument("--key", required=True)
+    parser.add_argument("--hours", type=float, default=8)
+    args = parser.parse_args(argv)
+    door = Door(args.users, args.key, args.hours)
+    ThreadingHTTPServer(("127.0.0.1", args.port), handler(door)).serve_forever()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,302 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The fleet's front door (roles/front_door): one HTTPS entrance with a login in front of what the
+fleet serves to browsers.
+
+nginx of the distribution's packages runs as a unit of the collection's own
+(isaac-sim-front-door.service, its own configuration, so an nginx the site runs is left alone):
+TLS 1.2 and 1.3 only, HSTS, plain HTTP only as a redirect. Every request but the login page's asks
+the login service (isaac-sim-front-door-auth.service, front/door_auth.py) first; login attempts
+are rate-limited per client address. Behind it: each host's status endpoint, at
+/hosts/HOST/status, and a page that lists them.
+"""
+
+from __future__ import annotations
+
+import html
+import ipaddress
+import json
+import re
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth
+
+UNIT = "isaac-sim-front-door.service"
+AUTH_UNIT = "isaac-sim-front-door-auth.service"
+CONFIG_DIR = "/etc/isaac-sim/front-door"
+RUN_DIR = "/run/isaac-sim-front-door"
+STATE_DIR = "/var/lib/isaac-sim-front-door"
+AUTH_SCRIPT = "isaac-sim-front-door-auth"
+NGINX = "/usr/sbin/nginx"
+PYTHON = "/usr/bin/python3"
+# nginx's workers drop to the distribution's web user (Debian's base-passwd has it)
+WORKER_USER = "www-data"
+_HOST_RE = re.compile(r"^[A-Za-z0-9.-]+$")
+_RATE_RE = re.compile(r"^[1-9][0-9]*r/[sm]$")
+_NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
+
+
+def _port(value):
+    # a number given as text (ansible-core templates set_fact values to text)
+    return int(value) if str(value).isdigit() else value
+
+
+def check(p: dict) -> list:
+    """Errors in the role's settings, each naming the variable and the fix."""
+    errors = []
+    name = str(p.get("server_name") or "")
+    if not _HOST_RE.match(name) and not _is_ip(name):
+        errors.append(
+            f"front_door_server_name: {name!r} is neither a host name nor an IP address. "
+            "Fix: the name browsers reach the front door at, e.g. fleet.lab."
+        )
+    ports = {}
+    for var, key, low in (
+        ("front_door_port", "port", 1),
+        ("front_door_http_port", "http_port", 0),
+        ("front_door_auth_port", "auth_port", 1024),
+    ):
+        value = _port(p.get(key))
+        if not isinstance(value, int) or not low <= value <= 65535:
+            errors.append(
+                f"{var}: {value!r} is not a port of {low}-65535. Fix: e.g. "
+                f"{ {'port': 443, 'http_port': '80 (0: no redirect)', 'auth_port': 9480}[key] }."
+            )
+        elif value:
+            ports.setdefault(value, []).append(var)
+    for value, names in ports.items():
+        if len(names) > 1:
+            errors.append(f"{' and '.join(names)}: both {value}. Fix: give each its own port.")
+    if not _RATE_RE.match(str(p.get("login_rate") or "")):
+        errors.append(
+            f"front_door_login_rate: {p.get('login_rate')!r} is not nginx's rate. Fix: attempts per "
+            "second or minute per client address, e.g. 10r/m."
+        )
+    hours = p.get("session_hours")
+    if not isinstance(hours, (int, float)) or isinstance(hours, bool) or not 0 < hours <= 24 * 30:
+        errors.append(f"front_door_session_hours: {hours!r} is not a number of hours of 0-720. Fix: e.g. 8.")
+    errors += _user_errors(p.get("users"))
+    for backend in p.get("backends") or []:
+        if not _NAME_RE.match(str(backend.get("name", ""))):
+            errors.append(
+                f"front_door_hosts: the inventory host {backend.get('name')!r} cannot be a path of the front "
+                "door. Fix: letters, digits, '.', '_' and '-' only in the names of the hosts behind it."
+            )
+    return errors
+
+
+def _user_errors(users) -> list:
+    if not isinstance(users, list) or not users:
+        return [
+            "front_door_users: empty, and nobody could log in. Fix: a list of {name, role, password_hash} "
+            "from a vault; make a hash with: ansible localhost -m debug -a \"msg={{ 'PASSWORD' | "
+            'isaacsim.fleet.isaac_sim_password_hash }}".'
+        ]
+    errors, seen = [], set()
+    for i, user in enumerate(users):
+        if not isinstance(user, dict):
+            errors.append(f"front_door_users[{i}]: not a mapping. Fix: {{name, role, password_hash}}.")
+            continue
+        name = user.get("name")
+        where = f"front_door_users[{i}] ({name})" if isinstance(name, str) else f"front_door_users[{i}]"
+        if door_auth.shown(name) != name:
+            errors.append(f"{where}: the name is not 1-64 of letters, digits, '.', '_', '@' and '-'. Fix: rename it.")
+        elif name in seen:
+            errors.append(f"{where}: named twice. Fix: one entry per user.")
+        seen.add(name)
+        if user.get("role") not in door_auth.ROLES:
+            errors.append(
+                f"{where}: role {user.get('role')!r} is not one of {', '.join(door_auth.ROLES)}. Fix: choose one."
+            )
+        if "password" in user:
+            errors.append(
+                f"{where}: has a plain password, which would reach the host. Fix: give password_hash instead."
+            )
+        problem = door_auth.hash_error(user.get("password_hash"))
+        if problem:
+            errors.append(
+                f"{where}: password_hash {problem}. Fix: make it with the isaacsim.fleet.isaac_sim_password_hash "
+                "filter or Ansible's password_hash('pbkdf2_sha256')."
+            )
+    return errors
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
+
+
+def nginx_conf(p: dict, managed: str) -> str:
+    auth = f"http://127.0.0.1:{p['auth_port']}"
+    port, http_port = int(p["port"]), int(p["http_port"])
+    to_https = "https://$host" + ("" if port == 443 else f":{port}") + "$request_uri"
+    guarded = [
+        "      auth_request /fleet-auth;",
+        "      auth_request_set $fleet_user $upstream_http_x_fleet_user;",
+        "      error_page 401 = @fleet_login;",
+    ]
+    lines = [
+        f"# {managed}",
+        "# The fleet's front door (isaac-sim-front-door.service): HTTPS and a login in front of every page.",
+        f"user {WORKER_USER};",
+        "worker_processes 1;",
+        f"pid {RUN_DIR}/nginx.pid;",
+        "error_log stderr warn;",
+        "events { worker_connections 512; }",
+        "http {",
+        "  include /etc/nginx/mime.types;",
+        "  default_type application/octet-stream;",
+        "  server_tokens off;",
+        *(f"  {kind}_temp_path {RUN_DIR}/{kind};" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")),
+        "  log_format fleet '$remote_addr user=$fleet_user \"$request\" $status';",
+        "  access_log syslog:server=unix:/dev/log,tag=isaac_sim_front_door,nohostname fleet;",
+        f"  limit_req_zone $binary_remote_addr zone=fleet_login:1m rate={p['login_rate']};",
+        "  limit_req_status 429;",
+        "  ssl_protocols TLSv1.2 TLSv1.3;",
+        "  ssl_session_cache shared:fleet_tls:1m;",
+    ]
+    if http_port:
+        lines += [
+            "  server {",
+            f"    listen {http_port};",
+            f"    listen [::]:{http_port};",
+            f"    return 301 {to_https};",
+            "  }",
+        ]
+    lines += [
+        "  server {",
+        f"    listen {port} ssl;",
+        f"    listen [::]:{port} ssl;",
+        f"    ssl_certificate {CONFIG_DIR}/door.crt;",
+        f"    ssl_certificate_key {CONFIG_DIR}/door.key;",
+        '    add_header Strict-Transport-Security "max-age=31536000" always;',
+        "    add_header X-Content-Type-Options nosniff always;",
+        "    add_header Referrer-Policy same-origin always;",
+        "    set $fleet_user -;",
+        "    absolute_redirect off;",
+        "    location = /fleet-auth {",
+        "      internal;",
+        f"      proxy_pass {auth}/auth;",
+        "      proxy_pass_request_body off;",
+        '      proxy_set_header Content-Length "";',
+        "      proxy_set_header X-Original-URI $request_uri;",
+        "      proxy_set_header X-Real-IP $remote_addr;",
+        "    }",
+        "    location @fleet_login { return 302 /login?next=$request_uri; }",
+        "    location = /login {",
+        "      limit_req zone=fleet_login burst=5 nodelay;",
+        f"      proxy_pass {auth};",
+        "      proxy_set_header X-Real-IP $remote_addr;",
+        "    }",
+        f"    location = /logout {{ proxy_pass {auth}; }}",
+        "    location / {",
+        *guarded,
+        f"      root {CONFIG_DIR}/www;",
+        "      index index.html;",
+        "    }",
+    ]
+    for backend in p.get("backends") or []:
+        lines += [
+            f"    location = /hosts/{backend['name']}/status {{",
+            *guarded,
+            f"      proxy_pass {backend['status_url']};",
+            "    }",
+        ]
+    lines += ["  }", "}"]
+    return "\n".join(lines) + "\n"
+
+
+def index_page(p: dict) -> str:
+    rows = "".join(
+        f'<li><a href="/hosts/{html.escape(b["name"])}/status">{html.escape(b["name"])}</a></li>'
+        for b in p.get("backends") or []
+    )
+    return (
+        '<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>Isaac Sim fleet</title></head>\n'
+        f"<body><h1>Isaac Sim fleet</h1><p>Each host's status:</p><ul>{rows}</ul>"
+        '<p><a href="/logout">Log out</a></p></body></html>\n'
+    )
+
+
+def users_json(p: dict) -> str:
+    return json.dumps({u["name"]: {"role": u["role"], "hash": u["password_hash"]} for u in p["users"]}, indent=2) + "\n"
+
+
+def nginx_unit(managed: str) -> str:
+    return units.render(
+        [
+            (
+                "Unit",
+                [
+                    ("Description", "isaacsim.fleet front door (HTTPS and login)"),
+                    ("Wants", f"network-online.target {AUTH_UNIT}"),
+                    ("After", f"network-online.target {AUTH_UNIT}"),
+                ],
+            ),
+            (
+                "Service",
+                [
+                    ("ExecStartPre", f"{NGINX} -t -q -c {CONFIG_DIR}/nginx.conf"),
+                    ("ExecStart", f"{NGINX} -c {CONFIG_DIR}/nginx.conf -g 'daemon off;'"),
+                    ("Restart", "on-failure"),
+                    ("RestartSec", 5),
+                    ("RuntimeDirectory", RUN_DIR.rsplit("/", 1)[1]),
+                    *sandbox.web_server(),
+                ],
+            ),
+            ("Install", [("WantedBy", "multi-user.target")]),
+        ],
+        header=[managed],
+    )
+
+
+def auth_unit(p: dict, managed: str, libexec_dir: str) -> str:
+    state = STATE_DIR.rsplit("/", 1)[1]
+    return units.render(
+        [
+            (
+                "Unit",
+                [("Description", "isaacsim.fleet front door login service"), ("After", "network.target")],
+            ),
+            (
+                "Service",
+                [
+                    (
+                        "ExecStart",
+                        f"{PYTHON} {libexec_dir}/{AUTH_SCRIPT} --port {p['auth_port']} --users {CONFIG_DIR}/users.json "
+                        f"--key {STATE_DIR}/session.key --hours {p['session_hours']}",
+                    ),
+                    ("Restart", "on-failure"),
+                    ("RestartSec", 2),
+                    ("StateDirectory", state),
+                    *sandbox.reader(),
+                    ("IPAddressAllow", "localhost"),
+                    ("IPAddressDeny", "any"),
+                ],
+            ),
+            ("Install", [("WantedBy", "multi-user.target")]),
+        ],
+        header=[managed],
+    )
+
+
+def files(p: dict, managed: str, libexec_dir: str, cert: str, key: str, auth_code: str) -> dict:
+    """{unit: {path: {content, mode}}} for isaac_sim_host_service, the login service's first (nginx
+    asks it from its first request on)."""
+    return {
+        AUTH_UNIT: {
+            f"/etc/systemd/system/{AUTH_UNIT}": {"content": auth_unit(p, managed, libexec_dir), "mode": "0644"},
+            f"{libexec_dir}/{AUTH_SCRIPT}": {"content": auth_code, "mode": "0644"},
+            f"{CONFIG_DIR}/users.json": {"content": users_json(p), "mode": "0600"},
+        },
+        UNIT: {
+            f"/etc/systemd/system/{UNIT}": {"content": nginx_unit(managed), "mode": "0644"},
+            f"{CONFIG_DIR}/nginx.conf": {"content": nginx_conf(p, managed), "mode": "0644"},
+            f"{CONFIG_DIR}/door.crt": {"content": cert, "mode": "0644"},
+            f"{CONFIG_DIR}/door.key": {"content": key, "mode": "0600"},
+            f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
+        },
+    }

@@ -1,0 +1,132 @@
+"""The front door (roles/front_door) on the test host: HTTPS with the collection's CA, a login in
+front of the host's status endpoint, roles, the journal, rate limiting, and its removal.
+
+The requests come from this machine (the controller), as a browser outside the host would send
+them, through Python's own HTTP client with the CA the role made (nothing trusts it otherwise).
+"""
+
+import http.client
+import importlib.util
+import json
+import os
+import ssl
+import urllib.parse
+from pathlib import Path
+
+import testbed
+from testbed import ROOT, sh
+
+# the login service's own code (the standard library alone) makes the users' hashes
+_spec = importlib.util.spec_from_file_location("door_auth", ROOT / "plugins/module_utils/front/door_auth.py")
+door_auth = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(door_auth)
+
+UNITS = ("isaac-sim-front-door.service", "isaac-sim-front-door-auth.service")
+# hashed once: a new salt is a changed users file, which a re-run would rightly apply
+USERS = [
+    {"name": "olga", "role": "operator", "password_hash": door_auth.hash_password("op-secret", 10000)},
+    {"name": "vic", "role": "viewer", "password_hash": door_auth.hash_password("view-secret", 10000)},
+]
+
+
+def ok(result):
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+    return result
+
+
+def ca_dir() -> Path:
+    return Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "ca"
+
+
+def run(host, **over):
+    inventory = Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "front-door.yml"
+    inventory.write_text(json.dumps({"isaac_sim_front_door": {"hosts": {testbed.name(host): {}}}}))
+    extra = {"front_door_users": USERS, "front_door_ca_dir": str(ca_dir()), "front_door_login_rate": "30r/m", **over}
+    return testbed.run_playbook(host, extra, extra_inventory=inventory, playbook="playbooks/front_door.yml")
+
+
+def request(address, method, path, body=None, cookie=None, tls=True):
+    if tls:
+        context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
+        conn = http.client.HTTPSConnection(address, 443, context=context, timeout=10)
+    else:
+        conn = http.client.HTTPConnection(address, 80, timeout=10)
+    headers = {"Cookie": f"fleet_session={cookie}"} if cookie else {}
+    if body is not None:
+        body = urllib.parse.urlencode(body)
+        headers["Content-Type"] = "application/x-www-form-urlencoded"
+    conn.request(method, path, body=body, headers=headers)
+    response = conn.getresponse()
+    data = response.read()
+    version = conn.sock.version() if tls and conn.sock else None
+    conn.close()
+    return response, data, version
+
+
+def login(address, user, password):
+    response, _data, _v = request(address, "POST", "/login", {"user": user, "password": password, "next": "/"})
+    return response
+
+
+def journal(host, unit):
+    return sh(host, f"journalctl -u {unit} --no-pager -o cat").stdout
+
+
+def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_cleanly(host):
+    address = testbed.host_ip(host)
+    first = ok(run(host, front_door_server_name=address))
+    try:
+        again = ok(run(host, front_door_server_name=address))
+        assert testbed.changed_count(again, host) == 0, again.stdout[-3000:]
+
+        # plain HTTP only redirects
+        response, _d, _v = request(address, "GET", "/hosts/x/status", tls=False)
+        assert response.status == 301 and response.getheader("Location") == f"https://{address}/hosts/x/status"
+
+        # without a session: to the login page, over TLS 1.2+ with the CA's certificate, HSTS on
+        status_path = f"/hosts/{testbed.name(host)}/status"
+        response, _d, version = request(address, "GET", status_path)
+        assert response.status == 302 and response.getheader("Location") == f"/login?next={status_path}"
+        assert version in ("TLSv1.2", "TLSv1.3")
+        assert response.getheader("Strict-Transport-Security") == "max-age=31536000"
+        assert "refused user=- path='" + status_path in journal(host, UNITS[1])
+
+        # a wrong password is refused and written down with the user's name
+        assert login(address, "olga", "guess").status == 401
+        assert "login refused user=olga" in journal(host, UNITS[1])
+
+        # the operator logs in: a Secure, HttpOnly, SameSite cookie; the status comes through
+        response = login(address, "olga", "op-secret")
+        assert response.status == 303
+        cookie = response.getheader("Set-Cookie")
+        assert {"Secure", "HttpOnly", "SameSite=Lax"} <= {p.strip() for p in cookie.split(";")}
+        operator = cookie.split(";", 1)[0].split("=", 1)[1]
+        response, data, _v = request(address, "GET", status_path, cookie=operator)
+        assert response.status == 200, data[:500]
+        assert json.loads(data)["host"]
+        # a forged cookie is no session
+        assert request(address, "GET", status_path, cookie=operator[:-2] + "xx")[0].status == 302
+
+        # a viewer opens the status but not an operator's path; the operator passes it
+        viewer = login(address, "vic", "view-secret").getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
+        assert request(address, "GET", status_path, cookie=viewer)[0].status == 200
+        assert request(address, "GET", "/operator/logs", cookie=viewer)[0].status == 403
+        assert "refused user=vic path='/operator/logs'" in journal(host, UNITS[1])
+        assert request(address, "GET", "/operator/logs", cookie=operator)[0].status == 404
+
+        # guessing is rate-limited per client address (30/min, a burst of 5)
+        codes = [login(address, "olga", f"guess-{i}").status for i in range(12)]
+        assert 429 in codes and codes[0] == 401, codes
+
+        for unit in UNITS:
+            testbed.assert_sandboxed(host, unit)
+        # the distribution's own nginx, installed by the role, does not run
+        assert sh(host, "systemctl is-active nginx.service", check=False).stdout.strip() != "active"
+    finally:
+        gone = ok(run(host, front_door_server_name=address, front_door_state="absent"))
+    assert "changed" in first.stdout
+    for unit in UNITS:
+        assert sh(host, f"systemctl cat {unit}", check=False).rc != 0
+    assert sh(host, "test -e /etc/isaac-sim/front-door", check=False).rc != 0
+    assert sh(host, "ss -ltn 'sport = :443'").stdout.count("LISTEN") == 0
+    assert testbed.changed_count(ok(run(host, front_door_state="absent")), host) == 0, gone.stdout[-2000:]

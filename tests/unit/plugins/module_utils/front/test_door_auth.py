@@ -1,0 +1,158 @@
+"""The front door's login service (module_utils/front/door_auth.py): hashes, sessions, the
+decisions nginx asks for, and the service itself over a real socket."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import threading
+import urllib.parse
+from http.server import ThreadingHTTPServer
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth
+
+# made by passlib 1.7.4: pbkdf2_sha256.using(rounds=1000, salt=b"fleet-salt-16byt").hash("correct horse")
+PASSLIB = "$pbkdf2-sha256$1000$ZmxlZXQtc2FsdC0xNmJ5dA$hSivT8ZpaXf5jhjMaT/bchS401SFqVLg0iXf9B.gPrs"
+# and with its defaults: pbkdf2_sha256.hash("s3cret")
+PASSLIB_DEFAULT = "$pbkdf2-sha256$29000$Yyzl3HsvZcy5lxLiHCMkhA$TM4W7r4uUYQ6eAe1Z5b5px2TMkOSLzNRdTOLxwrjqbY"
+
+
+def test_hashes_are_passlib_s_both_ways():
+    assert door_auth.verify_password("correct horse", PASSLIB)
+    assert not door_auth.verify_password("correct horsE", PASSLIB)
+    assert door_auth.verify_password("s3cret", PASSLIB_DEFAULT)
+    assert door_auth.hash_password("correct horse", 1000, b"fleet-salt-16byt") == PASSLIB
+    made = door_auth.hash_password("pw")
+    assert made.startswith("$pbkdf2-sha256$29000$") and door_auth.verify_password("pw", made)
+    assert made != door_auth.hash_password("pw")  # a new salt each time
+
+
+@pytest.mark.parametrize(
+    "stored, problem",
+    [
+        (PASSLIB_DEFAULT, None),
+        (PASSLIB, "has 1000 rounds, fewer than 10000"),
+        ("$6$salt$crypt", "is not a PBKDF2-SHA256 hash"),
+        ("s3cret", "is not a PBKDF2-SHA256 hash"),
+        ("$pbkdf2-sha256$29000$!!$??", "is not a PBKDF2-SHA256 hash"),
+        (None, "is not a PBKDF2-SHA256 hash"),
+    ],
+)
+def test_a_hash_the_service_cannot_use_is_named(stored, problem):
+    found = door_auth.hash_error(stored)
+    assert (found is None) if problem is None else found.startswith(problem)
+    assert not door_auth.verify_password("x", stored if isinstance(stored, str) else "")
+
+
+USERS = {"olga": {"role": "operator", "hash": PASSLIB_DEFAULT}, "vic": {"role": "viewer", "hash": PASSLIB_DEFAULT}}
+KEY = b"k" * 32
+
+
+def test_a_session_holds_while_signed_unexpired_and_its_user_keeps_the_role():
+    token = door_auth.make_session("vic", "viewer", KEY, expires=1000)
+    assert door_auth.read_session(token, KEY, USERS, now=999) == ("vic", "viewer")
+    assert door_auth.read_session(token, KEY, USERS, now=1000) is None  # expired
+    assert door_auth.read_session(token, b"other" * 8, USERS, now=0) is None  # another key
+    assert door_auth.read_session(token[:-1] + ("A" if token[-1] != "A" else "B"), KEY, USERS, now=0) is None
+    # the payload changed to another role, signature kept: refused
+    forged = (
+        door_auth.make_session("vic", "operator", b"guess" * 8, 1000).split(".", maxsplit=1)[0]
+        + "."
+        + token.split(".")[1]
+    )
+    assert door_auth.read_session(forged, KEY, USERS, now=0) is None
+    # the user given another role, or removed: the session ends at the next request
+    assert door_auth.read_session(token, KEY, {"vic": {"role": "operator"}}, now=0) is None
+    assert door_auth.read_session(token, KEY, {}, now=0) is None
+    assert door_auth.read_session("", KEY, USERS, now=0) is None
+    assert door_auth.read_session("garbage.", KEY, USERS, now=0) is None
+
+
+@pytest.mark.parametrize(
+    "target, expected",
+    [
+        ("/hosts/a/status", "/hosts/a/status"),
+        ("", "/"),
+        ("https://evil.example/", "/"),
+        ("//evil.example/", "/"),
+        ("/\\evil.example", "/"),
+        ("/a\r\nSet-Cookie: x", "/"),
+    ],
+)
+def test_after_login_only_a_path_of_the_front_door(target, expected):
+    assert door_auth.safe_next(target) == expected
+
+
+def test_operator_paths_and_names_in_the_journal():
+    assert door_auth.may_open("viewer", "/hosts/a/status") and not door_auth.may_open("viewer", "/operator/logs")
+    assert door_auth.may_open("operator", "/operator/logs")
+    assert door_auth.shown("olga") == "olga" and door_auth.shown("x\nlogin user=root") == "<invalid>"
+    assert door_auth.cookie_value("a=1; fleet_session=T.S; b=2") == "T.S" and door_auth.cookie_value(None) == ""
+
+
+@pytest.fixture
+def service(tmp_path):
+    users = tmp_path / "users.json"
+    users.write_text(json.dumps(USERS))
+    lines = []
+    door = door_auth.Door(str(users), str(tmp_path / "session.key"), hours=1, log=lines.append)
+    server = ThreadingHTTPServer(("127.0.0.1", 0), door_auth.handler(door))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield server.server_address[1], lines, tmp_path
+    server.shutdown()
+    server.server_close()
+
+
+def call(port, method, path, body=None, headers=None):
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    conn.request(method, path, body=urllib.parse.urlencode(body) if body else None, headers=headers or {})
+    response = conn.getresponse()
+    data = response.read()
+    conn.close()
+    return response, data
+
+
+def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
+    port, lines, tmp_path = service
+    assert (tmp_path / "session.key").stat().st_mode & 0o777 == 0o600
+    response, page = call(port, "GET", "/login?next=/hosts/a/status")
+    assert response.status == 200 and b'value="/hosts/a/status"' in page
+    assert "form-action 'self'" in response.getheader("Content-Security-Policy")
+    # no session: 401 for nginx, written down with the path and the client nginx names
+    response, _body = call(port, "GET", "/auth", headers={"X-Original-URI": "/hosts/a/status", "X-Real-IP": "10.1.2.3"})
+    assert (
+        response.status == 401 and lines[-1] == "refused user=- path='/hosts/a/status' from=10.1.2.3 (no valid session)"
+    )
+    response, page = call(port, "POST", "/login", {"user": "vic", "password": "nope", "next": "/x"})
+    assert (
+        response.status == 401 and b"Wrong user name or password" in page and response.getheader("Set-Cookie") is None
+    )
+    assert lines[-1] == "login refused user=vic from=127.0.0.1 (wrong password)"
+    call(port, "POST", "/login", {"user": "nobody\nlogin user=root", "password": "x"})
+    assert lines[-1] == "login refused user=<invalid> from=127.0.0.1 (unknown user)"
+    response, _body = call(port, "POST", "/login", {"user": "vic", "password": "s3cret", "next": "//evil.example/"})
+    assert response.status == 303 and response.getheader("Location") == "/"
+    cookie = response.getheader("Set-Cookie")
+    assert cookie.endswith("; Path=/; Max-Age=3600; Secure; HttpOnly; SameSite=Lax")
+    assert lines[-1] == "login user=vic role=viewer from=127.0.0.1"
+    session = {"Cookie": cookie.split(";", 1)[0], "X-Original-URI": "/hosts/a/status"}
+    response, _body = call(port, "GET", "/auth", headers=session)
+    assert response.status == 204 and response.getheader("X-Fleet-User") == "vic"
+    response, _body = call(port, "GET", "/auth", headers=dict(session, **{"X-Original-URI": "/operator/logs"}))
+    assert response.status == 403 and lines[-1].startswith("refused user=vic path='/operator/logs'")
+    # a changed users file is read again: vic removed, the session gone
+    (tmp_path / "users.json").write_text(json.dumps({"olga": USERS["olga"]}))
+    import os
+
+    os.utime(tmp_path / "users.json", ns=(1, 1))
+    assert call(port, "GET", "/auth", headers=session)[0].status == 401
+    response, _body = call(port, "GET", "/logout")
+    assert response.status == 303 and "Max-Age=0" in response.getheader("Set-Cookie")
+
+
+def test_the_session_key_is_kept_across_restarts(tmp_path):
+    users = tmp_path / "users.json"
+    users.write_text("{}")
+    first = door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lambda line: None)
+    assert door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lambda line: None).key == first.key

@@ -1,0 +1,93 @@
+"""The front door's settings and files (module_utils/front/front_door.py)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, front_door
+
+HASH = door_auth.hash_password("pw", 10000, b"0123456789abcdef")
+GOOD = {
+    "server_name": "fleet.lab",
+    "port": 443,
+    "http_port": 80,
+    "auth_port": 9480,
+    "login_rate": "10r/m",
+    "session_hours": 8,
+    "users": [{"name": "olga", "role": "operator", "password_hash": HASH}],
+    "backends": [{"name": "gpu-1", "status_url": "http://10.0.0.5:8290/status"}],
+}
+
+
+def test_good_settings_pass():
+    assert front_door.check(GOOD) == []
+    assert front_door.check(dict(GOOD, port="8443", http_port="0")) == []
+
+
+@pytest.mark.parametrize(
+    "over, start",
+    [
+        ({"server_name": "fleet lab"}, "front_door_server_name: 'fleet lab'"),
+        ({"port": 70000}, "front_door_port: 70000 is not a port"),
+        ({"auth_port": 80}, "front_door_auth_port: 80 is not a port of 1024-65535"),
+        ({"http_port": 443}, "front_door_port and front_door_http_port: both 443"),
+        ({"login_rate": "10/m"}, "front_door_login_rate: '10/m'"),
+        ({"session_hours": 0}, "front_door_session_hours: 0"),
+        ({"users": []}, "front_door_users: empty"),
+        (
+            {"users": [{"name": "olga", "role": "admin", "password_hash": HASH}]},
+            "front_door_users[0] (olga): role 'admin'",
+        ),
+        (
+            {"users": [{"name": "olga", "role": "viewer", "password": "pw", "password_hash": HASH}]},
+            "front_door_users[0] (olga): has a plain password",
+        ),
+        (
+            {"users": [{"name": "olga", "role": "viewer", "password_hash": "pw"}]},
+            "front_door_users[0] (olga): password_hash is not a PBKDF2-SHA256 hash",
+        ),
+        ({"users": [GOOD["users"][0], GOOD["users"][0]]}, "front_door_users[1] (olga): named twice"),
+        ({"users": [{"name": "a b", "role": "viewer", "password_hash": HASH}]}, "front_door_users[0] (a b): the name"),
+        (
+            {"backends": [{"name": "a/b", "status_url": "http://x/status"}]},
+            "front_door_hosts: the inventory host 'a/b'",
+        ),
+    ],
+)
+def test_each_bad_setting_is_named_with_its_fix(over, start):
+    errors = front_door.check(dict(GOOD, **over))
+    assert len(errors) == 1 and errors[0].startswith(start) and "Fix:" in errors[0], errors
+
+
+def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
+    conf = front_door.nginx_conf(GOOD, "managed")
+    assert "ssl_protocols TLSv1.2 TLSv1.3;" in conf and 'Strict-Transport-Security "max-age=31536000" always' in conf
+    assert "listen 80;\n    listen [::]:80;\n    return 301 https://$host$request_uri;" in conf
+    assert "limit_req_zone $binary_remote_addr zone=fleet_login:1m rate=10r/m;" in conf
+    backend = conf.split("location = /hosts/gpu-1/status {", 1)[1].split("}", 1)[0]
+    assert "auth_request /fleet-auth;" in backend and "proxy_pass http://10.0.0.5:8290/status;" in backend
+    root = conf.split("    location / {", 1)[1].split("}", 1)[0]
+    assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
+    # only the login page, the logout and nginx's own internal question go without a session
+    unguarded = [
+        b.split("{")[0] for b in conf.split("location ")[1:] if "auth_request /fleet-auth" not in b.split("}")[0]
+    ]
+    assert sorted(u.strip() for u in unguarded) == ["= /fleet-auth", "= /login", "= /logout", "@fleet_login"]
+    other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0), "managed")
+    assert "return 301" not in other and "listen 8443 ssl;" in other
+
+
+def test_files_keep_secrets_root_s_and_list_the_login_service_first():
+    files = front_door.files(GOOD, "managed", "/usr/local/libexec/isaac-sim", "CERT", "KEY", "CODE")
+    assert list(files) == [front_door.AUTH_UNIT, front_door.UNIT]
+    auth, door = files[front_door.AUTH_UNIT], files[front_door.UNIT]
+    assert auth["/etc/isaac-sim/front-door/users.json"]["mode"] == "0600"
+    assert json.loads(auth["/etc/isaac-sim/front-door/users.json"]["content"]) == {
+        "olga": {"role": "operator", "hash": HASH}
+    }
+    assert door["/etc/isaac-sim/front-door/door.key"] == {"content": "KEY", "mode": "0600"}
+    assert auth["/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth"]["content"] == "CODE"
+    unit = auth["/etc/systemd/system/isaac-sim-front-door-auth.service"]["content"]
+    assert "--port 9480 --users /etc/isaac-sim/front-door/users.json" in unit and "IPAddressAllow=localhost" in unit
+    assert 'href="/hosts/gpu-1/status"' in door["/etc/isaac-sim/front-door/www/index.html"]["content"]
