@@ -9,7 +9,7 @@ from ansible.errors import AnsibleFilterError
 DOCUMENTATION = r"""
 name: isaac_sim_front_door
 short_description: Check the front door's settings, or render its files (isaacsim.fleet.front_door)
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - C(errors) lists what is wrong with the settings, each naming the variable and the fix.
   - C(files) renders, per unit, the files of the login service and of nginx for

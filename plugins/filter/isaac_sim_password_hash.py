@@ -9,7 +9,7 @@ from ansible.errors import AnsibleFilterError
 DOCUMENTATION = r"""
 name: isaac_sim_password_hash
 short_description: Hash a password for the front door's users (isaacsim.fleet.front_door)
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - PBKDF2-SHA256 in passlib's format (C($pbkdf2-sha256$ROUNDS$SALT$SUM)), the same as Ansible's
     C(password_hash('pbkdf2_sha256')) writes where passlib is installed; made with Python's standard

@@ -192,6 +192,8 @@ def nginx_conf(p: dict, managed: str) -> str:
         "      proxy_set_header X-Real-IP $remote_addr;",
         "    }",
         f"    location = /logout {{ proxy_pass {auth}; }}",
+        # browsers ask for it on every page, the login page too: nothing, rather than a 404
+        "    location = /favicon.ico { access_log off; return 204; }",
         "    location / {",
         *guarded,
         f"      root {CONFIG_DIR}/www;",
@@ -216,7 +218,9 @@ def index_page(p: dict) -> str:
     )
     return (
         '<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>Isaac Sim fleet</title></head>\n'
-        f"<body><h1>Isaac Sim fleet</h1><p>Each host's status:</p><ul>{rows}</ul>"
+        "<body><h1>Isaac Sim fleet</h1>"
+        '<p><a href="/dashboard.html">The dashboard</a> (written here by playbooks/status.yml)</p>'
+        f"<p>Each host's status:</p><ul>{rows}</ul>"
         '<p><a href="/logout">Log out</a></p></body></html>\n'
     )
 

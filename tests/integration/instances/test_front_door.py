@@ -14,7 +14,8 @@ import urllib.parse
 from pathlib import Path
 
 import testbed
-from testbed import ROOT, sh
+from browser import chromium, console_errors
+from testbed import INSTANCES, ROOT, sh, wait_for
 
 # the login service's own code (the standard library alone) makes the users' hashes
 _spec = importlib.util.spec_from_file_location("door_auth", ROOT / "plugins/module_utils/front/door_auth.py")
@@ -38,9 +39,14 @@ def ca_dir() -> Path:
     return Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "ca"
 
 
-def run(host, **over):
+def door_inventory(host) -> Path:
     inventory = Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "front-door.yml"
     inventory.write_text(json.dumps({"isaac_sim_front_door": {"hosts": {testbed.name(host): {}}}}))
+    return inventory
+
+
+def run(host, **over):
+    inventory = door_inventory(host)
     extra = {"front_door_users": USERS, "front_door_ca_dir": str(ca_dir()), "front_door_login_rate": "30r/m", **over}
     return testbed.run_playbook(host, extra, extra_inventory=inventory, playbook="playbooks/front_door.yml")
 
@@ -72,7 +78,47 @@ def journal(host, unit):
     return sh(host, f"journalctl -u {unit} --no-pager -o cat").stdout
 
 
-def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_cleanly(host):
+def dashboard_in_chromium(host, address, tmp_path):
+    report = tmp_path / "report"
+    ok(
+        testbed.run_playbook(
+            host,
+            {"fleet_report_dir": str(report), "fleet_report_refresh": 1},
+            extra_inventory=door_inventory(host),
+            playbook="playbooks/status.yml",
+        )
+    )
+    page = (report / "status-front-door.html").read_text()
+    assert f'data-status-url="/hosts/{testbed.name(host)}/status"' in page
+    with chromium(trust_ca=ca_dir() / "ca.crt") as driver:
+        driver.get(f"https://{address}/dashboard.html")
+        # no session: the login page, over a certificate the browser trusts (else an interstitial)
+        wait_for(lambda: "/login?next=/dashboard.html" in driver.current_url, timeout=15, what="the login page")
+
+        def log_in(user, password):
+            driver.find_element("name", "user").send_keys(user)
+            driver.find_element("name", "password").send_keys(password)
+            driver.find_element("css selector", "button[type=submit]").click()
+
+        log_in("vic", "wrong")
+        wait_for(lambda: "Wrong user name or password" in driver.page_source, timeout=10, what="the refusal")
+        # the refusal's own 401 is the one console error so far
+        refusal = "the server responded with a status of 401 (Unauthorized)"
+        assert [e["message"] for e in console_errors(driver)] == [
+            f"https://{address}/login - Failed to load resource: {refusal}"
+        ]
+        log_in("vic", "view-secret")
+        wait_for(lambda: driver.current_url == f"https://{address}/dashboard.html", timeout=10, what="the dashboard")
+        section = driver.find_element("css selector", "section.host")
+        # live: the page reads the host's status through the front door, behind the same login
+        wait_for(lambda: section.get_attribute("data-live") == "ok", timeout=15, what="the page to read the host")
+        assert len(driver.find_elements("css selector", ".instance-card")) == INSTANCES
+        assert console_errors(driver) == []
+        driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
+    assert "login refused user=vic" in journal(host, UNITS[1])
+
+
+def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_cleanly(host, tmp_path):
     address = testbed.host_ip(host)
     first = ok(run(host, front_door_server_name=address))
     try:
@@ -113,6 +159,9 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         assert request(address, "GET", "/operator/logs", cookie=viewer)[0].status == 403
         assert "refused user=vic path='/operator/logs'" in journal(host, UNITS[1])
         assert request(address, "GET", "/operator/logs", cookie=operator)[0].status == 404
+
+        # the dashboard, served behind the login, in a browser that trusts the collection's CA
+        dashboard_in_chromium(host, address, tmp_path)
 
         # guessing is rate-limited per client address (30/min, a burst of 5)
         codes = [login(address, "olga", f"guess-{i}").status for i in range(12)]

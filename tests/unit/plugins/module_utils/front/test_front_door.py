@@ -73,7 +73,8 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     unguarded = [
         b.split("{")[0] for b in conf.split("location ")[1:] if "auth_request /fleet-auth" not in b.split("}")[0]
     ]
-    assert sorted(u.strip() for u in unguarded) == ["= /fleet-auth", "= /login", "= /logout", "@fleet_login"]
+    open_ones = ["= /favicon.ico", "= /fleet-auth", "= /login", "= /logout", "@fleet_login"]
+    assert sorted(u.strip() for u in unguarded) == open_ones
     other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0), "managed")
     assert "return 301" not in other and "listen 8443 ssl;" in other
 
