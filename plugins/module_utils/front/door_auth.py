@@ -11,9 +11,11 @@ Users come from a JSON file of the role's ({name: {role, hash}}, root's alone): 
 PBKDF2-SHA256 in passlib's format ($pbkdf2-sha256$ROUNDS$SALT$SUM, as Ansible's
 password_hash('pbkdf2_sha256') and the isaac_sim_password_hash filter write it), so no plain
 password is ever on a host. A session is a cookie signed with a key the service makes once and
-keeps (HMAC-SHA256 over user, role and expiry); a user removed or given another role loses the
-session at the next request. Every login, every refused login and every refused request is a line
-on stdout (the journal) with the user's name and the client's address.
+keeps (HMAC-SHA256 over user, role, expiry and a fingerprint of the user's hash); a user removed,
+given another role or a new password loses the session at the next request. Which role a path
+needs is nginx's to say (its locations match the path as it serves it; `need=operator` on the
+question), never a parse of the raw URI here. Every login, every refused login and every refused
+request is a line on stdout (the journal) with the user's name and the client's address.
 """
 
 from __future__ import annotations
@@ -30,11 +32,10 @@ import time
 import urllib.parse
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-COOKIE = "fleet_session"
+# __Host-: the browser keeps it for this host alone (Secure, Path=/, no Domain)
+COOKIE = "__Host-fleet_session"
 SCHEME = "$pbkdf2-sha256$"
 ROLES = ("viewer", "operator")
-# paths only an operator opens (logs and actions); everything else is for any user logged in
-OPERATOR_PREFIXES = ("/operator/",)
 _NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
 MIN_ROUNDS = 10000
 
@@ -98,23 +99,32 @@ def _unb64url(text: str) -> bytes:
     return base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
 
 
-def make_session(user: str, role: str, key: bytes, expires: int) -> str:
-    payload = _b64url(json.dumps([user, role, int(expires)], separators=(",", ":")).encode())
-    sig = _b64url(hmac.new(key, payload.encode(), hashlib.sha256).digest())
-    return f"{payload}.{sig}"
+def _fingerprint(key: bytes, stored_hash: str) -> str:
+    return _b64url(hmac.new(key, b"hash:" + str(stored_hash).encode(), hashlib.sha256).digest()[:9])
+
+
+def make_session(user: str, role: str, key: bytes, expires: int, stored_hash: str = "") -> str:
+    payload = [user, role, int(expires), _fingerprint(key, stored_hash)]
+    text = _b64url(json.dumps(payload, separators=(",", ":")).encode())
+    sig = _b64url(hmac.new(key, text.encode(), hashlib.sha256).digest())
+    return f"{text}.{sig}"
 
 
 def read_session(token: str, key: bytes, users: dict, now: float):
-    """(user, role) of a valid, unexpired session whose user still has that role; else None."""
-    payload, _dot, sig = (token or "").partition(".")
-    want = _b64url(hmac.new(key, payload.encode(), hashlib.sha256).digest())
-    if not sig or not hmac.compare_digest(sig, want):
-        return None
+    """(user, role) of a valid, unexpired session whose user still has that role and password;
+    else None (whatever the token holds)."""
     try:
-        user, role, expires = json.loads(_unb64url(payload))
-    except (ValueError, TypeError):
-        return None
-    if now >= expires or (users.get(user) or {}).get("role") != role:
+        text, _dot, sig = str(token or "").partition(".")
+        want = _b64url(hmac.new(key, text.encode(), hashlib.sha256).digest())
+        if not sig or not hmac.compare_digest(sig.encode(), want.encode()):
+            return None
+        user, role, expires, fingerprint = json.loads(_unb64url(text))
+        record = users.get(user) or {}
+        if now >= expires or record.get("role") != role:
+            return None
+        if not hmac.compare_digest(str(fingerprint).encode(), _fingerprint(key, record.get("hash", "")).encode()):
+            return None
+    except (ValueError, TypeError, UnicodeError):
         return None
     return user, role
 
@@ -128,15 +138,18 @@ def cookie_value(header: str) -> str:
 
 
 def safe_next(target: str) -> str:
-    """Where to go after login: a path on this front door only (never another site)."""
+    """Where to go after login: a path on this front door only (never another site), printable
+    ASCII (it goes into a Location header)."""
     target = target or "/"
-    if not target.startswith("/") or target.startswith("//") or "\\" in target or any(c < " " for c in target):
+    if not target.startswith("/") or target.startswith("//") or "\\" in target:
+        return "/"
+    if any(not " " < c <= "~" for c in target):
         return "/"
     return target
 
 
-def may_open(role: str, path: str) -> bool:
-    return role == "operator" or not any(path.startswith(p) for p in OPERATOR_PREFIXES)
+def may_open(role: str, need: str) -> bool:
+    return need != "operator" or role == "operator"
 
 
 def shown(name) -> str:
@@ -171,6 +184,8 @@ class Door:
         self.users_file, self.hours, self.log, self.clock = users_file, hours, log, clock
         self.key = self._key(key_file)
         self._users, self._mtime = {}, None
+        # an unknown user's password is checked against this, so both answers take as long
+        self._decoy = hash_password(os.urandom(8).hex())
 
     @staticmethod
     def _key(path: str) -> bytes:
@@ -194,33 +209,37 @@ class Door:
                 self._users, self._mtime = json.load(f), mtime
         return self._users
 
-    def check(self, cookie_header: str, path: str, client: str):
-        """(status, user) for nginx: 204 passes, 401 means log in, 403 refused for the role."""
+    def check(self, cookie_header: str, path: str, client: str, need: str = ""):
+        """(status, user) for nginx: 204 passes, 401 means log in, 403 refused for the role.
+        path: the request as sent (for the journal only); need: what nginx's location asks for."""
         session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
         if session is None:
             self.log(f"refused user=- path={path!r} from={client} (no valid session)")
             return 401, None
         user, role = session
-        if not may_open(role, path):
-            self.log(f"refused user={user} path={path!r} from={client} (role {role})")
+        if not may_open(role, need):
+            self.log(f"refused user={user} path={path!r} from={client} (role {role}, needs {need})")
             return 403, user
         return 204, user
 
     def login(self, user: str, password: str, client: str):
         """The session cookie's value, or None for a refused login (logged either way)."""
         record = self.users().get(user) if isinstance(user, str) else None
-        if not record or not verify_password(password or "", record.get("hash", "")):
+        matches = verify_password(password or "", (record or {}).get("hash") or self._decoy)
+        if not record or not matches:
             why = "wrong password" if record else "unknown user"
             self.log(f"login refused user={shown(user)} from={client} ({why})")
             return None
         self.log(f"login user={user} role={record['role']} from={client}")
-        return make_session(user, record["role"], self.key, int(self.clock() + self.hours * 3600))
+        expires = int(self.clock() + self.hours * 3600)
+        return make_session(user, record["role"], self.key, expires, record.get("hash", ""))
 
 
 def handler(door: Door):
     class Handler(BaseHTTPRequestHandler):
         server_version = "isaac-sim-front-door"
         sys_version = ""
+        timeout = 10  # a client that stops sending holds a thread this long at most
 
         def _client(self) -> str:
             return self.headers.get("X-Real-IP") or self.client_address[0]
@@ -232,7 +251,8 @@ def handler(door: Door):
             if body:
                 self.send_header("Content-Type", "text/html; charset=utf-8")
                 self.send_header(
-                    "Content-Security-Policy", "default-src 'none'; style-src 'unsafe-inline'; form-action 'self'"
+                    "Content-Security-Policy",
+                    "default-src 'none'; style-src 'unsafe-inline'; form-action 'self'; frame-ancestors 'none'",
                 )
             self.send_header("Cache-Control", "no-store")
             self.send_header("Content-Length", str(len(body)))
@@ -247,10 +267,28 @@ def handler(door: Door):
             self._send(code, text.encode())
 
         def do_GET(self):  # noqa: N802 - http.server's naming
+            try:
+                self._get()
+            except Exception as error:  # pylint: disable=broad-exception-caught
+                # one bad request is one answer and one line, never a dead thread or server
+                door.log(f"error path={self.path!r} from={self._client()}: {type(error).__name__}")
+                self._send(500)
+
+        def do_POST(self):  # noqa: N802
+            try:
+                self._post()
+            except Exception as error:  # pylint: disable=broad-exception-caught
+                door.log(f"error path={self.path!r} from={self._client()}: {type(error).__name__}")
+                self._send(500)
+
+        def _get(self):
             url = urllib.parse.urlsplit(self.path)
             if url.path == "/auth":
                 code, user = door.check(
-                    self.headers.get("Cookie", ""), self.headers.get("X-Original-URI", "/"), self._client()
+                    self.headers.get("Cookie", ""),
+                    self.headers.get("X-Original-URI", "/"),
+                    self._client(),
+                    urllib.parse.parse_qs(url.query).get("need", [""])[0],
                 )
                 self._send(code, headers=[("X-Fleet-User", user)] if user else [])
             elif url.path == "/login":
@@ -266,12 +304,20 @@ def handler(door: Door):
             else:
                 self._send(404)
 
-        def do_POST(self):  # noqa: N802
+        def _post(self):
             if urllib.parse.urlsplit(self.path).path != "/login":
                 self._send(404)
                 return
-            length = min(int(self.headers.get("Content-Length") or 0), 8192)
-            form = urllib.parse.parse_qs(self.rfile.read(length).decode("utf-8", "replace"))
+            length = self.headers.get("Content-Length") or "0"
+            if not length.isdigit() or int(length) > 8192:
+                self._send(413 if length.isdigit() else 400)
+                return
+            # a form another site's page sends (login CSRF) is refused; browsers say where it came from
+            if self.headers.get("Sec-Fetch-Site") in ("cross-site", "same-site"):
+                door.log(f"login refused from={self._client()} (a form of another site)")
+                self._send(403)
+                return
+            form = urllib.parse.parse_qs(self.rfile.read(int(length)).decode("utf-8", "replace"))
             user, password = form.get("user", [""])[0], form.get("password", [""])[0]
             target = form.get("next", ["/"])[0]
             token = door.login(user, password, self._client())

@@ -34,6 +34,13 @@ WORKER_USER = "www-data"
 _HOST_RE = re.compile(r"^[A-Za-z0-9.-]+$")
 _RATE_RE = re.compile(r"^[1-9][0-9]*r/[sm]$")
 _NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
+# what a host's status endpoint says it serves at (it goes into nginx's configuration as it is)
+_STATUS_URL_RE = re.compile(r"^http://(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}/status$")
+# Mozilla's "intermediate" TLS 1.2 suites: forward secrecy and AEAD only (TLS 1.3 picks its own)
+CIPHERS = (
+    "ECDHE-ECDSA-AES128-GCM-SHA256:ECDHE-RSA-AES128-GCM-SHA256:ECDHE-ECDSA-AES256-GCM-SHA384:"
+    "ECDHE-RSA-AES256-GCM-SHA384:ECDHE-ECDSA-CHACHA20-POLY1305:ECDHE-RSA-CHACHA20-POLY1305"
+)
 
 
 def _port(value):
@@ -82,6 +89,17 @@ def check(p: dict) -> list:
                 f"front_door_hosts: the inventory host {backend.get('name')!r} cannot be a path of the front "
                 "door. Fix: letters, digits, '.', '_' and '-' only in the names of the hosts behind it."
             )
+        elif not _STATUS_URL_RE.match(str(backend.get("status_url", ""))):
+            errors.append(
+                f"front_door_hosts: {backend['name']} says its status endpoint is at {backend.get('status_url')!r}, "
+                "not http://ADDRESS:PORT/status. Fix: its isaac_sim_status_server_address, or redeploy it."
+            )
+    if p.get("unread"):
+        errors.append(
+            f"front_door_hosts: {', '.join(map(str, p['unread']))} did not say where they serve their status "
+            "(unreachable, or left out by --limit), and the front door would drop them. Fix: run "
+            "playbooks/front_door.yml with those hosts reachable and within --limit."
+        )
     return errors
 
 
@@ -132,12 +150,30 @@ def _is_ip(text: str) -> bool:
 def nginx_conf(p: dict, managed: str) -> str:
     auth = f"http://127.0.0.1:{p['auth_port']}"
     port, http_port = int(p["port"]), int(p["http_port"])
-    to_https = "https://$host" + ("" if port == 443 else f":{port}") + "$request_uri"
-    guarded = [
-        "      auth_request /fleet-auth;",
-        "      auth_request_set $fleet_user $upstream_http_x_fleet_user;",
-        "      error_page 401 = @fleet_login;",
-    ]
+    name = f"[{p['server_name']}]" if ":" in str(p["server_name"]) else p["server_name"]
+    to_https = f"https://{name}" + ("" if port == 443 else f":{port}") + "$request_uri"
+    ipv6 = p.get("ipv6", True)
+
+    def guarded(question="/fleet-auth"):
+        return [
+            f"      auth_request {question};",
+            "      auth_request_set $fleet_user $upstream_http_x_fleet_user;",
+            "      error_page 401 = @fleet_login;",
+        ]
+
+    def ask(location, query=""):
+        return [
+            f"    location = {location} {{",
+            "      internal;",
+            f"      proxy_pass {auth}/auth{query};",
+            "      proxy_pass_request_body off;",
+            '      proxy_set_header Content-Length "";',
+            # as sent, for the journal; which role a path needs is this file's locations' to say
+            "      proxy_set_header X-Original-URI $request_uri;",
+            "      proxy_set_header X-Real-IP $remote_addr;",
+            "    }",
+        ]
+
     lines = [
         f"# {managed}",
         "# The fleet's front door (isaac-sim-front-door.service): HTTPS and a login in front of every page.",
@@ -153,39 +189,42 @@ def nginx_conf(p: dict, managed: str) -> str:
         *(f"  {kind}_temp_path {RUN_DIR}/{kind};" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")),
         "  log_format fleet '$remote_addr user=$fleet_user \"$request\" $status';",
         "  access_log syslog:server=unix:/dev/log,tag=isaac_sim_front_door,nohostname fleet;",
-        f"  limit_req_zone $binary_remote_addr zone=fleet_login:1m rate={p['login_rate']};",
+        # login attempts only: showing the login page costs nothing
+        '  map $request_method $fleet_login_key { POST $binary_remote_addr; default ""; }',
+        f"  limit_req_zone $fleet_login_key zone=fleet_login:1m rate={p['login_rate']};",
         "  limit_req_status 429;",
         "  ssl_protocols TLSv1.2 TLSv1.3;",
+        f"  ssl_ciphers {CIPHERS};",
         "  ssl_session_cache shared:fleet_tls:1m;",
+        "  ssl_session_tickets off;",
     ]
     if http_port:
         lines += [
             "  server {",
             f"    listen {http_port};",
-            f"    listen [::]:{http_port};",
+            *([f"    listen [::]:{http_port};"] if ipv6 else []),
             f"    return 301 {to_https};",
             "  }",
         ]
     lines += [
         "  server {",
         f"    listen {port} ssl;",
-        f"    listen [::]:{port} ssl;",
+        *([f"    listen [::]:{port} ssl;"] if ipv6 else []),
         f"    ssl_certificate {CONFIG_DIR}/door.crt;",
         f"    ssl_certificate_key {CONFIG_DIR}/door.key;",
         '    add_header Strict-Transport-Security "max-age=31536000" always;',
         "    add_header X-Content-Type-Options nosniff always;",
         "    add_header Referrer-Policy same-origin always;",
+        "    add_header X-Frame-Options DENY always;",
         "    set $fleet_user -;",
         "    absolute_redirect off;",
-        "    location = /fleet-auth {",
-        "      internal;",
-        f"      proxy_pass {auth}/auth;",
-        "      proxy_pass_request_body off;",
-        '      proxy_set_header Content-Length "";',
-        "      proxy_set_header X-Original-URI $request_uri;",
-        "      proxy_set_header X-Real-IP $remote_addr;",
+        *ask("/fleet-auth"),
+        *ask("/fleet-auth-operator", "?need=operator"),
+        # a page's own requests (fetch: Sec-Fetch-Dest empty) get 401, a person the login page
+        "    location @fleet_login {",
+        '      if ($http_sec_fetch_dest = "empty") { return 401; }',
+        "      return 302 /login?next=$request_uri;",
         "    }",
-        "    location @fleet_login { return 302 /login?next=$request_uri; }",
         "    location = /login {",
         "      limit_req zone=fleet_login burst=5 nodelay;",
         f"      proxy_pass {auth};",
@@ -195,16 +234,24 @@ def nginx_conf(p: dict, managed: str) -> str:
         # browsers ask for it on every page, the login page too: nothing, rather than a 404
         "    location = /favicon.ico { access_log off; return 204; }",
         "    location / {",
-        *guarded,
+        *guarded(),
         f"      root {CONFIG_DIR}/www;",
         "      index index.html;",
+        "    }",
+        # operators only (logs and actions, as they come): nginx's own match of the path decides
+        "    location /operator/ {",
+        *guarded("/fleet-auth-operator"),
+        f"      root {CONFIG_DIR}/www;",
         "    }",
     ]
     for backend in p.get("backends") or []:
         lines += [
             f"    location = /hosts/{backend['name']}/status {{",
-            *guarded,
+            *guarded(),
             f"      proxy_pass {backend['status_url']};",
+            # the session stays here: the hosts behind are reached over plain HTTP
+            '      proxy_set_header Cookie "";',
+            '      proxy_set_header Authorization "";',
             "    }",
         ]
     lines += ["  }", "}"]
@@ -277,6 +324,9 @@ def auth_unit(p: dict, managed: str, libexec_dir: str) -> str:
                     ("RestartSec", 2),
                     ("StateDirectory", state),
                     *sandbox.reader(),
+                    # no GPU to ask, unlike the other readers
+                    ("PrivateDevices", "yes"),
+                    ("ProtectProc", "invisible"),
                     ("IPAddressAllow", "localhost"),
                     ("IPAddressDeny", "any"),
                 ],

@@ -53,6 +53,11 @@ def test_good_settings_pass():
             {"backends": [{"name": "a/b", "status_url": "http://x/status"}]},
             "front_door_hosts: the inventory host 'a/b'",
         ),
+        (
+            {"backends": [{"name": "gpu-1", "status_url": "http://10.0.0.5:8290/status; return 200"}]},
+            "front_door_hosts: gpu-1 says its status endpoint is at",
+        ),
+        ({"unread": ["gpu-2"]}, "front_door_hosts: gpu-2 did not say where they serve their status"),
     ],
 )
 def test_each_bad_setting_is_named_with_its_fix(over, start):
@@ -63,20 +68,35 @@ def test_each_bad_setting_is_named_with_its_fix(over, start):
 def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     conf = front_door.nginx_conf(GOOD, "managed")
     assert "ssl_protocols TLSv1.2 TLSv1.3;" in conf and 'Strict-Transport-Security "max-age=31536000" always' in conf
-    assert "listen 80;\n    listen [::]:80;\n    return 301 https://$host$request_uri;" in conf
-    assert "limit_req_zone $binary_remote_addr zone=fleet_login:1m rate=10r/m;" in conf
+    # to the configured name, never the client's Host header
+    assert "listen 80;\n    listen [::]:80;\n    return 301 https://fleet.lab$request_uri;" in conf
+    # only login attempts count against the rate
+    assert 'map $request_method $fleet_login_key { POST $binary_remote_addr; default ""; }' in conf
+    assert "limit_req_zone $fleet_login_key zone=fleet_login:1m rate=10r/m;" in conf
+    assert f"ssl_ciphers {front_door.CIPHERS};" in conf and "ssl_session_tickets off;" in conf
+    assert "add_header X-Frame-Options DENY always;" in conf
     backend = conf.split("location = /hosts/gpu-1/status {", 1)[1].split("}", 1)[0]
     assert "auth_request /fleet-auth;" in backend and "proxy_pass http://10.0.0.5:8290/status;" in backend
+    # the session never travels to the hosts behind (plain HTTP)
+    assert 'proxy_set_header Cookie "";' in backend and 'proxy_set_header Authorization "";' in backend
+    # operators' paths: nginx's own match asks the question that needs the role
+    operator = conf.split("    location /operator/ {", 1)[1].split("}", 1)[0]
+    assert "auth_request /fleet-auth-operator;" in operator
+    asks = conf.split("location = /fleet-auth-operator {", 1)[1].split("}", 1)[0]
+    assert "proxy_pass http://127.0.0.1:9480/auth?need=operator;" in asks and "internal;" in asks
+    # a page's fetch gets 401 (it cannot follow a login page), a person the login page
+    login = conf.split("location @fleet_login {", 1)[1].split("\n    }", 1)[0]
+    assert 'if ($http_sec_fetch_dest = "empty") { return 401; }' in login and "return 302 /login?next=" in login
     root = conf.split("    location / {", 1)[1].split("}", 1)[0]
     assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
     # only the login page, the logout and nginx's own internal question go without a session
     unguarded = [
         b.split("{")[0] for b in conf.split("location ")[1:] if "auth_request /fleet-auth" not in b.split("}")[0]
     ]
-    open_ones = ["= /favicon.ico", "= /fleet-auth", "= /login", "= /logout", "@fleet_login"]
+    open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "@fleet_login"]
     assert sorted(u.strip() for u in unguarded) == open_ones
-    other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0), "managed")
-    assert "return 301" not in other and "listen 8443 ssl;" in other
+    other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0, ipv6=False), "managed")
+    assert "return 301" not in other and "listen 8443 ssl;" in other and "[::]" not in other
 
 
 def test_files_keep_secrets_root_s_and_list_the_login_service_first():
