@@ -5,29 +5,12 @@ The requests come from this machine (the controller), as a browser outside the h
 them, through Python's own HTTP client with the CA the role made (nothing trusts it otherwise).
 """
 
-import http.client
-import importlib.util
 import json
-import os
-import ssl
-import urllib.parse
-from pathlib import Path
 
 import testbed
 from browser import chromium, console_errors
-from testbed import INSTANCES, ROOT, sh, wait_for
-
-# the login service's own code (the standard library alone) makes the users' hashes
-_spec = importlib.util.spec_from_file_location("door_auth", ROOT / "plugins/module_utils/front/door_auth.py")
-door_auth = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(door_auth)
-
-UNITS = ("isaac-sim-front-door.service", "isaac-sim-front-door-auth.service")
-# hashed once: a new salt is a changed users file, which a re-run would rightly apply
-USERS = [
-    {"name": "olga", "role": "operator", "password_hash": door_auth.hash_password("op-secret", 10000)},
-    {"name": "vic", "role": "viewer", "password_hash": door_auth.hash_password("view-secret", 10000)},
-]
+from frontdoor import UNITS, ca_dir, door_inventory, login, request, settings
+from testbed import INSTANCES, sh, wait_for
 
 
 def ok(result):
@@ -35,43 +18,9 @@ def ok(result):
     return result
 
 
-def ca_dir() -> Path:
-    return Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "ca"
-
-
-def door_inventory(host) -> Path:
-    inventory = Path(os.environ["MOLECULE_EPHEMERAL_DIRECTORY"]) / "front-door.yml"
-    inventory.write_text(json.dumps({"isaac_sim_front_door": {"hosts": {testbed.name(host): {}}}}))
-    return inventory
-
-
 def run(host, **over):
-    inventory = door_inventory(host)
-    extra = {"front_door_users": USERS, "front_door_ca_dir": str(ca_dir()), "front_door_login_rate": "30r/m", **over}
-    return testbed.run_playbook(host, extra, extra_inventory=inventory, playbook="playbooks/front_door.yml")
-
-
-def request(address, method, path, body=None, cookie=None, tls=True, headers=None):
-    if tls:
-        context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
-        conn = http.client.HTTPSConnection(address, 443, context=context, timeout=10)
-    else:
-        conn = http.client.HTTPConnection(address, 80, timeout=10)
-    headers = dict(headers or {}, **({"Cookie": f"__Host-fleet_session={cookie}"} if cookie else {}))
-    if body is not None:
-        body = urllib.parse.urlencode(body)
-        headers["Content-Type"] = "application/x-www-form-urlencoded"
-    conn.request(method, path, body=body, headers=headers)
-    response = conn.getresponse()
-    data = response.read()
-    version = conn.sock.version() if tls and conn.sock else None
-    conn.close()
-    return response, data, version
-
-
-def login(address, user, password):
-    response, _data, _v = request(address, "POST", "/login", {"user": user, "password": password, "next": "/"})
-    return response
+    inventory = door_inventory(testbed.name(host))
+    return testbed.run_playbook(host, settings(**over), extra_inventory=inventory, playbook="playbooks/front_door.yml")
 
 
 def journal(host, unit):
@@ -84,7 +33,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         testbed.run_playbook(
             host,
             {"fleet_report_dir": str(report), "fleet_report_refresh": 1},
-            extra_inventory=door_inventory(host),
+            extra_inventory=door_inventory(testbed.name(host)),
             playbook="playbooks/status.yml",
         )
     )
