@@ -5,6 +5,7 @@ text (values given with -e are strings)."""
 
 from __future__ import annotations
 
+import ipaddress
 import re
 
 # https://github.com/distribution/reference grammar, condensed
@@ -18,6 +19,15 @@ IMAGE_RE = re.compile(
 )
 SIZE_RE = re.compile(r"^(\d+(?:\.\d+)?) ?([kmgtp])?(i?b)?$", re.IGNORECASE)
 _UNITS = {None: 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4, "p": 1024**5}
+
+
+def is_ip(text: str) -> bool:
+    """An IPv4 or IPv6 address (not a network, not a name)."""
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def parse_size(text) -> int | None:

@@ -14,19 +14,20 @@ are rate-limited per client address. Behind it: each host's status endpoint, at
 from __future__ import annotations
 
 import html
-import ipaddress
 import json
 import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import is_ip
 from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
 UNIT = "isaac-sim-front-door.service"
 AUTH_UNIT = "isaac-sim-front-door-auth.service"
-CONFIG_DIR = "/etc/isaac-sim/front-door"
+CONFIG_DIR = f"{layout.CONFIG_DIR}/front-door"
 RUN_DIR = "/run/isaac-sim-front-door"
 STATE_DIR = "/var/lib/isaac-sim-front-door"
-AUTH_SCRIPT = "isaac-sim-front-door-auth"
+AUTH_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-auth"
 NGINX = "/usr/sbin/nginx"
 PYTHON = "/usr/bin/python3"
 # nginx's workers drop to the distribution's web user (Debian's base-passwd has it)
@@ -52,7 +53,7 @@ def check(p: dict) -> list:
     """Errors in the role's settings, each naming the variable and the fix."""
     errors = []
     name = str(p.get("server_name") or "")
-    if not _HOST_RE.match(name) and not _is_ip(name):
+    if not _HOST_RE.match(name) and not is_ip(name):
         errors.append(
             f"front_door_server_name: {name!r} is neither a host name nor an IP address. "
             "Fix: the name browsers reach the front door at, e.g. fleet.lab."
@@ -137,14 +138,6 @@ def _user_errors(users) -> list:
                 "filter or Ansible's password_hash('pbkdf2_sha256')."
             )
     return errors
-
-
-def _is_ip(text: str) -> bool:
-    try:
-        ipaddress.ip_address(text)
-    except ValueError:
-        return False
-    return True
 
 
 def nginx_conf(p: dict, managed: str) -> str:
@@ -304,7 +297,7 @@ def nginx_unit(managed: str) -> str:
     )
 
 
-def auth_unit(p: dict, managed: str, libexec_dir: str) -> str:
+def auth_unit(p: dict, managed: str) -> str:
     state = STATE_DIR.rsplit("/", 1)[1]
     return units.render(
         [
@@ -317,7 +310,7 @@ def auth_unit(p: dict, managed: str, libexec_dir: str) -> str:
                 [
                     (
                         "ExecStart",
-                        f"{PYTHON} {libexec_dir}/{AUTH_SCRIPT} --port {p['auth_port']} --users {CONFIG_DIR}/users.json "
+                        f"{PYTHON} {AUTH_SCRIPT} --port {p['auth_port']} --users {CONFIG_DIR}/users.json "
                         f"--key {STATE_DIR}/session.key --hours {p['session_hours']}",
                     ),
                     ("Restart", "on-failure"),
@@ -337,13 +330,13 @@ def auth_unit(p: dict, managed: str, libexec_dir: str) -> str:
     )
 
 
-def files(p: dict, managed: str, libexec_dir: str, cert: str, key: str, auth_code: str) -> dict:
+def files(p: dict, managed: str, cert: str, key: str, auth_code: str) -> dict:
     """{unit: {path: {content, mode}}} for isaac_sim_host_service, the login service's first (nginx
     asks it from its first request on)."""
     return {
         AUTH_UNIT: {
-            f"/etc/systemd/system/{AUTH_UNIT}": {"content": auth_unit(p, managed, libexec_dir), "mode": "0644"},
-            f"{libexec_dir}/{AUTH_SCRIPT}": {"content": auth_code, "mode": "0644"},
+            f"/etc/systemd/system/{AUTH_UNIT}": {"content": auth_unit(p, managed), "mode": "0644"},
+            AUTH_SCRIPT: {"content": auth_code, "mode": "0644"},
             f"{CONFIG_DIR}/users.json": {"content": users_json(p), "mode": "0600"},
         },
         UNIT: {
@@ -353,4 +346,14 @@ def files(p: dict, managed: str, libexec_dir: str, cert: str, key: str, auth_cod
             f"{CONFIG_DIR}/door.key": {"content": key, "mode": "0600"},
             f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
         },
+    }
+
+
+def removal() -> dict:
+    """{unit: {files, remove}} for isaac_sim_host_service's state absent: each unit's own file, and
+    what it leaves (the configuration with the dashboard status.yml wrote, the script, the session
+    key); in the order files() gives them."""
+    return {
+        AUTH_UNIT: {"files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}}, "remove": [AUTH_SCRIPT, STATE_DIR]},
+        UNIT: {"files": {f"/etc/systemd/system/{UNIT}": {"content": ""}}, "remove": [CONFIG_DIR]},
     }

@@ -21,6 +21,7 @@ import re
 from urllib.parse import urlparse
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import is_ip
 
 UNIT = "isaac-sim-mirror.service"
 CONFIG_DIR = "/etc/isaac-sim/mirror"
@@ -54,7 +55,7 @@ def check(p: dict) -> list:
             "without an API key). Fix: set it from a vault."
         )
     address = str(p.get("address") or "")
-    if not _is_ip(address) and not _HOST_RE.match(address):
+    if not is_ip(address) and not _HOST_RE.match(address):
         errors.append(
             f"registry_mirror_address: {address!r} is neither an IP address nor a host name. "
             "Fix: the address the fleet's hosts reach the mirror at."
@@ -79,14 +80,6 @@ def check(p: dict) -> list:
                 "bits zero, e.g. 10.20.0.0/16, or a single address."
             )
     return errors
-
-
-def _is_ip(text: str) -> bool:
-    try:
-        ipaddress.ip_address(text)
-    except ValueError:
-        return False
-    return True
 
 
 def config(p: dict) -> str:

@@ -22,7 +22,6 @@ def settings(**over):
         "cert": "C",
         "key": "K",
         "auth_code": "CODE",
-        "libexec_dir": "/usr/local/libexec/isaac-sim",
     }
     base.update(over)
     return base
@@ -35,7 +34,18 @@ def test_errors_files_and_a_refusal_of_bad_settings():
     )
     with pytest.raises(AnsibleFilterError, match="front_door_users: empty"):
         fd_filter.isaac_sim_front_door(settings(users=[]), "files")
-    with pytest.raises(AnsibleFilterError, match="is not errors or files"):
+    # what goes with each unit: its unit file; the script, the session key, the configuration
+    removal = fd_filter.isaac_sim_front_door({}, "removal")
+    assert removal["isaac-sim-front-door-auth.service"] == {
+        "files": {"/etc/systemd/system/isaac-sim-front-door-auth.service": {"content": ""}},
+        "remove": ["/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth", "/var/lib/isaac-sim-front-door"],
+    }
+    assert removal["isaac-sim-front-door.service"]["remove"] == ["/etc/isaac-sim/front-door"]
+    # together they remove every file the units were given, or the directory that holds it
+    gone = [path for unit in removal.values() for path in list(unit["files"]) + unit["remove"]]
+    given = [path for unit in fd_filter.isaac_sim_front_door(settings(), "files").values() for path in unit]
+    assert all(any(path == g or path.startswith(g + "/") for g in gone) for path in given)
+    with pytest.raises(AnsibleFilterError, match="is not errors, files or removal"):
         fd_filter.isaac_sim_front_door(settings(), "other")
     assert "isaac_sim_front_door" in fd_filter.FilterModule().filters()
 

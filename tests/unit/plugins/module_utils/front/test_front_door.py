@@ -100,7 +100,7 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
 
 
 def test_files_keep_secrets_root_s_and_list_the_login_service_first():
-    files = front_door.files(GOOD, "managed", "/usr/local/libexec/isaac-sim", "CERT", "KEY", "CODE")
+    files = front_door.files(GOOD, "managed", "CERT", "KEY", "CODE")
     assert list(files) == [front_door.AUTH_UNIT, front_door.UNIT]
     auth, door = files[front_door.AUTH_UNIT], files[front_door.UNIT]
     assert auth["/etc/isaac-sim/front-door/users.json"]["mode"] == "0600"
