@@ -118,9 +118,11 @@ def test_a_training_job_outlives_a_slurmctld_outage_writes_logs_and_checkpoints_
     args = ["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless", "--sleep=5"]
     with ThreadPoolExecutor(1) as pool:
         running = pool.submit(train, lab, train_cpus_per_node=2, train_poll_interval=3, train_args=args)
-        # once the job runs, slurmctld goes away for 45 s: the job ends meanwhile, its end waits on slurmd
+        # once the training runs (its srun step, which slurmctld must create, exists), slurmctld goes
+        # away for 45 s: the job ends meanwhile, its end waits on slurmd. Stopped earlier, the job
+        # script's srun (and its scontrol) would fail on the missing controller: Slurm's behaviour
         deadline = time.monotonic() + 120
-        while "RUNNING" not in sh(CONTROLLER, "squeue -h -o %T") and time.monotonic() < deadline:
+        while not re.search(r"^\d+\.0$", sh(CONTROLLER, "squeue -h -s -o %i"), re.M) and time.monotonic() < deadline:
             time.sleep(0.5)
         sh(CONTROLLER, "systemctl stop slurmctld")
         time.sleep(45)
