@@ -39,12 +39,12 @@ def door_inventory(name: str) -> Path:
     return inventory
 
 
-def request(address, method, path, body=None, cookie=None, tls=True, headers=None):
+def request(address, method, path, body=None, cookie=None, tls=True, headers=None, port=None):
     if tls:
         context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
-        conn = http.client.HTTPSConnection(address, 443, context=context, timeout=10)
+        conn = http.client.HTTPSConnection(address, port or 443, context=context, timeout=10)
     else:
-        conn = http.client.HTTPConnection(address, 80, timeout=10)
+        conn = http.client.HTTPConnection(address, port or 80, timeout=10)
     headers = dict(headers or {}, **({"Cookie": f"__Host-fleet_session={cookie}"} if cookie else {}))
     if body is not None:
         body = urllib.parse.urlencode(body)

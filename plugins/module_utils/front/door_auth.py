@@ -235,7 +235,12 @@ class Door:
         return make_session(user, record["role"], self.key, expires, record.get("hash", ""))
 
 
-def handler(door: Door):
+def handler(door: Door, form_action: str = ""):
+    """form_action: sources the login form may lead to besides its own origin (after the login, a
+    redirect to a web viewer's port of the front door: Chrome holds each hop to form-action)."""
+    sources = " ".join(["'self'", *form_action.split()])
+    policy = f"default-src 'none'; style-src 'unsafe-inline'; form-action {sources}; frame-ancestors 'none'"
+
     class Handler(BaseHTTPRequestHandler):
         server_version = "isaac-sim-front-door"
         sys_version = ""
@@ -250,10 +255,7 @@ def handler(door: Door):
                 self.send_header(name, value)
             if body:
                 self.send_header("Content-Type", "text/html; charset=utf-8")
-                self.send_header(
-                    "Content-Security-Policy",
-                    "default-src 'none'; style-src 'unsafe-inline'; form-action 'self'; frame-ancestors 'none'",
-                )
+                self.send_header("Content-Security-Policy", policy)
             self.send_header("Cache-Control", "no-store")
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
@@ -342,9 +344,10 @@ def main(argv=None):
     parser.add_argument("--users", required=True)
     parser.add_argument("--key", required=True)
     parser.add_argument("--hours", type=float, default=8)
+    parser.add_argument("--form-action", default="", help="sources the login may lead to besides itself")
     args = parser.parse_args(argv)
     door = Door(args.users, args.key, args.hours)
-    ThreadingHTTPServer(("127.0.0.1", args.port), handler(door)).serve_forever()
+    ThreadingHTTPServer(("127.0.0.1", args.port), handler(door, args.form_action)).serve_forever()
 
 
 if __name__ == "__main__":

@@ -8,7 +8,14 @@ nginx of the distribution's packages runs as a unit of the collection's own
 TLS 1.2 and 1.3 only, HSTS, plain HTTP only as a redirect. Every request but the login page's asks
 the login service (isaac-sim-front-door-auth.service, front/door_auth.py) first; login attempts
 are rate-limited per client address. Behind it: each host's status endpoint, at
-/hosts/HOST/status, and a page that lists them.
+/hosts/HOST/status, each 6.x web viewer, and a page that lists them.
+
+A web viewer gets a TLS port of its own on the front door (front_door_viewer_port_base + 100 x the
+host's place in front_door_hosts + the instance's number): the page and, on the same port, its
+signalling WebSocket, told apart by the Upgrade header. NVIDIA's viewer library takes a signalling
+host, port and forceWSS (no path of its own is confirmed), so a port per viewer is what routes
+its signalling to the right instance; the page, loaded over HTTPS, signals back to its own origin
+over WSS (roles/web_viewer_image/files/viewer-entrypoint). /viewers/HOST/N/ redirects there.
 """
 
 from __future__ import annotations
@@ -37,6 +44,12 @@ _RATE_RE = re.compile(r"^[1-9][0-9]*r/[sm]$")
 _NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
 # what a host's status endpoint says it serves at (it goes into nginx's configuration as it is)
 _STATUS_URL_RE = re.compile(r"^http://(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}/status$")
+# where an instance's web viewer and signalling listen, as its status reports them
+_ADDRESS = r"(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}"
+_PAGE_RE = re.compile(rf"^http://({_ADDRESS})/$")
+_SIGNAL_RE = re.compile(rf"^({_ADDRESS})$")
+# door ports per host behind it: one per instance number
+VIEWER_PORTS_PER_HOST = 100
 # Mozilla's "intermediate" TLS 1.2 suites: forward secrecy and AEAD only (TLS 1.3 picks its own)
 CIPHERS = (
     "ECDHE-ECDSA-AES128-GCM-SHA256:ECDHE-RSA-AES128-GCM-SHA256:ECDHE-ECDSA-AES256-GCM-SHA384:"
@@ -95,12 +108,56 @@ def check(p: dict) -> list:
                 f"front_door_hosts: {backend['name']} says its status endpoint is at {backend.get('status_url')!r}, "
                 "not http://ADDRESS:PORT/status. Fix: its isaac_sim_status_server_address, or redeploy it."
             )
+    errors += _viewer_errors(p, ports)
     if p.get("unread"):
         errors.append(
             f"front_door_hosts: {', '.join(map(str, p['unread']))} did not say where they serve their status "
-            "(unreachable, or left out by --limit), and the front door would drop them. Fix: run "
+            "and viewers (unreachable, or left out by --limit), and the front door would drop them. Fix: run "
             "playbooks/front_door.yml with those hosts reachable and within --limit."
         )
+    return errors
+
+
+def viewers(p: dict) -> list:
+    """[{host, instance, port, page, signal}]: each web viewer behind the door and its door port."""
+    base = _port(p.get("viewer_port_base"))
+    out = []
+    for slot, backend in enumerate(p.get("backends") or []):
+        for viewer in backend.get("viewers") or []:
+            port = base + VIEWER_PORTS_PER_HOST * slot + int(viewer["instance"]) if isinstance(base, int) else None
+            out.append(dict(viewer, host=backend["name"], port=port))
+    return out
+
+
+def _viewer_errors(p: dict, ports: dict) -> list:
+    base = _port(p.get("viewer_port_base"))
+    if not isinstance(base, int) or not 1024 <= base <= 65535:
+        return [f"front_door_viewer_port_base: {base!r} is not a port of 1024-65535. Fix: e.g. 20000."]
+    errors = []
+    for viewer in viewers(p):
+        where = f"front_door_hosts: {viewer['host']} instance {viewer.get('instance')!r}"
+        if not isinstance(viewer.get("instance"), int) or not 0 <= viewer["instance"] < VIEWER_PORTS_PER_HOST:
+            errors.append(
+                f"{where}: the front door serves viewers of instances 0-{VIEWER_PORTS_PER_HOST - 1}. Fix: fewer "
+                "instances on that host."
+            )
+            continue
+        if not _PAGE_RE.match(str(viewer.get("page"))) or not _SIGNAL_RE.match(str(viewer.get("signal"))):
+            errors.append(
+                f"{where}: its viewer at {viewer.get('page')!r} and signalling at {viewer.get('signal')!r} are not "
+                "http://ADDRESS:PORT/ and ADDRESS:PORT. Fix: redeploy the host."
+            )
+        if viewer["port"] > 65535:
+            errors.append(
+                f"front_door_viewer_port_base: {base} gives {where} port {viewer['port']}, past 65535. Fix: a lower "
+                "base, or fewer hosts behind this front door."
+            )
+        elif viewer["port"] in ports:
+            errors.append(
+                f"front_door_viewer_port_base: {base} gives {where} port {viewer['port']}, which "
+                f"{' and '.join(ports[viewer['port']])} already takes. Fix: a base whose block of "
+                f"{VIEWER_PORTS_PER_HOST} ports per host clears the front door's own ports."
+            )
     return errors
 
 
@@ -143,7 +200,7 @@ def _user_errors(users) -> list:
 def nginx_conf(p: dict, managed: str) -> str:
     auth = f"http://127.0.0.1:{p['auth_port']}"
     port, http_port = int(p["port"]), int(p["http_port"])
-    name = f"[{p['server_name']}]" if ":" in str(p["server_name"]) else p["server_name"]
+    name = _bracketed(p["server_name"])
     to_https = f"https://{name}" + ("" if port == 443 else f":{port}") + "$request_uri"
     ipv6 = p.get("ipv6", True)
 
@@ -199,33 +256,61 @@ def nginx_conf(p: dict, managed: str) -> str:
             f"    return 301 {to_https};",
             "  }",
         ]
-    lines += [
-        "  server {",
-        f"    listen {port} ssl;",
-        *([f"    listen [::]:{port} ssl;"] if ipv6 else []),
-        f"    ssl_certificate {CONFIG_DIR}/door.crt;",
-        f"    ssl_certificate_key {CONFIG_DIR}/door.key;",
-        '    add_header Strict-Transport-Security "max-age=31536000" always;',
-        "    add_header X-Content-Type-Options nosniff always;",
-        "    add_header Referrer-Policy same-origin always;",
-        "    add_header X-Frame-Options DENY always;",
-        "    set $fleet_user -;",
-        "    absolute_redirect off;",
-        *ask("/fleet-auth"),
-        *ask("/fleet-auth-operator", "?need=operator"),
+
+    def tls_server(listen):
+        return [
+            "  server {",
+            f"    listen {listen} ssl;",
+            *([f"    listen [::]:{listen} ssl;"] if ipv6 else []),
+            f"    ssl_certificate {CONFIG_DIR}/door.crt;",
+            f"    ssl_certificate_key {CONFIG_DIR}/door.key;",
+            '    add_header Strict-Transport-Security "max-age=31536000" always;',
+            "    add_header X-Content-Type-Options nosniff always;",
+            "    add_header Referrer-Policy same-origin always;",
+            "    add_header X-Frame-Options DENY always;",
+            "    set $fleet_user -;",
+            "    absolute_redirect off;",
+            *ask("/fleet-auth"),
+        ]
+
+    def to_login(target):
         # a page's own requests (fetch: Sec-Fetch-Dest empty) get 401, a person the login page
-        "    location @fleet_login {",
-        '      if ($http_sec_fetch_dest = "empty") { return 401; }',
-        "      return 302 /login?next=$request_uri;",
-        "    }",
+        return [
+            "    location @fleet_login {",
+            '      if ($http_sec_fetch_dest = "empty") { return 401; }',
+            f"      return 302 {target};",
+            "    }",
+            "    location = /favicon.ico { access_log off; return 204; }",
+        ]
+
+    door = f"https://{name}" + ("" if port == 443 else f":{port}")
+    shown = viewers(p)
+    if shown:
+        # the signalling's WebSocket and the page share a port: the Upgrade header tells them apart
+        lines += [
+            '  map $http_upgrade $fleet_websocket { "~*^websocket$" 1; default 0; }',
+            '  map $http_upgrade $fleet_connection { default upgrade; "" close; }',
+        ]
+    for viewer in shown:
+        v = f"fleet_viewer_{viewer['port']}"
+        page = _PAGE_RE.match(viewer["page"]).group(1)
+        lines += [
+            f"  upstream {v}_page {{ server {page}; }}",
+            f"  upstream {v}_signal {{ server {viewer['signal']}; }}",
+            f'  map $http_upgrade ${v} {{ "~*^websocket$" {v}_signal; default {v}_page; }}',
+            # the Host each expects, as a browser reaching it directly sends it (vite checks it)
+            f'  map $http_upgrade ${v}_host {{ "~*^websocket$" {viewer["signal"]}; default {page}; }}',
+        ]
+    lines += [
+        *tls_server(port),
+        *ask("/fleet-auth-operator", "?need=operator"),
+        *to_login("/login?next=$request_uri"),
         "    location = /login {",
         "      limit_req zone=fleet_login burst=5 nodelay;",
         f"      proxy_pass {auth};",
         "      proxy_set_header X-Real-IP $remote_addr;",
         "    }",
         f"    location = /logout {{ proxy_pass {auth}; }}",
-        # browsers ask for it on every page, the login page too: nothing, rather than a 404
-        "    location = /favicon.ico { access_log off; return 204; }",
         "    location / {",
         *guarded(),
         f"      root {CONFIG_DIR}/www;",
@@ -247,13 +332,57 @@ def nginx_conf(p: dict, managed: str) -> str:
             '      proxy_set_header Authorization "";',
             "    }",
         ]
-    lines += ["  }", "}"]
+    for viewer in shown:
+        # where the dashboard and the index link; the viewer's own port asks for the login
+        lines.append(
+            f"    location = /viewers/{viewer['host']}/{viewer['instance']}/ {{ return 302 {_entry(p, viewer)}; }}"
+        )
+    lines.append("  }")
+    for viewer in shown:
+        v = f"fleet_viewer_{viewer['port']}"
+        origin = _entry(p, viewer).rstrip("/")
+        lines += [
+            *tls_server(viewer["port"]),
+            *to_login(f"{door}/login?next=/viewers/{viewer['host']}/{viewer['instance']}/"),
+            "    location / {",
+            *guarded(),
+            # another site's page never opens this signalling with the person's session
+            '      set $fleet_origin "$fleet_websocket $http_origin";',
+            f'      if ($fleet_origin ~ "^1 (?!{re.escape(origin)}$)") {{ return 403; }}',
+            f"      proxy_pass http://${v};",
+            "      proxy_http_version 1.1;",
+            f"      proxy_set_header Host ${v}_host;",
+            "      proxy_set_header Upgrade $http_upgrade;",
+            "      proxy_set_header Connection $fleet_connection;",
+            '      proxy_set_header Cookie "";',
+            '      proxy_set_header Authorization "";',
+            # the signalling is quiet once the stream runs; nginx's 60 s would end the session
+            "      proxy_read_timeout 1h;",
+            "      proxy_send_timeout 1h;",
+            "    }",
+            "  }",
+        ]
+    lines.append("}")
     return "\n".join(lines) + "\n"
+
+
+def _bracketed(name) -> str:
+    return f"[{name}]" if ":" in str(name) else str(name)
+
+
+def _entry(p: dict, viewer: dict) -> str:
+    return f"https://{_bracketed(p['server_name'])}:{viewer['port']}/"
 
 
 def index_page(p: dict) -> str:
     rows = "".join(
-        f'<li><a href="/hosts/{html.escape(b["name"])}/status">{html.escape(b["name"])}</a></li>'
+        f'<li><a href="/hosts/{html.escape(b["name"])}/status">{html.escape(b["name"])}</a>'
+        + "".join(
+            f' <a href="/viewers/{html.escape(v["host"])}/{v["instance"]}/">viewer {v["instance"]}</a>'
+            for v in viewers(p)
+            if v["host"] == b["name"]
+        )
+        + "</li>"
         for b in p.get("backends") or []
     )
     return (
@@ -311,7 +440,9 @@ def auth_unit(p: dict, managed: str) -> str:
                     (
                         "ExecStart",
                         f"{PYTHON} {AUTH_SCRIPT} --port {p['auth_port']} --users {CONFIG_DIR}/users.json "
-                        f"--key {STATE_DIR}/session.key --hours {p['session_hours']}",
+                        f"--key {STATE_DIR}/session.key --hours {p['session_hours']}"
+                        # after a login, the web viewers' ports of this front door
+                        + (f" --form-action https://{_bracketed(p['server_name'])}:*" if viewers(p) else ""),
                     ),
                     ("Restart", "on-failure"),
                     ("RestartSec", 2),

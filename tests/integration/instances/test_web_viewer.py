@@ -54,7 +54,7 @@ def test_each_instance_has_its_viewer_bound_to_its_address_and_told_its_ports(ho
         # every reported URL answers, and the page is configured with this instance's ports
         assert "Isaac Sim web viewer" in fetch(inst["urls"]["web_viewer"])
         config = fetch(f"http://{ip}:{8210 + i}/stream-config.js")
-        assert config.strip() == (
+        assert config.splitlines()[0] == (
             f'window.ISAACSIM_STREAM = {{"host": "{ip}", "signalPort": {49100 + i}, "streamPort": {47998 + i}}};'
         )
         # bound to the instance's address, never to every interface
@@ -79,7 +79,7 @@ def test_a_person_opening_each_viewer_sees_the_page_configured_for_that_instance
                 timeout=10,
                 what=f"viewer {i} configured",
             )
-            assert driver.find_element("id", "signal").text == f"{ip}:{49100 + i}"
+            assert driver.find_element("id", "signal").text == f"ws://{ip}:{49100 + i}/"
             assert driver.find_element("id", "media").text == f"{ip}:{47998 + i}/udp"
             assert console_errors(driver) == []
 

@@ -15,6 +15,7 @@ def settings(**over):
         "port": "443",
         "http_port": "80",
         "auth_port": "9480",
+        "viewer_port_base": "20000",
         "login_rate": "10r/m",
         "session_hours": 8,
         "users": [{"name": "vic", "role": "viewer", "password_hash": door_auth.hash_password("pw")}],

@@ -33,11 +33,12 @@ def test_the_patch_makes_the_page_read_its_address_and_ports_when_it_loads(tmp_p
     assert result.returncode == 0, result.stderr
     main = (tmp_path / "main.tsx").read_text()
     assert "'127.0.0.1'" not in main
-    for key in ("signalingServer", "mediaServer"):
-        assert f"{key}: (window as any).ISAACSIM_STREAM.host," in main
+    # the signalling's address and scheme apart from the media's (stream-config.js sets them)
+    assert "signalingServer: (window as any).ISAACSIM_STREAM.signalHost," in main
+    assert "mediaServer: (window as any).ISAACSIM_STREAM.host," in main
     assert "signalingPort: (window as any).ISAACSIM_STREAM.signalPort," in main
     assert "mediaPort: (window as any).ISAACSIM_STREAM.streamPort," in main
-    assert "forceWSS: false," in main and "autoLaunch: true," in main
+    assert "forceWSS: (window as any).ISAACSIM_STREAM.wss," in main and "autoLaunch: true," in main
     page = (tmp_path / "index.html").read_text().splitlines()
     config = page.index('    <script src="/stream-config.js"></script>')
     assert config < next(n for n, line in enumerate(page) if 'type="module"' in line)
@@ -67,9 +68,12 @@ def test_the_entrypoint_writes_the_settings_then_runs_the_server(tmp_path):
     result = sh("viewer-entrypoint", "echo", "server started", env=viewer_env(tmp_path))
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[-1] == "server started"
-    assert (tmp_path / "stream-config.js").read_text() == (
-        'window.ISAACSIM_STREAM = {"host": "10.1.2.3", "signalPort": 49101, "streamPort": 47999};\n'
-    )
+    config = (tmp_path / "stream-config.js").read_text().splitlines()
+    assert config[0] == 'window.ISAACSIM_STREAM = {"host": "10.1.2.3", "signalPort": 49101, "streamPort": 47999};'
+    # over HTTPS (the front door), the signalling goes back to the page's origin over WSS (a
+    # browser runs it: tests/integration/instances/test_web_viewer_front_door.py)
+    assert '  s.wss = location.protocol === "https:";' in config
+    assert "  s.signalHost = s.wss ? location.hostname : s.host;" in config
 
 
 @pytest.mark.parametrize(

@@ -100,7 +100,7 @@ def service(tmp_path):
     users.write_text(json.dumps(USERS))
     lines = []
     door = door_auth.Door(str(users), str(tmp_path / "session.key"), hours=1, log=lines.append)
-    server = ThreadingHTTPServer(("127.0.0.1", 0), door_auth.handler(door))
+    server = ThreadingHTTPServer(("127.0.0.1", 0), door_auth.handler(door, "https://fleet.lab:*"))
     threading.Thread(target=server.serve_forever, daemon=True).start()
     yield server.server_address[1], lines, tmp_path
     server.shutdown()
@@ -121,7 +121,8 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     assert (tmp_path / "session.key").stat().st_mode & 0o777 == 0o600
     response, page = call(port, "GET", "/login?next=/hosts/a/status")
     assert response.status == 200 and b'value="/hosts/a/status"' in page
-    assert "form-action 'self'" in response.getheader("Content-Security-Policy")
+    # the login may lead on to a web viewer's port of the front door, nowhere else
+    assert "form-action 'self' https://fleet.lab:*;" in response.getheader("Content-Security-Policy")
     # no session: 401 for nginx, written down with the path and the client nginx names
     response, _body = call(port, "GET", "/auth", headers={"X-Original-URI": "/hosts/a/status", "X-Real-IP": "10.1.2.3"})
     assert (

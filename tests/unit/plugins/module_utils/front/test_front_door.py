@@ -17,7 +17,26 @@ GOOD = {
     "session_hours": 8,
     "users": [{"name": "olga", "role": "operator", "password_hash": HASH}],
     "backends": [{"name": "gpu-1", "status_url": "http://10.0.0.5:8290/status"}],
+    "viewer_port_base": 20000,
 }
+VIEWERS = dict(
+    GOOD,
+    backends=[
+        {
+            "name": "gpu-1",
+            "status_url": "http://10.0.0.5:8290/status",
+            "viewers": [{"instance": 0, "page": "http://10.0.0.5:8210/", "signal": "10.0.0.5:49100"}],
+        },
+        {
+            "name": "gpu-2",
+            "status_url": "http://10.0.0.6:8290/status",
+            "viewers": [
+                {"instance": n, "page": f"http://10.0.0.{10 + n}:8210/", "signal": f"10.0.0.{10 + n}:49100"}
+                for n in (0, 3)
+            ],
+        },
+    ],
+)
 
 
 def test_good_settings_pass():
@@ -58,6 +77,31 @@ def test_good_settings_pass():
             "front_door_hosts: gpu-1 says its status endpoint is at",
         ),
         ({"unread": ["gpu-2"]}, "front_door_hosts: gpu-2 did not say where they serve their status"),
+        ({"viewer_port_base": 80}, "front_door_viewer_port_base: 80 is not a port of 1024-65535"),
+        (
+            {"backends": [dict(VIEWERS["backends"][0], viewers=[{"instance": 100, "page": "x", "signal": "y"}])]},
+            "front_door_hosts: gpu-1 instance 100: the front door serves viewers of instances 0-99",
+        ),
+        (
+            {
+                "backends": [
+                    dict(VIEWERS["backends"][0], viewers=[{"instance": 1, "page": "http://a b/", "signal": "y"}])
+                ]
+            },
+            "front_door_hosts: gpu-1 instance 1: its viewer at 'http://a b/'",
+        ),
+        (
+            {
+                "viewer_port_base": 65533,
+                "backends": [dict(VIEWERS["backends"][1], viewers=VIEWERS["backends"][1]["viewers"][1:])],
+            },
+            "front_door_viewer_port_base: 65533 gives front_door_hosts: gpu-2 instance 3 port 65536",
+        ),
+        (
+            {"viewer_port_base": 9480, "backends": VIEWERS["backends"][:1]},
+            "front_door_viewer_port_base: 9480 gives front_door_hosts: gpu-1 instance 0 port 9480, which "
+            "front_door_auth_port already takes",
+        ),
     ],
 )
 def test_each_bad_setting_is_named_with_its_fix(over, start):
@@ -95,6 +139,7 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     ]
     open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "@fleet_login"]
     assert sorted(u.strip() for u in unguarded) == open_ones
+    assert "fleet_viewer" not in conf and "location = /viewers/" not in conf
     other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0, ipv6=False), "managed")
     assert "return 301" not in other and "listen 8443 ssl;" in other and "[::]" not in other
 
@@ -112,3 +157,44 @@ def test_files_keep_secrets_root_s_and_list_the_login_service_first():
     unit = auth["/etc/systemd/system/isaac-sim-front-door-auth.service"]["content"]
     assert "--port 9480 --users /etc/isaac-sim/front-door/users.json" in unit and "IPAddressAllow=localhost" in unit
     assert 'href="/hosts/gpu-1/status"' in door["/etc/isaac-sim/front-door/www/index.html"]["content"]
+
+
+def test_each_viewer_gets_a_door_port_by_its_host_s_place_and_its_number():
+    assert [(v["host"], v["instance"], v["port"]) for v in front_door.viewers(VIEWERS)] == [
+        ("gpu-1", 0, 20000),
+        ("gpu-2", 0, 20100),
+        ("gpu-2", 3, 20103),
+    ]
+    assert front_door.check(VIEWERS) == []
+
+
+def test_a_viewer_s_port_serves_its_page_and_its_signalling_behind_the_login():
+    conf = front_door.nginx_conf(VIEWERS, "managed")
+    # the entrance on the door's own port leads to the viewer's port
+    assert "location = /viewers/gpu-2/3/ { return 302 https://fleet.lab:20103/; }" in conf
+    server = conf.split("    listen 20103 ssl;", 1)[1].split("\n  }\n", 1)[0]
+    assert "ssl_certificate /etc/isaac-sim/front-door/door.crt;" in server
+    assert 'Strict-Transport-Security "max-age=31536000" always' in server
+    root = server.split("    location / {", 1)[1]
+    assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
+    # no session: the login on the door's own port, then back here through the entrance
+    assert "return 302 https://fleet.lab/login?next=/viewers/gpu-2/3/;" in server
+    # a WebSocket goes to the signal port, anything else to the page, each with the Host it expects
+    assert "upstream fleet_viewer_20103_page { server 10.0.0.13:8210; }" in conf
+    assert "upstream fleet_viewer_20103_signal { server 10.0.0.13:49100; }" in conf
+    assert (
+        'map $http_upgrade $fleet_viewer_20103 { "~*^websocket$" fleet_viewer_20103_signal; '
+        "default fleet_viewer_20103_page; }" in conf
+    )
+    assert (
+        "proxy_pass http://$fleet_viewer_20103;" in root and "proxy_set_header Host $fleet_viewer_20103_host;" in root
+    )
+    assert "proxy_set_header Upgrade $http_upgrade;" in root and "proxy_read_timeout 1h;" in root
+    # the signalling opens only from the viewer's own page, and the session stays at the door
+    assert 'if ($fleet_origin ~ "^1 (?!https://fleet\\.lab:20103$)") { return 403; }' in root
+    assert 'proxy_set_header Cookie "";' in root
+    # the login page may lead on to the viewers' ports (Chrome holds a form's redirects to form-action)
+    assert "--form-action https://fleet.lab:*" in front_door.auth_unit(VIEWERS, "managed")
+    assert "--form-action" not in front_door.auth_unit(GOOD, "managed")
+    page = front_door.index_page(VIEWERS)
+    assert '<a href="/viewers/gpu-2/3/">viewer 3</a>' in page

@@ -1,0 +1,107 @@
+"""The 6.x web viewers behind the front door (per-host mode: the door on the test host itself),
+after test_web_viewer.py left a viewer beside each instance.
+
+A headless Chromium that trusts only the collection's CA: the entrance asks for the login; after it
+the viewer's page comes over HTTPS on its door port, and the page signals back to the front door
+over WSS, which relays it to the stand-in's signal port (the stand-in writes who signalled, from
+where and from which page). The direct viewer and signal ports then answer the front door alone.
+"""
+
+import base64
+import os
+import socket
+
+import testbed
+from browser import chromium, console_errors
+from frontdoor import UNITS, ca_dir, door_inventory, request, session, settings
+from testbed import INSTANCES, sh, wait_for
+
+BASE = 20000
+UPGRADE = {
+    "Upgrade": "websocket",
+    "Connection": "Upgrade",
+    "Sec-WebSocket-Version": "13",
+    "Sec-WebSocket-Key": base64.b64encode(os.urandom(16)).decode(),
+}
+
+
+def ok(result):
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+    return result
+
+
+def door(host, **over):
+    return testbed.run_playbook(
+        host, settings(**over), extra_inventory=door_inventory(testbed.name(host)), playbook="playbooks/front_door.yml"
+    )
+
+
+def reaches(address, port) -> bool:
+    try:
+        with socket.create_connection((address, port), timeout=3):
+            return True
+    except OSError:
+        return False
+
+
+def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answer_it_alone(host):
+    address, name = testbed.host_ip(host), testbed.name(host)
+    # a viewer beside each instance, whose page and signal ports answer the front door only (it is
+    # this host: its own traffic is local)
+    only_door = {"signal": [f"{address}/32"], "web_viewer": [f"{address}/32"]}
+    viewer = testbed.registry_image(host, "6.0.1").replace("isaac-sim-standin:6.0.1", "isaac-sim-web-viewer:2.1.5")
+    ok(
+        testbed.run_playbook(
+            host, {"isaac_sim_web_viewer_image": viewer, "isaac_sim_allowed_networks_by_port": only_door}
+        )
+    )
+    testbed.all_ready(host)
+    assert not reaches(address, 8211) and not reaches(address, 49101)
+    ok(door(host, front_door_server_name=address))
+    try:
+        assert all(reaches(address, BASE + i) for i in range(INSTANCES))
+
+        # no session: neither the page nor its signalling, whatever the Origin
+        response, _d, _v = request(address, "GET", "/", port=BASE + 1)
+        assert response.status == 302
+        assert response.getheader("Location") == f"https://{address}/login?next=/viewers/{name}/1/"
+        origin = {"Origin": f"https://{address}:{BASE + 1}"}
+        response, _d, _v = request(address, "GET", "/", port=BASE + 1, headers=dict(UPGRADE, **origin))
+        assert response.status in (302, 401)
+        cookie = session(address, "vic", "view-secret")
+        # another site's page cannot open it with the person's session
+        evil = {"Origin": "https://evil.example"}
+        response, _d, _v = request(address, "GET", "/", cookie=cookie, port=BASE + 1, headers=dict(UPGRADE, **evil))
+        assert response.status == 403
+
+        with chromium(trust_ca=ca_dir() / "ca.crt") as driver:
+            driver.get(f"https://{address}/viewers/{name}/1/")
+            wait_for(lambda: "/login?next=/viewers/" in driver.current_url, timeout=15, what="the login page")
+            driver.find_element("name", "user").send_keys("vic")
+            driver.find_element("name", "password").send_keys("view-secret")
+            driver.find_element("css selector", "button[type=submit]").click()
+
+            def body():
+                return driver.find_element("tag name", "body")
+
+            wait_for(lambda: body().get_attribute("data-configured") == "yes", timeout=15, what="the viewer")
+            assert driver.current_url == f"https://{address}:{BASE + 1}/"
+            # signalling to the front door over WSS; the media still to the instance
+            assert driver.find_element("id", "signal").text == f"wss://{address}:{BASE + 1}/"
+            assert driver.find_element("id", "media").text == f"{address}:47999/udp"
+            driver.get(f"https://{address}:{BASE + 1}/?connect")
+            wait_for(lambda: body().get_attribute("data-signalling") == "open", timeout=15, what="the signalling")
+            assert console_errors(driver) == []
+            driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-viewer.png"))
+        # the stand-in's signal port saw it come from the front door, from the viewer's own page
+        log = sh(host, "journalctl -u isaac-sim@1 --no-pager -o cat").stdout
+        seen = f"signalling from {address}, GET /, Origin https://{address}:{BASE + 1}"
+        assert f"streaming session started ({seen})" in log
+        door_log = sh(host, f"journalctl -u {UNITS[0]} --no-pager -o cat").stdout
+        assert "user=vic" in door_log
+
+        again = ok(door(host, front_door_server_name=address))
+        assert testbed.changed_count(again, host) == 0, again.stdout[-3000:]
+    finally:
+        gone = ok(door(host, front_door_server_name=address, front_door_state="absent"))
+    assert not any(reaches(address, BASE + i) for i in range(INSTANCES)), gone.stdout[-2000:]
