@@ -12,23 +12,25 @@ short_description: Check the front door's settings, or render its files (isaacsi
 version_added: "0.3.0"
 description:
   - C(errors) lists what is wrong with the settings, each naming the variable and the fix.
-  - C(files) renders, per unit, the files of the login service and of nginx for
-    M(isaacsim.fleet.isaac_sim_host_service).
-  - C(removal) gives, per unit, what M(isaacsim.fleet.isaac_sim_host_service) removes with it
-    (C(files) and C(remove)); the settings are not read.
+  - C(services) renders, in order, each unit of the front door for M(isaacsim.fleet.isaac_sim_host_service)
+    (C(name), C(state), C(files), C(remove)) - the login service, nginx, the TURN relay (stopped and
+    removed when C(turn) is off).
+  - C(removal) gives the same list for taking all of it away (every unit C(absent), with what goes with it);
+    the settings are not read.
 positional: _input, what
 options:
   _input:
     description:
       - The front door's settings - C(server_name), C(port), C(http_port), C(auth_port), C(login_rate),
-        C(session_hours), C(users), C(backends); for C(files) also C(cert), C(key) (PEM text) and
-        C(auth_code) (the login service's code).
+        C(session_hours), C(users), C(backends), C(viewer_port_base), C(turn), C(turn_port), C(turn_min_port),
+        C(turn_max_port), C(turn_gid); for C(services) also C(cert), C(key) (PEM text), C(auth_code) (the
+        login service's code) and C(turn_secret).
     type: dict
     required: true
   what:
     description: What to return.
     type: str
-    choices: [errors, files, removal]
+    choices: [errors, services, removal]
     required: true
 """
 
@@ -38,8 +40,7 @@ errors: "{{ settings | isaacsim.fleet.isaac_sim_front_door('errors') }}"
 
 RETURN = r"""
 _value:
-  description: A list of errors (C(errors)), or each unit's name to its files (C(files)) or to what goes with it
-    (C(removal)).
+  description: A list of errors (C(errors)), or of the units with what each becomes (C(services), C(removal)).
   type: raw
 """
 
@@ -51,14 +52,21 @@ def isaac_sim_front_door(settings: dict, what: str):
 
     if what == "errors":
         return front_door.check(settings or {})
-    if what == "files":
+    if what == "services":
         errors = front_door.check(settings or {})
         if errors:
             raise AnsibleFilterError("; ".join(errors))
-        return front_door.files(settings, layout.MANAGED, settings["cert"], settings["key"], settings["auth_code"])
+        return front_door.services(
+            settings,
+            layout.MANAGED,
+            settings["cert"],
+            settings["key"],
+            settings["auth_code"],
+            settings.get("turn_secret", ""),
+        )
     if what == "removal":
-        return front_door.removal()
-    raise AnsibleFilterError(f"isaac_sim_front_door: {what!r} is not errors, files or removal")
+        return [{"name": unit, "state": "absent", **spec} for unit, spec in front_door.removal().items()]
+    raise AnsibleFilterError(f"isaac_sim_front_door: {what!r} is not errors, services or removal")
 
 
 class FilterModule:

@@ -16,7 +16,7 @@ _spec = importlib.util.spec_from_file_location("door_auth", ROOT / "plugins/modu
 door_auth = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(door_auth)
 
-UNITS = ("isaac-sim-front-door.service", "isaac-sim-front-door-auth.service")
+UNITS = ("isaac-sim-front-door.service", "isaac-sim-front-door-auth.service", "isaac-sim-front-door-turn.service")
 # hashed once: a new salt is a changed users file, which a re-run would rightly apply
 USERS = [
     {"name": "olga", "role": "operator", "password_hash": door_auth.hash_password("op-secret", 10000)},
@@ -67,3 +67,52 @@ def session(address, user, password) -> str:
     response = login(address, user, password)
     assert response.status == 303, response.status
     return response.getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
+
+
+def relay_credentials(address, cookie) -> dict:
+    """What the front door hands a logged-in user for its TURN relay."""
+    response, data, _v = request(address, "GET", "/turn-credentials", cookie=cookie)
+    assert response.status == 200, response.status
+    return json.loads(data)
+
+
+def relayed_exchange(address, port, username, password, peer, payload=b"hello", timeout=5.0):
+    """(relayed address, answer) of one UDP datagram sent to peer (host, port) through the front
+    door's TURN relay, over TLS trusting the collection's CA alone: aioice (PyPI) as the TEST
+    FIXTURE that stands in for a browser's WebRTC stack. Raises what the relay refused."""
+    import asyncio
+
+    from aioice import turn
+
+    async def exchange():
+        answers = asyncio.Queue()
+
+        class Peer(asyncio.DatagramProtocol):
+            def datagram_received(self, data, addr):
+                answers.put_nowait((data, addr))
+
+            def error_received(self, exc):
+                # what the relay refused of a send (its permission or channel for the peer)
+                answers.put_nowait((exc, None))
+
+        context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
+        transport, _protocol = await asyncio.wait_for(
+            turn.create_turn_endpoint(
+                Peer, (address, port), username=username, password=password, ssl=context, transport="tcp"
+            ),
+            timeout,
+        )
+        try:
+            relayed = transport.get_extra_info("sockname")
+            transport.sendto(payload, peer)
+            try:
+                data, _addr = await asyncio.wait_for(answers.get(), timeout)
+            except asyncio.TimeoutError:
+                data = None
+            if isinstance(data, Exception):
+                raise data
+            return relayed, data
+        finally:
+            transport.close()
+
+    return asyncio.run(exchange())

@@ -163,3 +163,24 @@ def web_server() -> tuple:
         ("RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6"),
         ("SystemCallErrorNumber", "EPERM"),
     )
+
+
+def relay(user: str, low_port: bool = False) -> tuple:
+    """The front door's TURN relay (coturn): the package's own user, no capability but binding a
+    port below 1024 where its TLS port is one; it relays over IP and writes only its state
+    directory (its SQLite user database)."""
+    return (
+        *(entry for entry in _COMMON if entry[0] not in ("User", "AmbientCapabilities")),
+        ("User", user),
+        ("Group", user),
+        ("AmbientCapabilities", "CAP_NET_BIND_SERVICE" if low_port else ""),
+        ("CapabilityBoundingSet", "CAP_NET_BIND_SERVICE" if low_port else ""),
+        ("ProtectHome", "yes"),
+        ("PrivateTmp", "yes"),
+        ("PrivateDevices", "yes"),
+        ("ProtectKernelModules", "yes"),
+        ("ProtectProc", "invisible"),
+        # netlink: coturn finds its listening and relay addresses with getifaddrs()
+        ("RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6 AF_NETLINK"),
+        ("UMask", "0077"),
+    )

@@ -15,7 +15,9 @@ keeps (HMAC-SHA256 over user, role, expiry and a fingerprint of the user's hash)
 given another role or a new password loses the session at the next request. Which role a path
 needs is nginx's to say (its locations match the path as it serves it; `need=operator` on the
 question), never a parse of the raw URI here. Every login, every refused login and every refused
-request is a line on stdout (the journal) with the user's name and the client's address.
+request is a line on stdout (the journal) with the user's name and the client's address. A
+logged-in user gets short-lived credentials of the front door's TURN relay at /turn-credentials
+(coturn's shared-secret scheme), each handed out written down.
 """
 
 from __future__ import annotations
@@ -103,6 +105,14 @@ def _fingerprint(key: bytes, stored_hash: str) -> str:
     return _b64url(hmac.new(key, b"hash:" + str(stored_hash).encode(), hashlib.sha256).digest()[:9])
 
 
+def turn_credentials(user: str, secret: bytes, expires: int) -> tuple:
+    """(user name, password) for the TURN relay, in coturn's shared-secret scheme (use-auth-secret):
+    the name is EXPIRY:USER, the password base64(HMAC-SHA1(secret, name)); coturn refuses both
+    after EXPIRY, so nothing is stored and nothing needs revoking."""
+    name = f"{int(expires)}:{user}"
+    return name, base64.b64encode(hmac.new(secret, name.encode(), hashlib.sha1).digest()).decode()
+
+
 def make_session(user: str, role: str, key: bytes, expires: int, stored_hash: str = "") -> str:
     payload = [user, role, int(expires), _fingerprint(key, stored_hash)]
     text = _b64url(json.dumps(payload, separators=(",", ":")).encode())
@@ -180,9 +190,11 @@ def say(line: str) -> None:
 class Door:
     """The service's state: users (reloaded when their file changes), the session key, the clock."""
 
-    def __init__(self, users_file: str, key_file: str, hours: float, log=say, clock=time.time):
+    def __init__(self, users_file: str, key_file: str, hours: float, log=say, clock=time.time, turn=None):
+        """turn: {url, secret_file, seconds} of the TURN relay whose credentials a session gets."""
         self.users_file, self.hours, self.log, self.clock = users_file, hours, log, clock
         self.key = self._key(key_file)
+        self.turn = turn
         self._users, self._mtime = {}, None
         # an unknown user's password is checked against this, so both answers take as long
         self._decoy = hash_password(os.urandom(8).hex())
@@ -222,6 +234,21 @@ class Door:
             return 403, user
         return 204, user
 
+    def relay(self, cookie_header: str, client: str):
+        """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials."""
+        session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
+        if session is None:
+            self.log(f"refused user=- path='/turn-credentials' from={client} (no valid session)")
+            return 401, None
+        with open(self.turn["secret_file"], "rb") as f:
+            secret = f.read().strip()
+        seconds = int(self.turn["seconds"])
+        expires = int(self.clock()) + seconds
+        name, password = turn_credentials(session[0], secret, expires)
+        self.log(f"turn credentials user={session[0]} from={client} until={expires}")
+        server = {"urls": [self.turn["url"]], "username": name, "credential": password}
+        return 200, {"iceServers": [server], "ttl": seconds}
+
     def login(self, user: str, password: str, client: str):
         """The session cookie's value, or None for a refused login (logged either way)."""
         record = self.users().get(user) if isinstance(user, str) else None
@@ -249,12 +276,12 @@ def handler(door: Door, form_action: str = ""):
         def _client(self) -> str:
             return self.headers.get("X-Real-IP") or self.client_address[0]
 
-        def _send(self, code: int, body: bytes = b"", headers=()):
+        def _send(self, code: int, body: bytes = b"", headers=(), kind="text/html; charset=utf-8"):
             self.send_response(code)
             for name, value in headers:
                 self.send_header(name, value)
             if body:
-                self.send_header("Content-Type", "text/html; charset=utf-8")
+                self.send_header("Content-Type", kind)
                 self.send_header("Content-Security-Policy", policy)
             self.send_header("Cache-Control", "no-store")
             self.send_header("Content-Length", str(len(body)))
@@ -293,6 +320,10 @@ def handler(door: Door, form_action: str = ""):
                     urllib.parse.parse_qs(url.query).get("need", [""])[0],
                 )
                 self._send(code, headers=[("X-Fleet-User", user)] if user else [])
+            elif url.path == "/turn-credentials" and door.turn:
+                code, answer = door.relay(self.headers.get("Cookie", ""), self._client())
+                body = json.dumps(answer).encode() if answer else b""
+                self._send(code, body, kind="application/json")
             elif url.path == "/login":
                 self._page(200, urllib.parse.parse_qs(url.query).get("next", ["/"])[0])
             elif url.path == "/logout":
@@ -345,8 +376,12 @@ def main(argv=None):
     parser.add_argument("--key", required=True)
     parser.add_argument("--hours", type=float, default=8)
     parser.add_argument("--form-action", default="", help="sources the login may lead to besides itself")
+    parser.add_argument("--turn-url", default="", help="the TURN relay (turns:NAME:PORT?transport=tcp)")
+    parser.add_argument("--turn-secret", default="", help="the file of the relay's shared secret")
+    parser.add_argument("--turn-seconds", type=int, default=3600, help="how long its credentials are good")
     args = parser.parse_args(argv)
-    door = Door(args.users, args.key, args.hours)
+    turn = {"url": args.turn_url, "secret_file": args.turn_secret, "seconds": args.turn_seconds}
+    door = Door(args.users, args.key, args.hours, turn=turn if args.turn_url else None)
     ThreadingHTTPServer(("127.0.0.1", args.port), handler(door, args.form_action)).serve_forever()
 
 

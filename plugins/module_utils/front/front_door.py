@@ -26,7 +26,7 @@ import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import is_ip
-from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, turn
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 
 UNIT = "isaac-sim-front-door.service"
@@ -109,6 +109,8 @@ def check(p: dict) -> list:
                 "not http://ADDRESS:PORT/status. Fix: its isaac_sim_status_server_address, or redeploy it."
             )
     errors += _viewer_errors(p, ports)
+    if p.get("turn"):
+        errors += _turn_errors(p, ports)
     if p.get("unread"):
         errors.append(
             f"front_door_hosts: {', '.join(map(str, p['unread']))} did not say where they serve their status "
@@ -158,6 +160,37 @@ def _viewer_errors(p: dict, ports: dict) -> list:
                 f"{' and '.join(ports[viewer['port']])} already takes. Fix: a base whose block of "
                 f"{VIEWER_PORTS_PER_HOST} ports per host clears the front door's own ports."
             )
+    return errors
+
+
+def _turn_errors(p: dict, ports: dict) -> list:
+    errors = []
+    port, low, high = (_port(p.get(k)) for k in ("turn_port", "turn_min_port", "turn_max_port"))
+    if not isinstance(port, int) or not 1 <= port <= 65535:
+        errors.append(f"front_door_turn_port: {port!r} is not a port of 1-65535. Fix: e.g. 5349 (TURN over TLS).")
+    elif port in ports:
+        errors.append(f"front_door_turn_port: {port}, which {' and '.join(ports[port])} already takes. Fix: e.g. 5349.")
+    if not all(isinstance(v, int) and 1024 <= v <= 65535 for v in (low, high)) or low > high:
+        return errors + [
+            f"front_door_turn_min_port and front_door_turn_max_port: {low!r}-{high!r} is not a range of ports of "
+            "1024-65535. Fix: e.g. 50000 and 50199 (each relayed stream takes a port of it)."
+        ]
+    named = [a for a in p.get("peers") or [] if not is_ip(str(a))]
+    if named:
+        errors.append(
+            f"front_door_hosts: instances stream from {', '.join(map(str, named))}, and the relay allows peers by IP "
+            "address only. Fix: give those hosts' isaac_sim_public_address as an IP address, or front_door_turn: false."
+        )
+    taken = {v["port"]: f"the web viewer of {v['host']} instance {v['instance']}" for v in viewers(p)}
+    taken.update({k: " and ".join(v) for k, v in ports.items()})
+    if isinstance(port, int):
+        taken[port] = "front_door_turn_port"
+    clash = sorted(k for k in taken if low <= k <= high)
+    if clash:
+        errors.append(
+            f"front_door_turn_min_port and front_door_turn_max_port: {low}-{high} holds port {clash[0]} of "
+            f"{taken[clash[0]]}. Fix: a range of the relay's own."
+        )
     return errors
 
 
@@ -311,6 +344,17 @@ def nginx_conf(p: dict, managed: str) -> str:
         "      proxy_set_header X-Real-IP $remote_addr;",
         "    }",
         f"    location = /logout {{ proxy_pass {auth}; }}",
+        # the relay's credentials: the login service reads the session itself (401 without one)
+        *(
+            [
+                "    location = /turn-credentials {",
+                f"      proxy_pass {auth};",
+                "      proxy_set_header X-Real-IP $remote_addr;",
+                "    }",
+            ]
+            if p.get("turn")
+            else []
+        ),
         "    location / {",
         *guarded(),
         f"      root {CONFIG_DIR}/www;",
@@ -442,7 +486,15 @@ def auth_unit(p: dict, managed: str) -> str:
                         f"{PYTHON} {AUTH_SCRIPT} --port {p['auth_port']} --users {CONFIG_DIR}/users.json "
                         f"--key {STATE_DIR}/session.key --hours {p['session_hours']}"
                         # after a login, the web viewers' ports of this front door
-                        + (f" --form-action https://{_bracketed(p['server_name'])}:*" if viewers(p) else ""),
+                        + (f" --form-action https://{_bracketed(p['server_name'])}:*" if viewers(p) else "")
+                        # the relay's credentials live as long as a session
+                        + (
+                            f" --turn-url {turn.url(_bracketed(p['server_name']), p['turn_port'])}"
+                            f" --turn-secret {CONFIG_DIR}/turn.secret"
+                            f" --turn-seconds {int(float(p['session_hours']) * 3600)}"
+                            if p.get("turn")
+                            else ""
+                        ),
                     ),
                     ("Restart", "on-failure"),
                     ("RestartSec", 2),
@@ -461,14 +513,16 @@ def auth_unit(p: dict, managed: str) -> str:
     )
 
 
-def files(p: dict, managed: str, cert: str, key: str, auth_code: str) -> dict:
+def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "") -> dict:
     """{unit: {path: {content, mode}}} for isaac_sim_host_service, the login service's first (nginx
-    asks it from its first request on)."""
-    return {
+    asks it from its first request on); the TURN relay's where p["turn"] (secret: its shared
+    secret; p["turn_gid"]: the group of the package's user, which reads its files)."""
+    out = {
         AUTH_UNIT: {
             f"/etc/systemd/system/{AUTH_UNIT}": {"content": auth_unit(p, managed), "mode": "0644"},
             AUTH_SCRIPT: {"content": auth_code, "mode": "0644"},
             f"{CONFIG_DIR}/users.json": {"content": users_json(p), "mode": "0600"},
+            **({f"{CONFIG_DIR}/turn.secret": {"content": secret + "\n", "mode": "0600"}} if p.get("turn") else {}),
         },
         UNIT: {
             f"/etc/systemd/system/{UNIT}": {"content": nginx_unit(managed), "mode": "0644"},
@@ -478,6 +532,30 @@ def files(p: dict, managed: str, cert: str, key: str, auth_code: str) -> dict:
             f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
         },
     }
+    if p.get("turn"):
+        group = {"mode": "0640", "uid": 0, "gid": int(p["turn_gid"])}
+        out[turn.UNIT] = {
+            f"/etc/systemd/system/{turn.UNIT}": {
+                "content": turn.unit(CONFIG_DIR, managed, int(p["turn_port"]) < 1024),
+                "mode": "0644",
+            },
+            f"{CONFIG_DIR}/turnserver.conf": dict(group, content=turn.conf(p, CONFIG_DIR, secret, CIPHERS, managed)),
+            f"{CONFIG_DIR}/turn.crt": dict(group, content=cert),
+            f"{CONFIG_DIR}/turn.key": dict(group, content=key),
+        }
+    return out
+
+
+def services(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "") -> list:
+    """[{name, state, files, remove}] for isaac_sim_host_service, in order: what runs, started;
+    the relay, when off, stopped and removed with its files."""
+    present, gone = files(p, managed, cert, key, auth_code, secret), removal()
+    return [
+        {"name": u, "state": "started", "files": present[u], "remove": []}
+        if u in present
+        else {"name": u, "state": "absent", "files": gone[u]["files"], "remove": gone[u]["remove"]}
+        for u in gone
+    ]
 
 
 def removal() -> dict:
@@ -487,4 +565,9 @@ def removal() -> dict:
     return {
         AUTH_UNIT: {"files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}}, "remove": [AUTH_SCRIPT, STATE_DIR]},
         UNIT: {"files": {f"/etc/systemd/system/{UNIT}": {"content": ""}}, "remove": [CONFIG_DIR]},
+        turn.UNIT: {
+            "files": {f"/etc/systemd/system/{turn.UNIT}": {"content": ""}},
+            "remove": [f"{CONFIG_DIR}/{name}" for name in ("turnserver.conf", "turn.crt", "turn.key", "turn.secret")]
+            + [f"/var/lib/{turn.STATE}"],
+        },
     }

@@ -128,13 +128,14 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
 
         for unit in UNITS:
             testbed.assert_sandboxed(host, unit)
-        # the distribution's own nginx, installed by the role, does not run
-        assert sh(host, "systemctl is-active nginx.service", check=False).stdout.strip() != "active"
+        # the distribution's own nginx and coturn, installed by the role, do not run
+        for own in ("nginx.service", "coturn.service"):
+            assert sh(host, f"systemctl is-active {own}", check=False).stdout.strip() != "active", own
     finally:
         gone = ok(run(host, front_door_server_name=address, front_door_state="absent"))
     assert "changed" in first.stdout
     for unit in UNITS:
         assert sh(host, f"systemctl cat {unit}", check=False).rc != 0
     assert sh(host, "test -e /etc/isaac-sim/front-door", check=False).rc != 0
-    assert sh(host, "ss -ltn 'sport = :443'").stdout.count("LISTEN") == 0
+    assert sh(host, "ss -ltn 'sport = :443 or sport = :5349'").stdout.count("LISTEN") == 0
     assert testbed.changed_count(ok(run(host, front_door_state="absent")), host) == 0, gone.stdout[-2000:]

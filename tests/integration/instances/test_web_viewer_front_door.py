@@ -5,15 +5,23 @@ A headless Chromium that trusts only the collection's CA: the entrance asks for 
 the viewer's page comes over HTTPS on its door port, and the page signals back to the front door
 over WSS, which relays it to the stand-in's signal port (the stand-in writes who signalled, from
 where and from which page). The direct viewer and signal ports then answer the front door alone.
+The TURN relay: credentials from a login carry a datagram over TLS to an instance's stream port
+and its answer back (the stand-in answers each datagram); nowhere else, and never with credentials
+expired or forged.
 """
 
 import base64
+import hashlib
+import hmac
 import os
 import socket
+import time
 
+import pytest
 import testbed
+from aioice.stun import TransactionFailed
 from browser import chromium, console_errors
-from frontdoor import UNITS, ca_dir, door_inventory, request, session, settings
+from frontdoor import UNITS, ca_dir, door_inventory, relay_credentials, relayed_exchange, request, session, settings
 from testbed import INSTANCES, sh, wait_for
 
 BASE = 20000
@@ -100,8 +108,39 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
         door_log = sh(host, f"journalctl -u {UNITS[0]} --no-pager -o cat").stdout
         assert "user=vic" in door_log
 
+        check_the_relay(host, address, cookie)
+
         again = ok(door(host, front_door_server_name=address))
         assert testbed.changed_count(again, host) == 0, again.stdout[-3000:]
     finally:
         gone = ok(door(host, front_door_server_name=address, front_door_state="absent"))
     assert not any(reaches(address, BASE + i) for i in range(INSTANCES)), gone.stdout[-2000:]
+    assert not reaches(address, 5349) and "inactive" in sh(host, f"systemctl is-active {UNITS[2]} || true").stdout
+
+
+def check_the_relay(host, address, cookie):
+    creds = relay_credentials(address, cookie)
+    [server] = creds["iceServers"]
+    assert server["urls"] == [f"turns:{address}:5349?transport=tcp"] and creds["ttl"] == 8 * 3600
+    user, password = server["username"], server["credential"]
+    expires, name = user.split(":", 1)
+    assert name == "vic" and int(expires) > time.time() + 7 * 3600
+    # an instance's stream port answers through the relay, from a relay port of the fixed range
+    relayed, answer = relayed_exchange(address, 5349, user, password, (address, 47998 + 2))
+    assert 50000 <= relayed[1] <= 50199
+    assert answer is not None and answer.startswith(b"isaac-sim-standin stream ")
+    # the relay is no way into the rest of the network: another address gets nothing through
+    controller = sh(host, "ip route | awk '/default/ {print $3}'").stdout.strip()
+    with pytest.raises(TransactionFailed, match="403"):
+        relayed_exchange(address, 5349, user, password, (controller, 9))
+    # expired, or not the relay's own: refused
+    secret = sh(host, "cat /etc/isaac-sim/front-door/turn.secret").stdout.strip().encode()
+    old_name = f"{int(time.time()) - 60}:vic"
+    old = base64.b64encode(hmac.new(secret, old_name.encode(), hashlib.sha1).digest()).decode()
+    for bad_user, bad_password in ((old_name, old), (user, "forged")):
+        with pytest.raises(TransactionFailed, match="401"):
+            relayed_exchange(address, 5349, bad_user, bad_password, (address, 47998 + 2))
+    # TLS only: no plain TURN listener
+    assert not reaches(address, 3478)
+    journal = sh(host, f"journalctl -u {UNITS[1]} --no-pager -o cat").stdout
+    assert "turn credentials user=vic from=" in journal

@@ -28,25 +28,47 @@ def settings(**over):
     return base
 
 
-def test_errors_files_and_a_refusal_of_bad_settings():
+def by_name(services):
+    return {s["name"]: s for s in services}
+
+
+def test_errors_services_and_a_refusal_of_bad_settings():
     assert fd_filter.isaac_sim_front_door(settings(), "errors") == []
-    assert sorted(fd_filter.isaac_sim_front_door(settings(), "files")) == sorted(
-        ["isaac-sim-front-door.service", "isaac-sim-front-door-auth.service"]
-    )
+    # the login service, nginx, and the relay (off here: stopped and removed)
+    services = fd_filter.isaac_sim_front_door(settings(), "services")
+    assert [(s["name"], s["state"]) for s in services] == [
+        ("isaac-sim-front-door-auth.service", "started"),
+        ("isaac-sim-front-door.service", "started"),
+        ("isaac-sim-front-door-turn.service", "absent"),
+    ]
     with pytest.raises(AnsibleFilterError, match="front_door_users: empty"):
-        fd_filter.isaac_sim_front_door(settings(users=[]), "files")
+        fd_filter.isaac_sim_front_door(settings(users=[]), "services")
     # what goes with each unit: its unit file; the script, the session key, the configuration
-    removal = fd_filter.isaac_sim_front_door({}, "removal")
-    assert removal["isaac-sim-front-door-auth.service"] == {
-        "files": {"/etc/systemd/system/isaac-sim-front-door-auth.service": {"content": ""}},
-        "remove": ["/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth", "/var/lib/isaac-sim-front-door"],
+    removal = by_name(fd_filter.isaac_sim_front_door({}, "removal"))
+    assert all(s["state"] == "absent" for s in removal.values())
+    assert removal["isaac-sim-front-door-auth.service"]["files"] == {
+        "/etc/systemd/system/isaac-sim-front-door-auth.service": {"content": ""}
     }
+    assert removal["isaac-sim-front-door-auth.service"]["remove"] == [
+        "/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth",
+        "/var/lib/isaac-sim-front-door",
+    ]
     assert removal["isaac-sim-front-door.service"]["remove"] == ["/etc/isaac-sim/front-door"]
     # together they remove every file the units were given, or the directory that holds it
     gone = [path for unit in removal.values() for path in list(unit["files"]) + unit["remove"]]
-    given = [path for unit in fd_filter.isaac_sim_front_door(settings(), "files").values() for path in unit]
+    relayed = settings(turn=True, turn_port="5349", turn_min_port="50000", turn_max_port="50199", turn_gid=107)
+    given = [
+        path
+        for service in fd_filter.isaac_sim_front_door(dict(relayed, turn_secret="S"), "services")
+        for path in service["files"]
+    ]
+    assert "/etc/isaac-sim/front-door/turnserver.conf" in given
     assert all(any(path == g or path.startswith(g + "/") for g in gone) for path in given)
-    with pytest.raises(AnsibleFilterError, match="is not errors, files or removal"):
+    # the relay off while the front door stays: its files go, the rest stays
+    turn_off = by_name(services)["isaac-sim-front-door-turn.service"]
+    assert "/etc/isaac-sim/front-door/turn.secret" in turn_off["remove"]
+    assert "/etc/isaac-sim/front-door" not in turn_off["remove"]
+    with pytest.raises(AnsibleFilterError, match="is not errors, services or removal"):
         fd_filter.isaac_sim_front_door(settings(), "other")
     assert "isaac_sim_front_door" in fd_filter.FilterModule().filters()
 

@@ -3,6 +3,9 @@ decisions nginx asks for, and the service itself over a real socket."""
 
 from __future__ import annotations
 
+import base64
+import hashlib
+import hmac
 import http.client
 import json
 import threading
@@ -172,3 +175,41 @@ def test_the_session_key_is_kept_across_restarts(tmp_path):
     users.write_text("{}")
     first = door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lambda line: None)
     assert door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lambda line: None).key == first.key
+
+
+def test_turn_credentials_are_coturn_s_shared_secret_scheme():
+    # coturn (use-auth-secret) recomputes the password from the name: base64(HMAC-SHA1(secret, name))
+    name, password = door_auth.turn_credentials("vic", b"north", 1795000000)
+    assert name == "1795000000:vic"
+    assert password == base64.b64encode(hmac.new(b"north", b"1795000000:vic", hashlib.sha1).digest()).decode()
+
+
+def test_a_logged_in_user_gets_relay_credentials_written_down_and_nobody_else(tmp_path):
+    users = tmp_path / "users.json"
+    users.write_text(json.dumps(USERS))
+    (tmp_path / "turn.secret").write_text("north\n")
+    lines, now = [], [1795000000.0]
+    turn = {"url": "turns:fleet.lab:5349?transport=tcp", "secret_file": str(tmp_path / "turn.secret"), "seconds": 600}
+    door = door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lines.append, clock=lambda: now[0], turn=turn)
+    server = ThreadingHTTPServer(("127.0.0.1", 0), door_auth.handler(door))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    port = server.server_address[1]
+    try:
+        response, body = call(port, "GET", "/turn-credentials", headers={"X-Real-IP": "10.1.2.3"})
+        assert response.status == 401 and body == b""
+        assert lines[-1] == "refused user=- path='/turn-credentials' from=10.1.2.3 (no valid session)"
+        cookie = call(port, "POST", "/login", {"user": "vic", "password": "s3cret"})[0].getheader("Set-Cookie")
+        response, body = call(port, "GET", "/turn-credentials", headers={"Cookie": cookie.split(";", 1)[0]})
+        assert response.status == 200 and response.getheader("Content-Type") == "application/json"
+        answer = json.loads(body)
+        name, password = door_auth.turn_credentials("vic", b"north", 1795000600)
+        assert answer == {
+            "iceServers": [{"urls": ["turns:fleet.lab:5349?transport=tcp"], "username": name, "credential": password}],
+            "ttl": 600,
+        }
+        assert lines[-1] == "turn credentials user=vic from=127.0.0.1 until=1795000600"
+    finally:
+        server.shutdown()
+        server.server_close()
+    # a service without a relay has no such path
+    assert door_auth.Door(str(users), str(tmp_path / "k"), 1).turn is None

@@ -198,3 +198,76 @@ def test_a_viewer_s_port_serves_its_page_and_its_signalling_behind_the_login():
     assert "--form-action" not in front_door.auth_unit(GOOD, "managed")
     page = front_door.index_page(VIEWERS)
     assert '<a href="/viewers/gpu-2/3/">viewer 3</a>' in page
+
+
+RELAYED = dict(
+    VIEWERS,
+    turn=True,
+    turn_port=5349,
+    turn_min_port=50000,
+    turn_max_port=50199,
+    turn_gid=107,
+    peers=["10.0.0.5", "10.0.0.10", "10.0.0.13"],
+)
+
+
+@pytest.mark.parametrize(
+    "over, start",
+    [
+        ({"turn_port": 443}, "front_door_turn_port: 443, which front_door_port already takes"),
+        ({"turn_port": 0}, "front_door_turn_port: 0 is not a port"),
+        ({"turn_min_port": 50200}, "front_door_turn_min_port and front_door_turn_max_port: 50200-50199 is not a range"),
+        (
+            {"turn_min_port": 20000, "turn_max_port": 20099},
+            "front_door_turn_min_port and front_door_turn_max_port: 20000-20099 holds port 20000 of the web viewer of "
+            "gpu-1 instance 0",
+        ),
+        ({"peers": ["gpu-1.lab"]}, "front_door_hosts: instances stream from gpu-1.lab"),
+    ],
+)
+def test_each_bad_relay_setting_is_named_with_its_fix(over, start):
+    assert front_door.check(RELAYED) == []
+    errors = front_door.check(dict(RELAYED, **over))
+    assert len(errors) == 1 and errors[0].startswith(start) and "Fix:" in errors[0], errors
+
+
+def test_the_relay_speaks_tls_only_relays_to_the_instances_alone_and_its_credentials_need_a_login():
+    files = front_door.files(RELAYED, "managed", "CERT", "KEY", "CODE", "s3cr3t")
+    relay = files["isaac-sim-front-door-turn.service"]
+    conf = relay["/etc/isaac-sim/front-door/turnserver.conf"]
+    # the package's user reads its configuration (the secret) and the key; nobody else
+    assert {k: v for k, v in conf.items() if k != "content"} == {"mode": "0640", "uid": 0, "gid": 107}
+    assert relay["/etc/isaac-sim/front-door/turn.key"] == {"content": "KEY", "mode": "0640", "uid": 0, "gid": 107}
+    lines = conf["content"].splitlines()
+    for line in ("tls-listening-port=5349", "no-udp", "no-tcp", "no-dtls", "no-tlsv1", "no-tlsv1_1", "no-tcp-relay"):
+        assert line in lines
+    assert "min-port=50000" in lines and "max-port=50199" in lines
+    assert "use-auth-secret" in lines and "static-auth-secret=s3cr3t" in lines and "realm=fleet.lab" in lines
+    # every peer denied but the instances' own addresses
+    assert lines.index("denied-peer-ip=0.0.0.0-255.255.255.255") < lines.index("allowed-peer-ip=10.0.0.10")
+    assert [line for line in lines if line.startswith("allowed-peer-ip=")] == [
+        "allowed-peer-ip=10.0.0.10",
+        "allowed-peer-ip=10.0.0.13",
+        "allowed-peer-ip=10.0.0.5",
+    ]
+    unit = relay["/etc/systemd/system/isaac-sim-front-door-turn.service"]["content"]
+    assert "ExecStart=/usr/bin/turnserver -c /etc/isaac-sim/front-door/turnserver.conf --pidfile=" in unit
+    assert "User=turnserver" in unit and "User=root" not in unit and "CapabilityBoundingSet=\n" in unit
+    # the login service hands out the credentials, good as long as a session
+    auth = front_door.auth_unit(RELAYED, "managed")
+    assert (
+        "--turn-url turns:fleet.lab:5349?transport=tcp --turn-secret /etc/isaac-sim/front-door/turn.secret "
+        "--turn-seconds 28800" in auth
+    )
+    secret = files["isaac-sim-front-door-auth.service"]["/etc/isaac-sim/front-door/turn.secret"]
+    assert secret == {"content": "s3cr3t\n", "mode": "0600"}
+    conf = front_door.nginx_conf(RELAYED, "managed")
+    where = conf.split("location = /turn-credentials {", 1)[1].split("}", 1)[0]
+    assert "proxy_pass http://127.0.0.1:9480;" in where
+    assert "turn-credentials" not in front_door.nginx_conf(VIEWERS, "managed")
+    # below 1024, the one capability to bind it
+    low = front_door.files(dict(RELAYED, turn_port=443, port=8443), "managed", "C", "K", "X", "s")
+    assert (
+        "AmbientCapabilities=CAP_NET_BIND_SERVICE"
+        in low["isaac-sim-front-door-turn.service"]["/etc/systemd/system/isaac-sim-front-door-turn.service"]["content"]
+    )
