@@ -235,15 +235,19 @@ class Door:
         return 204, user
 
     def relay(self, cookie_header: str, client: str):
-        """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials."""
-        session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
+        """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials, which
+        never outlive the session they were handed to."""
+        token = cookie_value(cookie_header)
+        session = read_session(token, self.key, self.users(), self.clock())
         if session is None:
             self.log(f"refused user=- path='/turn-credentials' from={client} (no valid session)")
             return 401, None
         with open(self.turn["secret_file"], "rb") as f:
             secret = f.read().strip()
-        seconds = int(self.turn["seconds"])
-        expires = int(self.clock()) + seconds
+        # read_session checked the token: its payload's expiry is the session's
+        ends = int(json.loads(_unb64url(token.partition(".")[0]))[2])
+        expires = min(int(self.clock()) + int(self.turn["seconds"]), ends)
+        seconds = expires - int(self.clock())
         name, password = turn_credentials(session[0], secret, expires)
         self.log(f"turn credentials user={session[0]} from={client} until={expires}")
         server = {"urls": [self.turn["url"]], "username": name, "credential": password}

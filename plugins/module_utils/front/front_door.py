@@ -57,6 +57,11 @@ CIPHERS = (
 )
 
 
+def _plain_ip(text: str) -> bool:
+    """An IP address with nothing else in it (no IPv6 scope: it goes into configuration files)."""
+    return is_ip(text) and re.fullmatch(r"[0-9A-Fa-f:.]+", text) is not None
+
+
 def _port(value):
     # a number given as text (ansible-core templates set_fact values to text)
     return int(value) if str(value).isdigit() else value
@@ -66,7 +71,7 @@ def check(p: dict) -> list:
     """Errors in the role's settings, each naming the variable and the fix."""
     errors = []
     name = str(p.get("server_name") or "")
-    if not _HOST_RE.match(name) and not is_ip(name):
+    if not _HOST_RE.fullmatch(name) and not _plain_ip(name):
         errors.append(
             f"front_door_server_name: {name!r} is neither a host name nor an IP address. "
             "Fix: the name browsers reach the front door at, e.g. fleet.lab."
@@ -88,7 +93,7 @@ def check(p: dict) -> list:
     for value, names in ports.items():
         if len(names) > 1:
             errors.append(f"{' and '.join(names)}: both {value}. Fix: give each its own port.")
-    if not _RATE_RE.match(str(p.get("login_rate") or "")):
+    if not _RATE_RE.fullmatch(str(p.get("login_rate") or "")):
         errors.append(
             f"front_door_login_rate: {p.get('login_rate')!r} is not nginx's rate. Fix: attempts per "
             "second or minute per client address, e.g. 10r/m."
@@ -98,12 +103,12 @@ def check(p: dict) -> list:
         errors.append(f"front_door_session_hours: {hours!r} is not a number of hours of 0-720. Fix: e.g. 8.")
     errors += _user_errors(p.get("users"))
     for backend in p.get("backends") or []:
-        if not _NAME_RE.match(str(backend.get("name", ""))):
+        if not _NAME_RE.fullmatch(str(backend.get("name", ""))):
             errors.append(
                 f"front_door_hosts: the inventory host {backend.get('name')!r} cannot be a path of the front "
                 "door. Fix: letters, digits, '.', '_' and '-' only in the names of the hosts behind it."
             )
-        elif not _STATUS_URL_RE.match(str(backend.get("status_url", ""))):
+        elif backend.get("status_url") and not _STATUS_URL_RE.fullmatch(str(backend["status_url"])):
             errors.append(
                 f"front_door_hosts: {backend['name']} says its status endpoint is at {backend.get('status_url')!r}, "
                 "not http://ADDRESS:PORT/status. Fix: its isaac_sim_status_server_address, or redeploy it."
@@ -124,7 +129,9 @@ def viewers(p: dict) -> list:
     """[{host, instance, port, page, signal}]: each web viewer behind the door and its door port."""
     base = _port(p.get("viewer_port_base"))
     out = []
-    for slot, backend in enumerate(p.get("backends") or []):
+    for index, backend in enumerate(p.get("backends") or []):
+        # its place in front_door_hosts, whichever of them serve a status endpoint
+        slot = backend.get("slot", index)
         for viewer in backend.get("viewers") or []:
             port = base + VIEWER_PORTS_PER_HOST * slot + int(viewer["instance"]) if isinstance(base, int) else None
             out.append(dict(viewer, host=backend["name"], port=port))
@@ -144,7 +151,7 @@ def _viewer_errors(p: dict, ports: dict) -> list:
                 "instances on that host."
             )
             continue
-        if not _PAGE_RE.match(str(viewer.get("page"))) or not _SIGNAL_RE.match(str(viewer.get("signal"))):
+        if not _PAGE_RE.fullmatch(str(viewer.get("page"))) or not _SIGNAL_RE.fullmatch(str(viewer.get("signal"))):
             errors.append(
                 f"{where}: its viewer at {viewer.get('page')!r} and signalling at {viewer.get('signal')!r} are not "
                 "http://ADDRESS:PORT/ and ADDRESS:PORT. Fix: redeploy the host."
@@ -166,22 +173,33 @@ def _viewer_errors(p: dict, ports: dict) -> list:
 def _turn_errors(p: dict, ports: dict) -> list:
     errors = []
     port, low, high = (_port(p.get(k)) for k in ("turn_port", "turn_min_port", "turn_max_port"))
+    viewer_ports = {v["port"]: f"the web viewer of {v['host']} instance {v['instance']}" for v in viewers(p)}
     if not isinstance(port, int) or not 1 <= port <= 65535:
         errors.append(f"front_door_turn_port: {port!r} is not a port of 1-65535. Fix: e.g. 5349 (TURN over TLS).")
     elif port in ports:
         errors.append(f"front_door_turn_port: {port}, which {' and '.join(ports[port])} already takes. Fix: e.g. 5349.")
+    elif port in viewer_ports:
+        errors.append(
+            f"front_door_turn_port: {port}, which front_door_viewer_port_base gives {viewer_ports[port]}. Fix: a port "
+            "outside the viewers' block, e.g. 5349."
+        )
     if not all(isinstance(v, int) and 1024 <= v <= 65535 for v in (low, high)) or low > high:
         return errors + [
             f"front_door_turn_min_port and front_door_turn_max_port: {low!r}-{high!r} is not a range of ports of "
             "1024-65535. Fix: e.g. 50000 and 50199 (each relayed stream takes a port of it)."
         ]
-    named = [a for a in p.get("peers") or [] if not is_ip(str(a))]
+    if p.get("turn_address") and not _plain_ip(str(p["turn_address"])):
+        errors.append(
+            f"front_door_turn: the front door host's address {p['turn_address']!r} is not an IP address the relay "
+            "can relay from. Fix: give the host a default IPv4 route, or front_door_turn: false."
+        )
+    named = [a for a in p.get("peers") or [] if not _plain_ip(str(a))]
     if named:
         errors.append(
             f"front_door_hosts: instances stream from {', '.join(map(str, named))}, and the relay allows peers by IP "
             "address only. Fix: give those hosts' isaac_sim_public_address as an IP address, or front_door_turn: false."
         )
-    taken = {v["port"]: f"the web viewer of {v['host']} instance {v['instance']}" for v in viewers(p)}
+    taken = dict(viewer_ports)
     taken.update({k: " and ".join(v) for k, v in ports.items()})
     if isinstance(port, int):
         taken[port] = "front_door_turn_port"
@@ -322,11 +340,11 @@ def nginx_conf(p: dict, managed: str) -> str:
         # the signalling's WebSocket and the page share a port: the Upgrade header tells them apart
         lines += [
             '  map $http_upgrade $fleet_websocket { "~*^websocket$" 1; default 0; }',
-            '  map $http_upgrade $fleet_connection { default upgrade; "" close; }',
+            "  map $fleet_websocket $fleet_connection { 1 upgrade; default close; }",
         ]
     for viewer in shown:
         v = f"fleet_viewer_{viewer['port']}"
-        page = _PAGE_RE.match(viewer["page"]).group(1)
+        page = _PAGE_RE.fullmatch(viewer["page"]).group(1)
         lines += [
             f"  upstream {v}_page {{ server {page}; }}",
             f"  upstream {v}_signal {{ server {viewer['signal']}; }}",
@@ -366,7 +384,7 @@ def nginx_conf(p: dict, managed: str) -> str:
         f"      root {CONFIG_DIR}/www;",
         "    }",
     ]
-    for backend in p.get("backends") or []:
+    for backend in (b for b in p.get("backends") or [] if b.get("status_url")):
         lines += [
             f"    location = /hosts/{backend['name']}/status {{",
             *guarded(),
@@ -384,7 +402,8 @@ def nginx_conf(p: dict, managed: str) -> str:
     lines.append("  }")
     for viewer in shown:
         v = f"fleet_viewer_{viewer['port']}"
-        origin = _entry(p, viewer).rstrip("/")
+        # browsers send the host in lower case
+        origin = _entry(p, viewer).rstrip("/").lower()
         lines += [
             *tls_server(viewer["port"]),
             *to_login(f"{door}/login?next=/viewers/{viewer['host']}/{viewer['instance']}/"),
@@ -397,6 +416,8 @@ def nginx_conf(p: dict, managed: str) -> str:
             "      proxy_http_version 1.1;",
             f"      proxy_set_header Host ${v}_host;",
             "      proxy_set_header Upgrade $http_upgrade;",
+            # a cookie of the instance's page would hold for every port of the front door's name
+            "      proxy_hide_header Set-Cookie;",
             "      proxy_set_header Connection $fleet_connection;",
             '      proxy_set_header Cookie "";',
             '      proxy_set_header Authorization "";',
@@ -420,7 +441,11 @@ def _entry(p: dict, viewer: dict) -> str:
 
 def index_page(p: dict) -> str:
     rows = "".join(
-        f'<li><a href="/hosts/{html.escape(b["name"])}/status">{html.escape(b["name"])}</a>'
+        (
+            f'<li><a href="/hosts/{html.escape(b["name"])}/status">{html.escape(b["name"])}</a>'
+            if b.get("status_url")
+            else f"<li>{html.escape(b['name'])}"
+        )
         + "".join(
             f' <a href="/viewers/{html.escape(v["host"])}/{v["instance"]}/">viewer {v["instance"]}</a>'
             for v in viewers(p)

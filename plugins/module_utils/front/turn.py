@@ -38,7 +38,8 @@ def peers_denied_but(addresses) -> list:
 
 
 def conf(p: dict, config_dir: str, secret: str, ciphers: str, managed: str) -> str:
-    """turnserver.conf. p: server_name, turn_port, turn_min_port, turn_max_port, peers."""
+    """turnserver.conf. p: server_name, turn_port, turn_min_port, turn_max_port, peers, turn_address
+    (the host's address on the LAN, where the relay relays from; empty: coturn's choice)."""
     lines = [
         f"# {managed}",
         "# The front door's TURN relay (isaac-sim-front-door-turn.service): TLS only, shared-secret credentials.",
@@ -51,6 +52,9 @@ def conf(p: dict, config_dir: str, secret: str, ciphers: str, managed: str) -> s
         f'cipher-list="{ciphers}"',
         f"cert={config_dir}/turn.crt",
         f"pkey={config_dir}/turn.key",
+        # relays from the address the LAN knows this host by (coturn would take every interface's in
+        # turn, a container bridge's too)
+        *([f"relay-ip={p['turn_address']}"] if p.get("turn_address") else []),
         f"min-port={int(p['turn_min_port'])}",
         f"max-port={int(p['turn_max_port'])}",
         # WebRTC relays UDP; a TCP relay would open TCP connections into the LAN

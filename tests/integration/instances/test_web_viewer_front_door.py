@@ -121,7 +121,8 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
 def check_the_relay(host, address, cookie):
     creds = relay_credentials(address, cookie)
     [server] = creds["iceServers"]
-    assert server["urls"] == [f"turns:{address}:5349?transport=tcp"] and creds["ttl"] == 8 * 3600
+    # good until the session ends: 8 h after the login, a moment ago
+    assert server["urls"] == [f"turns:{address}:5349?transport=tcp"] and 8 * 3600 - 600 < creds["ttl"] <= 8 * 3600
     user, password = server["username"], server["credential"]
     expires, name = user.split(":", 1)
     assert name == "vic" and int(expires) > time.time() + 7 * 3600

@@ -208,6 +208,11 @@ def test_a_logged_in_user_gets_relay_credentials_written_down_and_nobody_else(tm
             "ttl": 600,
         }
         assert lines[-1] == "turn credentials user=vic from=127.0.0.1 until=1795000600"
+        # never past the session's end (an hour after the login here)
+        door.turn = dict(turn, seconds=7200)
+        now[0] += 1800
+        answer = json.loads(call(port, "GET", "/turn-credentials", headers={"Cookie": cookie.split(";", 1)[0]})[1])
+        assert answer["ttl"] == 1800 and answer["iceServers"][0]["username"] == "1795003600:vic"
     finally:
         server.shutdown()
         server.server_close()

@@ -48,6 +48,9 @@ def test_good_settings_pass():
     "over, start",
     [
         ({"server_name": "fleet lab"}, "front_door_server_name: 'fleet lab'"),
+        # nothing but the name goes into the configuration files (no IPv6 scope, no second line)
+        ({"server_name": "fe80::1%eth0;"}, "front_door_server_name: 'fe80::1%eth0;'"),
+        ({"server_name": "fleet.lab\n"}, "front_door_server_name: 'fleet.lab\\n'"),
         ({"port": 70000}, "front_door_port: 70000 is not a port"),
         ({"auth_port": 80}, "front_door_auth_port: 80 is not a port of 1024-65535"),
         ({"http_port": 443}, "front_door_port and front_door_http_port: both 443"),
@@ -207,6 +210,7 @@ RELAYED = dict(
     turn_min_port=50000,
     turn_max_port=50199,
     turn_gid=107,
+    turn_address="10.0.0.2",
     peers=["10.0.0.5", "10.0.0.10", "10.0.0.13"],
 )
 
@@ -223,6 +227,9 @@ RELAYED = dict(
             "gpu-1 instance 0",
         ),
         ({"peers": ["gpu-1.lab"]}, "front_door_hosts: instances stream from gpu-1.lab"),
+        ({"peers": ["fe80::1%eth0\nno-tlsv1_2"]}, "front_door_hosts: instances stream from fe80::1%eth0"),
+        ({"turn_port": 20103}, "front_door_turn_port: 20103, which front_door_viewer_port_base gives the web viewer"),
+        ({"turn_address": "10.0.0.2\nallowed-peer-ip=0.0.0.0"}, "front_door_turn: the front door host's address"),
     ],
 )
 def test_each_bad_relay_setting_is_named_with_its_fix(over, start):
@@ -241,7 +248,7 @@ def test_the_relay_speaks_tls_only_relays_to_the_instances_alone_and_its_credent
     lines = conf["content"].splitlines()
     for line in ("tls-listening-port=5349", "no-udp", "no-tcp", "no-dtls", "no-tlsv1", "no-tlsv1_1", "no-tcp-relay"):
         assert line in lines
-    assert "min-port=50000" in lines and "max-port=50199" in lines
+    assert "min-port=50000" in lines and "max-port=50199" in lines and "relay-ip=10.0.0.2" in lines
     assert "use-auth-secret" in lines and "static-auth-secret=s3cr3t" in lines and "realm=fleet.lab" in lines
     # every peer denied but the instances' own addresses
     assert lines.index("denied-peer-ip=0.0.0.0-255.255.255.255") < lines.index("allowed-peer-ip=10.0.0.10")
@@ -271,3 +278,26 @@ def test_the_relay_speaks_tls_only_relays_to_the_instances_alone_and_its_credent
         "AmbientCapabilities=CAP_NET_BIND_SERVICE"
         in low["isaac-sim-front-door-turn.service"]["/etc/systemd/system/isaac-sim-front-door-turn.service"]["content"]
     )
+
+
+def test_a_viewer_s_port_follows_its_host_s_place_whatever_serves_a_status_endpoint():
+    # gpu-1 serves no status endpoint: no /hosts/ path for it, its viewers still served; gpu-2 keeps
+    # the ports of the third place in front_door_hosts
+    p = dict(
+        VIEWERS,
+        server_name="Fleet.Lab",
+        backends=[
+            dict(VIEWERS["backends"][0], status_url="", slot=0),
+            dict(VIEWERS["backends"][1], slot=2),
+        ],
+    )
+    assert front_door.check(p) == []
+    assert [v["port"] for v in front_door.viewers(p)] == [20000, 20200, 20203]
+    conf = front_door.nginx_conf(p, "managed")
+    assert "location = /hosts/gpu-1/status" not in conf and "location = /hosts/gpu-2/status" in conf
+    assert "<li>gpu-1 <a href=" in front_door.index_page(p)
+    # the Origin as browsers send it, the host in lower case
+    assert 'if ($fleet_origin ~ "^1 (?!https://fleet\\.lab:20203$)") { return 403; }' in conf
+    # only a WebSocket upgrade is passed on as one; the instance's page sets no cookie of the door's
+    assert "map $fleet_websocket $fleet_connection { 1 upgrade; default close; }" in conf
+    assert "proxy_hide_header Set-Cookie;" in conf
