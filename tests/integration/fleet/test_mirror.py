@@ -149,6 +149,9 @@ def test_status_says_whether_the_mirror_serves_and_what_its_storage_holds(fleet,
         assert f'<p class="mirror bad" data-mirror="{MIRROR}">' in page
     finally:
         sh(MIRROR, "systemctl start isaac-sim-mirror.service")
+        # the unit is started before the registry listens, and the next test pulls through it at once
+        answer = f"curl -sk -o /dev/null -w '%{{http_code}}' --max-time 3 https://{ip(MIRROR)}:5443/v2/; true"
+        testbed.wait_for(lambda: sh(fleet[0], answer).strip() == "200", timeout=60, what="the mirror to answer again")
 
 
 STORE = "/var/lib/docker-registry/docker/registry/v2"
