@@ -22,6 +22,7 @@ import testbed
 from aioice.stun import TransactionFailed
 from browser import chromium, console_errors
 from frontdoor import UNITS, ca_dir, door_inventory, relay_credentials, relayed_exchange, request, session, settings
+from selenium.common.exceptions import WebDriverException
 from testbed import INSTANCES, sh, wait_for
 
 BASE = 20000
@@ -89,16 +90,20 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
             driver.find_element("name", "password").send_keys("view-secret")
             driver.find_element("css selector", "button[type=submit]").click()
 
-            def body():
-                return driver.find_element("tag name", "body")
+            def body(name):
+                # the login page is still there a moment after the click, then goes: ask again
+                try:
+                    return driver.find_element("tag name", "body").get_attribute(name)
+                except WebDriverException:
+                    return None
 
-            wait_for(lambda: body().get_attribute("data-configured") == "yes", timeout=15, what="the viewer")
+            wait_for(lambda: body("data-configured") == "yes", timeout=15, what="the viewer")
             assert driver.current_url == f"https://{address}:{BASE + 1}/"
             # signalling to the front door over WSS; the media still to the instance
             assert driver.find_element("id", "signal").text == f"wss://{address}:{BASE + 1}/"
             assert driver.find_element("id", "media").text == f"{address}:47999/udp"
             driver.get(f"https://{address}:{BASE + 1}/?connect")
-            wait_for(lambda: body().get_attribute("data-signalling") == "open", timeout=15, what="the signalling")
+            wait_for(lambda: body("data-signalling") == "open", timeout=15, what="the signalling")
             assert console_errors(driver) == []
             driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-viewer.png"))
         # the stand-in's signal port saw it come from the front door, from the viewer's own page
