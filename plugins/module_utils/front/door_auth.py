@@ -246,8 +246,9 @@ class Door:
             secret = f.read().strip()
         # read_session checked the token: its payload's expiry is the session's
         ends = int(json.loads(_unb64url(token.partition(".")[0]))[2])
-        expires = min(int(self.clock()) + int(self.turn["seconds"]), ends)
-        seconds = expires - int(self.clock())
+        now = int(self.clock())
+        expires = min(now + int(self.turn["seconds"]), ends)
+        seconds = expires - now
         name, password = turn_credentials(session[0], secret, expires)
         self.log(f"turn credentials user={session[0]} from={client} until={expires}")
         server = {"urls": [self.turn["url"]], "username": name, "credential": password}

@@ -42,10 +42,10 @@ WORKER_USER = "www-data"
 _HOST_RE = re.compile(r"^[A-Za-z0-9.-]+$")
 _RATE_RE = re.compile(r"^[1-9][0-9]*r/[sm]$")
 _NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
-# what a host's status endpoint says it serves at (it goes into nginx's configuration as it is)
-_STATUS_URL_RE = re.compile(r"^http://(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}/status$")
-# where an instance's web viewer and signalling listen, as its status reports them
+# ADDRESS:PORT as a host reports it; what a host's status endpoint says it serves at, and where an
+# instance's web viewer and signalling listen (each goes into nginx's configuration as it is)
 _ADDRESS = r"(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}"
+_STATUS_URL_RE = re.compile(rf"^http://{_ADDRESS}/status$")
 _PAGE_RE = re.compile(rf"^http://({_ADDRESS})/$")
 _SIGNAL_RE = re.compile(rf"^({_ADDRESS})$")
 # door ports per host behind it: one per instance number
@@ -251,8 +251,7 @@ def _user_errors(users) -> list:
 def nginx_conf(p: dict, managed: str) -> str:
     auth = f"http://127.0.0.1:{p['auth_port']}"
     port, http_port = int(p["port"]), int(p["http_port"])
-    name = _bracketed(p["server_name"])
-    to_https = f"https://{name}" + ("" if port == 443 else f":{port}") + "$request_uri"
+    door = f"https://{_bracketed(p['server_name'])}" + ("" if port == 443 else f":{port}")
     ipv6 = p.get("ipv6", True)
 
     def guarded(question="/fleet-auth"):
@@ -304,7 +303,7 @@ def nginx_conf(p: dict, managed: str) -> str:
             "  server {",
             f"    listen {http_port};",
             *([f"    listen [::]:{http_port};"] if ipv6 else []),
-            f"    return 301 {to_https};",
+            f"    return 301 {door}$request_uri;",
             "  }",
         ]
 
@@ -334,7 +333,6 @@ def nginx_conf(p: dict, managed: str) -> str:
             "    location = /favicon.ico { access_log off; return 204; }",
         ]
 
-    door = f"https://{name}" + ("" if port == 443 else f":{port}")
     shown = viewers(p)
     if shown:
         # the signalling's WebSocket and the page share a port: the Upgrade header tells them apart
@@ -440,6 +438,7 @@ def _entry(p: dict, viewer: dict) -> str:
 
 
 def index_page(p: dict) -> str:
+    shown = viewers(p)
     rows = "".join(
         (
             f'<li><a href="/hosts/{html.escape(b["name"])}/status">{html.escape(b["name"])}</a>'
@@ -448,7 +447,7 @@ def index_page(p: dict) -> str:
         )
         + "".join(
             f' <a href="/viewers/{html.escape(v["host"])}/{v["instance"]}/">viewer {v["instance"]}</a>'
-            for v in viewers(p)
+            for v in shown
             if v["host"] == b["name"]
         )
         + "</li>"
