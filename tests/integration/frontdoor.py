@@ -6,16 +6,30 @@ import importlib.util
 import json
 import os
 import ssl
+import subprocess
+import sys
 import urllib.parse
 from pathlib import Path
 
-from testbed import ROOT
+from testbed import ROOT, client
 
 # the login service's own code (the standard library alone) makes the users' hashes
 _spec = importlib.util.spec_from_file_location("door_auth", ROOT / "plugins/module_utils/front/door_auth.py")
 door_auth = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(door_auth)
 
+PEER = ROOT / "tests" / "integration" / "webrtc_peer.py"
+OUTSIDE_IMAGE = "isaacsim-fleet/standin-base:bookworm"
+# a network namespace that reaches the front door's TLS port and nothing else
+OUTSIDE_FIREWALL = (
+    "-P INPUT DROP",
+    "-P OUTPUT DROP",
+    "-A INPUT -i lo -j ACCEPT",
+    "-A INPUT -m conntrack --ctstate ESTABLISHED -j ACCEPT",
+    "-A OUTPUT -o lo -j ACCEPT",
+    "-A OUTPUT -m conntrack --ctstate ESTABLISHED -j ACCEPT",
+    "-A OUTPUT -p tcp -d {door} --dport 5349 -j ACCEPT",
+)
 UNITS = ("isaac-sim-front-door.service", "isaac-sim-front-door-auth.service", "isaac-sim-front-door-turn.service")
 # hashed once: a new salt is a changed users file, which a re-run would rightly apply
 USERS = [
@@ -116,3 +130,62 @@ def relayed_exchange(address, port, username, password, peer, payload=b"hello", 
             transport.close()
 
     return asyncio.run(exchange())
+
+
+def peer(pid: int, *args, env=None, **popen):
+    """webrtc_peer.py (this machine's Python, with aiortc) in the network namespace of process pid:
+    its last JSON line, or the process itself when given pipes."""
+    command = ["nsenter", "-t", str(pid), "-n", sys.executable, str(PEER), *args]
+    if popen:
+        return subprocess.Popen(command, env=env, text=True, **popen)
+    out = subprocess.run(command, env=env, text=True, capture_output=True, timeout=60, check=False)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return json.loads(out.stdout.splitlines()[-1])
+
+
+def check_a_stream_from_outside_the_lan(door: str, cookie: str, gpu_host: str, probe: tuple[str, int]):
+    """A WebRTC stream relayed by the front door's TURN server: a receiver in a container whose
+    firewall lets out only TCP to the door's TLS port (checked: a datagram to probe, a stream port
+    that answers, goes unanswered) takes relay-only ICE with a login's credentials and gets the video
+    a sender streams from the GPU host's network namespace (its host addresses only)."""
+    turn = relay_credentials(door, cookie)["iceServers"]
+    sender_ns = client().containers.get(gpu_host).attrs["State"]["Pid"]
+    outside = client().containers.run(
+        OUTSIDE_IMAGE, ["sleep", "600"], name="isaacsim-outside-the-lan", detach=True, remove=True
+    )
+    try:
+        outside.reload()
+        receiver_ns = outside.attrs["State"]["Pid"]
+        to = f"{probe[0]}:{probe[1]}"
+        assert peer(receiver_ns, "probe-udp", "--to", to)["answered"], "the probe's port must answer before"
+        for rule in OUTSIDE_FIREWALL:
+            argv = ["nsenter", "-t", str(receiver_ns), "-n", "iptables", *rule.format(door=door).split()]
+            subprocess.run(argv, check=True)
+        assert not peer(receiver_ns, "probe-udp", "--to", to)["answered"]
+        assert not peer(receiver_ns, "probe-tcp", "--to", f"{door}:443")["connected"]
+        assert peer(receiver_ns, "probe-tcp", "--to", f"{door}:5349")["connected"]
+
+        env = dict(os.environ, SSL_CERT_FILE=str(ca_dir() / "ca.crt"))
+        pipes = {"stdin": subprocess.PIPE, "stdout": subprocess.PIPE}
+        receiver = peer(receiver_ns, "receive", "--turn", json.dumps(turn), env=env, **pipes)
+        sender = peer(sender_ns, "send", **pipes)
+        try:
+            sender.stdin.write(receiver.stdout.readline())  # the offer: relay candidates only
+            sender.stdin.flush()
+            receiver.stdin.write(sender.stdout.readline())  # the answer: the GPU host's addresses
+            receiver.stdin.flush()
+            got = json.loads(receiver.stdout.readline() or "{}")
+            sender.stdin.write("done\n")
+            sender.stdin.flush()
+            sent = json.loads(sender.stdout.readline() or "{}")
+        finally:
+            for process in (receiver, sender):
+                process.kill()
+                process.wait()
+    finally:
+        outside.remove(force=True)
+    assert got.get("error") is None and got["frames"] >= 30 and got["sizes"] == [[320, 240]], got
+    assert got["candidates"] and set(got["candidates"]) == {"relay"}, got
+    # through the door's relay: the GPU host sent the stream to a relay port of the fixed range
+    kind, relay_address, relay_port = sent["pair"]["remote"]
+    assert (kind, relay_address) == ("relay", door) and 50000 <= relay_port <= 50199, sent

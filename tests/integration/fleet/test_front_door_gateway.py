@@ -1,6 +1,7 @@
 """The front door as the fleet's gateway: on a host of its own (the mirror's host, no instance on
 it), in front of the three hosts' status endpoints, reached from this machine as a browser
-outside the fleet would reach it."""
+outside the fleet would reach it, and its TURN relay carrying a host's stream to a peer that can
+reach nothing but the gateway's TLS port."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import subprocess
 
 import pytest
 from fleethosts import PLAIN, ip, playbook_argv, ready_fleet, sh, squash
-from frontdoor import door_inventory, request, session, settings
+from frontdoor import check_a_stream_from_outside_the_lan, door_inventory, request, session, settings
 from testbed import ROOT
 
 DOOR = "isaacsim-mirror-1"
@@ -41,6 +42,8 @@ def test_one_gateway_serves_every_host_behind_its_login_and_never_drops_one_it_c
             response, data, _v = request(door, "GET", path, cookie=operator)
             assert response.status == 200, data[:300]
             assert json.loads(data)["host"] == host, host
+        # a host's stream reaches a peer that can reach only the gateway's TLS port, relayed by the gateway
+        check_a_stream_from_outside_the_lan(door, operator, fleet[0], (ip(fleet[0]), 47998 + 1))
         # a run that could not read a host behind it changes nothing and says which and why
         conf = sh(DOOR, "cat /etc/isaac-sim/front-door/nginx.conf")
         limited = front_door(settings(front_door_server_name=door), limit=f"{DOOR},{fleet[0]},{fleet[1]}")
