@@ -35,6 +35,14 @@ options:
         each serving or not (and why) and what its storage holds, and the table a line for each."
     type: dict
     default: {}
+  front_doors:
+    description:
+      - "C({front door host: {door: its front-door.json, relay: the state of its relay's unit}}) of the fleet's
+        front doors: the report gets C(front_doors), each with its address, its certificate's expiry (and days
+        left), its relay's state and whether it is healthy; each instance behind one its C(entrance); the table a
+        line for each door and the entrance in an instance's URL column."
+    type: dict
+    default: {}
 """
 
 EXAMPLES = r"""

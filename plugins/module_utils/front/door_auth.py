@@ -234,6 +234,14 @@ class Door:
             return 403, user
         return 204, user
 
+    def whoami(self, cookie_header: str):
+        """(status, {user, role}) of the session, for the pages behind the door (not logged: asked
+        on each page load, and it opens nothing)."""
+        session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
+        if session is None:
+            return 401, None
+        return 200, {"user": session[0], "role": session[1]}
+
     def relay(self, cookie_header: str, client: str):
         """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials, which
         never outlive the session they were handed to."""
@@ -325,6 +333,9 @@ def handler(door: Door, form_action: str = ""):
                     urllib.parse.parse_qs(url.query).get("need", [""])[0],
                 )
                 self._send(code, headers=[("X-Fleet-User", user)] if user else [])
+            elif url.path == "/session":
+                code, answer = door.whoami(self.headers.get("Cookie", ""))
+                self._send(code, json.dumps(answer).encode() if answer else b"", kind="application/json")
             elif url.path == "/turn-credentials" and door.turn:
                 code, answer = door.relay(self.headers.get("Cookie", ""), self._client())
                 body = json.dumps(answer).encode() if answer else b""

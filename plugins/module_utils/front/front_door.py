@@ -20,6 +20,7 @@ over WSS (roles/web_viewer_image/files/viewer-entrypoint). /viewers/HOST/N/ redi
 
 from __future__ import annotations
 
+import datetime
 import html
 import json
 import re
@@ -251,7 +252,7 @@ def _user_errors(users) -> list:
 def nginx_conf(p: dict, managed: str) -> str:
     auth = f"http://127.0.0.1:{p['auth_port']}"
     port, http_port = int(p["port"]), int(p["http_port"])
-    door = f"https://{_bracketed(p['server_name'])}" + ("" if port == 443 else f":{port}")
+    door = door_url(p)
     ipv6 = p.get("ipv6", True)
 
     def guarded(question="/fleet-auth"):
@@ -360,6 +361,8 @@ def nginx_conf(p: dict, managed: str) -> str:
         "      proxy_set_header X-Real-IP $remote_addr;",
         "    }",
         f"    location = /logout {{ proxy_pass {auth}; }}",
+        # who is logged in (the dashboard shows direct addresses to operators): the service reads the session
+        f"    location = /session {{ proxy_pass {auth}; }}",
         # the relay's credentials: the login service reads the session itself (401 without one)
         *(
             [
@@ -427,6 +430,46 @@ def nginx_conf(p: dict, managed: str) -> str:
         ]
     lines.append("}")
     return "\n".join(lines) + "\n"
+
+
+def door_url(p: dict) -> str:
+    """The front door's own address, without a trailing slash."""
+    port = int(p["port"])
+    return f"https://{_bracketed(p['server_name'])}" + ("" if port == 443 else f":{port}")
+
+
+def not_after(openssl_enddate: str) -> str:
+    """openssl x509 -enddate's "notAfter=Nov 26 09:00:00 2027 GMT" as ISO 8601 UTC; "" if it is not that."""
+    text = openssl_enddate.strip().removeprefix("notAfter=")
+    try:
+        when = datetime.datetime.strptime(text, "%b %d %H:%M:%S %Y GMT")
+    except ValueError:
+        return ""
+    return when.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def door_json(p: dict) -> str:
+    """What the front door says of itself (no secret), served to logged-in users at /front-door.json
+    and read by playbooks/status.yml: its address, its certificate's expiry, its relay, and each
+    instance's entrance (the address a person opens: through the login to the instance's viewer)."""
+    door = door_url(p)
+    entrances: dict = {}
+    for viewer in viewers(p):
+        entrances.setdefault(viewer["host"], {})[str(viewer["instance"])] = (
+            f"{door}/viewers/{viewer['host']}/{viewer['instance']}/"
+        )
+    relay = (
+        {"url": turn.url(p["server_name"], p["turn_port"]), "ports": f"{p['turn_min_port']}-{p['turn_max_port']}"}
+        if p.get("turn")
+        else None
+    )
+    body = {
+        "url": door + "/",
+        "certificate": {"not_after": not_after(str(p.get("cert_not_after") or ""))},
+        "relay": relay,
+        "entrances": entrances,
+    }
+    return json.dumps(body, indent=2, sort_keys=True) + "\n"
 
 
 def _bracketed(name) -> str:
@@ -554,6 +597,7 @@ def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: st
             f"{CONFIG_DIR}/door.crt": {"content": cert, "mode": "0644"},
             f"{CONFIG_DIR}/door.key": {"content": key, "mode": "0600"},
             f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
+            f"{CONFIG_DIR}/www/front-door.json": {"content": door_json(p), "mode": "0644"},
         },
     }
     if p.get("turn"):

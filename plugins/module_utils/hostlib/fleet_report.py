@@ -8,6 +8,7 @@ and by the metrics timer (on each host).
 
 from __future__ import annotations
 
+import datetime
 import re
 
 TABLE_COLUMNS = ("HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL")
@@ -58,13 +59,17 @@ def restarts_text(inst: dict) -> str:
     return str(inst.get("restarts") or 0) + (f" (24h: {', '.join(said)})" if said else "")
 
 
-def build(results: dict, targets: list, generated_at: str = "", compare: bool = True, mirrors=None) -> dict:
+def build(
+    results: dict, targets: list, generated_at: str = "", compare: bool = True, mirrors=None, front_doors=None
+) -> dict:
     """One report over the hosts asked for; a host without a result is unreachable or failed.
 
     results: {host: isaac_sim_info result, or {"failed": True, "msg": ...}}
     compare: mark instances whose digest differs from the fleet's (fleet_drift); a host's status
     endpoint answers for itself alone and leaves that to the page, which compares its hosts.
     mirrors: {mirror host: isaac_sim_mirror_info result}, the fleet's registry mirrors.
+    front_doors: {front door host: {door: its front-door.json, relay: its relay unit's state}}: each
+    door gets a line, and each instance behind one its entrance.
     """
     hosts, totals = [], {"hosts": 0, "reachable": 0, "instances": 0, "running": 0, "ready": 0, "failed": 0, "stray": 0}
     for host in targets:
@@ -121,7 +126,62 @@ def build(results: dict, targets: list, generated_at: str = "", compare: bool = 
     report = {"generated_at": generated_at, "summary": totals, "hosts": hosts}
     if mirrors:
         report["mirrors"] = [mirror_view(host, mirrors[host]) for host in sorted(mirrors)]
+    if front_doors:
+        report["front_doors"] = [door_view(host, front_doors[host], generated_at) for host in sorted(front_doors)]
+        for h in hosts:
+            for inst in h["instances"]:
+                found = [d["entrances"].get(h["host"], {}).get(str(inst["id"])) for d in report["front_doors"]]
+                inst["entrance"] = next((url for url in found if url), None)
     return report
+
+
+# a certificate this close to its end marks its front door's line
+EXPIRES_SOON_DAYS = 14
+
+
+def door_view(host: str, res: dict, generated_at: str = "") -> dict:
+    """A front door's line of the report: its address, its certificate's expiry, its relay's state;
+    healthy unless the certificate ends within EXPIRES_SOON_DAYS or a relay it has is down."""
+    said = (res or {}).get("door")
+    if not isinstance(said, dict):
+        why = (res or {}).get("error") or "it says nothing of itself (no front-door.json)"
+        text = (
+            f"UNREADABLE: {why}. Fix: run playbooks/front_door.yml, or take the host out of group "
+            "isaac_sim_front_door where it is no front door"
+        )
+        return {"host": host, "healthy": False, "text": text, "entrances": {}}
+    ends = (said.get("certificate") or {}).get("not_after") or ""
+    days = _days_between(generated_at, ends)
+    relay = said.get("relay")
+    state = str(res.get("relay") or "unknown") if relay else "off"
+    text = f"{said.get('url')}, certificate until {ends or 'unknown'}" + (f" ({days} days)" if days is not None else "")
+    text += f", relay {state}" + (f" ({relay.get('url')}, relay ports {relay.get('ports')})" if relay else "")
+    soon = days is not None and days < EXPIRES_SOON_DAYS
+    if soon:
+        text += ": the certificate expires soon. Fix: your own (front_door_tls_cert), or remove the issued one"
+        text += " (front_door_ca_dir/door-NAME.*) and run playbooks/front_door.yml again"
+    view = {
+        "host": host,
+        "url": said.get("url"),
+        "certificate_not_after": ends or None,
+        "certificate_days_left": days,
+        "relay": state,
+        "relay_url": (relay or {}).get("url"),
+        "entrances": said.get("entrances") or {},
+        "healthy": not soon and state in ("active", "off"),
+        "text": text,
+    }
+    return view
+
+
+def _days_between(generated_at: str, iso_end: str):
+    """Whole days from the report's time stamp to an ISO 8601 UTC end; None if either is unreadable."""
+    try:
+        start = datetime.datetime.strptime(generated_at, "%Y-%m-%d %H:%M:%S UTC")
+        end = datetime.datetime.strptime(iso_end, "%Y-%m-%dT%H:%M:%SZ")
+    except ValueError:
+        return None
+    return (end - start).days
 
 
 def size_text(count) -> str:
@@ -210,7 +270,7 @@ def table(report: dict) -> list:
                     i["uptime"],
                     i.get("restarts_text") or str(i["restarts"]),
                     i["gpu_text"],
-                    i["primary_url"],
+                    f"{i['entrance']} (direct: {i['primary_url']})" if i.get("entrance") else i["primary_url"],
                 )
             )
             # each companion on a line of its own under its instance: 2/ros-bridge
@@ -236,6 +296,7 @@ def table(report: dict) -> list:
         + (f", {s['drift']} on another digest than the fleet's" if s.get("drift") else "")
     )
     lines += [f"mirror {m['host']}: {m['text']}" for m in report.get("mirrors") or []]
+    lines += [f"front door {d['host']}: {d['text']}" for d in report.get("front_doors") or []]
     return lines
 
 

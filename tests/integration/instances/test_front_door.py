@@ -39,6 +39,14 @@ def dashboard_in_chromium(host, address, tmp_path):
     )
     page = (report / "status-front-door.html").read_text()
     assert f'data-status-url="/hosts/{testbed.name(host)}/status"' in page
+    # the report says where the front door is, when its certificate ends and whether its relay runs
+    [door] = json.loads((report / "status.json").read_text())["front_doors"]
+    assert (door["url"], door["relay"], door["healthy"]) == (f"https://{address}/", "active", True), door
+    assert 823 <= door["certificate_days_left"] <= 825, door
+    assert (
+        f"front door {testbed.name(host)}: https://{address}/, certificate until "
+        in (report / "status.txt").read_text()
+    )
     with chromium(trust_ca=ca_dir() / "ca.crt") as driver:
         driver.get(f"https://{address}/dashboard.html")
         # no session: the login page, over a certificate the browser trusts (else an interstitial)
@@ -62,8 +70,21 @@ def dashboard_in_chromium(host, address, tmp_path):
         # live: the page reads the host's status through the front door, behind the same login
         wait_for(lambda: section.get_attribute("data-live") == "ok", timeout=15, what="the page to read the host")
         assert len(driver.find_elements("css selector", ".instance-card")) == INSTANCES
+        line = driver.find_element("css selector", "p.front-door").text
+        assert "certificate until" in line and "relay active (turns:" in line, line
+        # a viewer sees no instance's direct address, an operator does
+        wait_for(lambda: driver.find_element("tag name", "body").get_attribute("data-role") == "viewer", timeout=10)
+        direct = "css selector", ".instance-card [data-kind]:not([data-kind=entrance])"
+        assert driver.find_elements(*direct) == []
         assert console_errors(driver) == []
         driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
+        driver.get(f"https://{address}/logout")
+        driver.get(f"https://{address}/dashboard.html")
+        wait_for(lambda: "/login?next=/dashboard.html" in driver.current_url, timeout=15, what="the login page")
+        log_in("olga", "op-secret")
+        wait_for(lambda: driver.current_url == f"https://{address}/dashboard.html", timeout=10, what="the dashboard")
+        wait_for(lambda: driver.find_elements(*direct), timeout=15, what="the direct addresses")
+        assert driver.find_element("tag name", "body").get_attribute("data-role") == "operator"
     assert "login refused user=vic" in journal(host, UNITS[1])
 
 

@@ -7,12 +7,15 @@ over WSS, which relays it to the stand-in's signal port (the stand-in writes who
 where and from which page). The direct viewer and signal ports then answer the front door alone.
 The TURN relay: credentials from a login carry a datagram over TLS to an instance's stream port
 and its answer back (the stand-in answers each datagram); nowhere else, and never with credentials
-expired or forged.
+expired or forged. Then a whole WebRTC stream through it: a receiver in a network namespace whose
+firewall lets out only TCP to the door's TLS port, relay-only ICE with a login's credentials, gets the
+video a sender on the GPU host streams (aiortc at both ends, tests/integration/webrtc_peer.py).
 """
 
 import base64
 import hashlib
 import hmac
+import json
 import os
 import socket
 import time
@@ -21,7 +24,17 @@ import pytest
 import testbed
 from aioice.stun import TransactionFailed
 from browser import chromium, console_errors
-from frontdoor import UNITS, ca_dir, door_inventory, relay_credentials, relayed_exchange, request, session, settings
+from frontdoor import (
+    UNITS,
+    ca_dir,
+    check_a_stream_from_outside_the_lan,
+    door_inventory,
+    relay_credentials,
+    relayed_exchange,
+    request,
+    session,
+    settings,
+)
 from selenium.common.exceptions import WebDriverException
 from testbed import INSTANCES, sh, wait_for
 
@@ -53,7 +66,7 @@ def reaches(address, port) -> bool:
         return False
 
 
-def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answer_it_alone(host):
+def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answer_it_alone(host, tmp_path):
     address, name = testbed.host_ip(host), testbed.name(host)
     # a viewer beside each instance, whose page and signal ports answer the front door only (it is
     # this host: its own traffic is local)
@@ -106,6 +119,7 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
             wait_for(lambda: body("data-signalling") == "open", timeout=15, what="the signalling")
             assert console_errors(driver) == []
             driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-viewer.png"))
+            check_the_entrances(host, address, driver, tmp_path / "report")
         # the stand-in's signal port saw it come from the front door, from the viewer's own page
         log = sh(host, "journalctl -u isaac-sim@1 --no-pager -o cat").stdout
         seen = f"signalling from {address}, GET /, Origin https://{address}:{BASE + 1}"
@@ -114,6 +128,8 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
         assert "user=vic" in door_log
 
         check_the_relay(host, address, cookie)
+        # the GPU host's stream reaches a peer that can reach only the door's TLS port
+        check_a_stream_from_outside_the_lan(address, cookie, testbed.name(host), (address, 47998 + 1))
 
         again = ok(door(host, front_door_server_name=address))
         assert testbed.changed_count(again, host) == 0, again.stdout[-3000:]
@@ -121,6 +137,29 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
         gone = ok(door(host, front_door_server_name=address, front_door_state="absent"))
     assert not any(reaches(address, BASE + i) for i in range(INSTANCES)), gone.stdout[-2000:]
     assert not reaches(address, 5349) and "inactive" in sh(host, f"systemctl is-active {UNITS[2]} || true").stdout
+
+
+def check_the_entrances(host, address, driver, report):
+    """status.yml gives each instance its entrance, in status.json and on the door's dashboard
+    (where a viewer, as vic is, sees the entrances and no direct address)."""
+    name = testbed.name(host)
+    run = testbed.run_playbook(
+        host,
+        {"fleet_report_dir": str(report), "fleet_report_refresh": 0},
+        extra_inventory=door_inventory(name),
+        playbook="playbooks/status.yml",
+    )
+    ok(run)
+    instances = json.loads((report / "status.json").read_text())["hosts"][0]["instances"]
+    wanted = {i: f"https://{address}/viewers/{name}/{i}/" for i in range(INSTANCES)}
+    assert {i["id"]: i.get("entrance") for i in instances} == wanted
+    driver.get(f"https://{address}/dashboard.html")
+    links = "css selector", ".instance-card a[data-kind=entrance]"
+    wait_for(lambda: len(driver.find_elements(*links)) == INSTANCES, timeout=15, what="the entrances")
+    assert sorted(a.get_attribute("href") for a in driver.find_elements(*links)) == sorted(wanted.values())
+    wait_for(lambda: driver.find_element("tag name", "body").get_attribute("data-role") == "viewer", timeout=10)
+    assert len(driver.find_elements("css selector", ".instance-card [data-kind]")) == INSTANCES
+    assert console_errors(driver) == []
 
 
 def check_the_relay(host, address, cookie):

@@ -146,6 +146,11 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     session = {"Cookie": cookie.split(";", 1)[0], "X-Original-URI": "/hosts/a/status"}
     response, _body = call(port, "GET", "/auth", headers=session)
     assert response.status == 204 and response.getheader("X-Fleet-User") == "vic"
+    # who is logged in, for the pages behind the door; nothing for a request without a session
+    response, body = call(port, "GET", "/session", headers=session)
+    assert response.status == 200 and json.loads(body) == {"user": "vic", "role": "viewer"}
+    assert call(port, "GET", "/session")[0].status == 401
+    assert call(port, "GET", "/session", headers={"Cookie": session["Cookie"][:-2] + "xx"})[0].status == 401
     # what a path needs is nginx's location's to say (need=), whatever the raw path looks like
     odd = dict(session, **{"X-Original-URI": "/%6Fperator/x"})
     response, _body = call(port, "GET", "/auth?need=operator", headers=odd)

@@ -136,11 +136,13 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     assert 'if ($http_sec_fetch_dest = "empty") { return 401; }' in login and "return 302 /login?next=" in login
     root = conf.split("    location / {", 1)[1].split("}", 1)[0]
     assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
-    # only the login page, the logout and nginx's own internal question go without a session
+    # only the login page, the logout, nginx's own internal question and who-am-I (which reads the
+    # session itself: 401 without one) go without nginx asking
     unguarded = [
         b.split("{")[0] for b in conf.split("location ")[1:] if "auth_request /fleet-auth" not in b.split("}")[0]
     ]
-    open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "@fleet_login"]
+    open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "= /session"]
+    open_ones.append("@fleet_login")
     assert sorted(u.strip() for u in unguarded) == open_ones
     assert "fleet_viewer" not in conf and "location = /viewers/" not in conf
     other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0, ipv6=False), "managed")
@@ -301,3 +303,34 @@ def test_a_viewer_s_port_follows_its_host_s_place_whatever_serves_a_status_endpo
     # only a WebSocket upgrade is passed on as one; the instance's page sets no cookie of the door's
     assert "map $fleet_websocket $fleet_connection { 1 upgrade; default close; }" in conf
     assert "proxy_hide_header Set-Cookie;" in conf
+
+
+def test_the_door_says_its_address_certificate_relay_and_each_instance_s_entrance():
+    relay = dict(
+        VIEWERS,
+        port=8443,
+        turn=True,
+        turn_port=5349,
+        turn_min_port=50000,
+        turn_max_port=50199,
+        turn_gid=101,
+        turn_address="10.0.0.2",
+        peers=["10.0.0.5"],
+        cert_not_after="notAfter=Nov 26 09:00:00 2027 GMT\n",
+    )
+    files = front_door.files(relay, "managed", "CERT", "KEY", "CODE", "SECRET")
+    said = json.loads(files[front_door.UNIT]["/etc/isaac-sim/front-door/www/front-door.json"]["content"])
+    assert said == {
+        "url": "https://fleet.lab:8443/",
+        "certificate": {"not_after": "2027-11-26T09:00:00Z"},
+        "relay": {"url": "turns:fleet.lab:5349?transport=tcp", "ports": "50000-50199"},
+        "entrances": {
+            "gpu-1": {"0": "https://fleet.lab:8443/viewers/gpu-1/0/"},
+            "gpu-2": {"0": "https://fleet.lab:8443/viewers/gpu-2/0/", "3": "https://fleet.lab:8443/viewers/gpu-2/3/"},
+        },
+    }
+    # no relay, and an expiry openssl did not give: said so, not made up
+    said = json.loads(front_door.door_json(dict(GOOD, cert_not_after="garbage")))
+    assert said["relay"] is None and said["certificate"] == {"not_after": ""} and said["url"] == "https://fleet.lab/"
+    # who is logged in: asked of the login service, which reads the session itself
+    assert "location = /session { proxy_pass http://127.0.0.1:9480; }" in front_door.nginx_conf(GOOD, "managed")

@@ -165,3 +165,36 @@ def test_the_registry_mirror_is_reported_serving_or_down_with_what_its_storage_h
     assert lines[2] == "mirror m3: UNREACHABLE: ssh" and report["mirrors"][2]["healthy"] is False
     # without mirrors the report has no such key, and the table no such line
     assert "mirrors" not in fleet_report.build({"a": host_result()}, ["a"])
+
+
+def test_each_front_door_gets_a_line_and_each_instance_behind_it_its_entrance():
+    said = {
+        "url": "https://door.lab/",
+        "certificate": {"not_after": "2027-01-10T12:00:00Z"},
+        "relay": {"url": "turns:door.lab:5349?transport=tcp", "ports": "50000-50199"},
+        "entrances": {"a": {"1": "https://door.lab/viewers/a/1/"}},
+    }
+    doors = {
+        "door": {"door": said, "relay": "active"},
+        "old": {"door": dict(said, certificate={"not_after": "2027-01-05T00:00:00Z"}), "relay": "failed"},
+        "gone": {"door": None, "relay": "unknown", "error": "file not found"},
+    }
+    report = fleet_report.build({"a": host_result()}, ["a"], "2026-12-27 12:00:00 UTC", front_doors=doors)
+    door, gone, old = report["front_doors"]
+    assert (door["certificate_days_left"], door["relay"], door["healthy"]) == (14, "active", True)
+    assert door["text"] == (
+        "https://door.lab/, certificate until 2027-01-10T12:00:00Z (14 days), relay active "
+        "(turns:door.lab:5349?transport=tcp, relay ports 50000-50199)"
+    )
+    # ending within 14 days, or its relay down: marked, with what to do
+    assert old["healthy"] is False and "(8 days), relay failed" in old["text"] and "expires soon. Fix:" in old["text"]
+    assert gone["healthy"] is False and gone["text"].startswith("UNREADABLE: file not found. Fix: run playbooks/")
+    by_id = {i["id"]: i.get("entrance") for i in report["hosts"][0]["instances"]}
+    assert by_id[1] == "https://door.lab/viewers/a/1/" and by_id[0] is None
+    lines = fleet_report.table(report)
+    assert lines[-3] == "front door door: " + door["text"]
+    assert any(line.endswith("https://door.lab/viewers/a/1/ (direct: 172.17.0.2:49101)") for line in lines), lines
+    # a door without a relay, and a report time that is not the playbook's: no days, relay off, healthy
+    plain = fleet_report.door_view("d", {"door": dict(said, relay=None)}, "now")
+    assert plain["healthy"] and plain["certificate_days_left"] is None and plain["text"].endswith(", relay off")
+    assert "front_doors" not in fleet_report.build({"a": host_result()}, ["a"])
