@@ -17,7 +17,8 @@ positional: _input, service
 options:
   _input:
     description:
-      - The service's settings. C(status) - C(name), C(address), C(port), C(allow), C(origins), C(gpu_source).
+      - The service's settings. C(status) - C(name), C(address), C(port), C(allow), C(logs_allow), C(origins),
+        C(gpu_source).
         C(metrics) - C(textfile_dir), C(interval), C(gpu_source).
     type: dict
     required: true

@@ -152,8 +152,8 @@ options:
   status_server:
     description:
       - The host's read-only status endpoint - C(enabled), C(port), C(address) (empty - O(public_address)) and
-        C(allow) (the networks that may read it). Its port is checked against the instances' blocks and the
-        host's listening sockets.
+        C(allow) (the networks that may read it), C(logs_allow) (those that may read the instances' journals)
+        and C(origins). Its port is checked against the instances' blocks and the host's listening sockets.
     type: dict
     default: {enabled: false}
   hub_cache:

@@ -386,11 +386,20 @@ def nginx_conf(p: dict, managed: str) -> str:
         "    }",
     ]
     for backend in (b for b in p.get("backends") or [] if b.get("status_url")):
+        base = backend["status_url"].removesuffix("/status")
         lines += [
             f"    location = /hosts/{backend['name']}/status {{",
             *guarded(),
             f"      proxy_pass {backend['status_url']};",
             # the session stays here: the hosts behind are reached over plain HTTP
+            '      proxy_set_header Cookie "";',
+            '      proxy_set_header Authorization "";',
+            "    }",
+            # an instance's journal, operators only (the host gives it to the door's address alone)
+            # (names are [A-Za-z0-9._-]: only the dot means something to the regex; no braces, unquoted)
+            f"    location ~ ^/operator/hosts/{backend['name'].replace('.', '[.]')}/logs/([0-9][0-9]?)$ {{",
+            *guarded("/fleet-auth-operator"),
+            f"      proxy_pass {base}/logs/$1;",
             '      proxy_set_header Cookie "";',
             '      proxy_set_header Authorization "";',
             "    }",

@@ -3,9 +3,11 @@
 """A host's read-only status endpoint (isaac-sim-status.service): what isaac_sim_info
 returns, as the fleet dashboard shows it, served as JSON to the networks allowed.
 
-GET only, one path, no control: changes go through Ansible. Answers are computed at most
+GET only, no control: changes go through Ansible. Answers are computed at most
 once per `ttl` seconds however many dashboards ask, so a page left open on many desks
-costs the host one status read per period.
+costs the host one status read per period. An instance's recent journal, at /logs/N, only to
+the networks of isaac_sim_status_server_logs_allow (none by default: the front door's address,
+which passes it on to operators alone).
 """
 
 from __future__ import annotations
@@ -14,16 +16,19 @@ import contextlib
 import http.server
 import ipaddress
 import json
+import re
 import socket
 import threading
 import time
 
 PATH = "/status"
+LOGS_RE = re.compile(r"^/logs/([0-9]{1,2})$")
+LOG_LINES = 200
 # the address families the dashboard may come from; a private fleet by default
 DEFAULT_ALLOW = ("127.0.0.0/8", "10.0.0.0/8", "172.16.0.0/12", "192.168.0.0/16", "::1/128", "fc00::/7")
 
 
-def parse_networks(texts) -> tuple[list, list]:
+def parse_networks(texts, name="isaac_sim_status_server_allow") -> tuple[list, list]:
     """(networks, errors) for the allowed networks as written (CIDR or single addresses)."""
     networks, errors = [], []
     for text in texts or []:
@@ -31,10 +36,14 @@ def parse_networks(texts) -> tuple[list, list]:
             networks.append(ipaddress.ip_network(str(text).strip(), strict=False))
         except ValueError:
             errors.append(
-                f"isaac_sim_status_server_allow: {text!r} is not a network. Fix: write it as CIDR, "
-                "e.g. 10.20.0.0/16, or a single address."
+                f"{name}: {text!r} is not a network. Fix: write it as CIDR, e.g. 10.20.0.0/16, or a single address."
             )
     return networks, errors
+
+
+def journal_argv(unit: str, lines: int = LOG_LINES) -> list:
+    """journalctl's argv for a unit's last lines, as plain text with ISO time stamps."""
+    return ["journalctl", "-u", unit, "-n", str(int(lines)), "-o", "short-iso", "--no-pager", "-q"]
 
 
 def allowed(address: str, networks) -> bool:
@@ -79,7 +88,9 @@ def cors_origin(origin, origins):
     return origin if origin is not None and origin in origins else None
 
 
-def handler(cache: Cache, networks, origins=("null",)):
+def handler(cache: Cache, networks, origins=("null",), logs=None, logs_networks=()):
+    """logs: instance number -> its journal's last lines (bytes); served to logs_networks alone."""
+
     class Handler(http.server.BaseHTTPRequestHandler):
         server_version = "isaac-sim-status"
         sys_version = ""
@@ -112,6 +123,10 @@ def handler(cache: Cache, networks, origins=("null",)):
         def do_GET(self):  # noqa: N802 - http.server's naming
             if not self._allowed():
                 return
+            wanted = LOGS_RE.fullmatch(self.path.split("?", 1)[0])
+            if wanted:
+                self._logs(int(wanted.group(1)))
+                return
             if self.path.split("?", 1)[0] not in (PATH, PATH + "/"):
                 self._send(404, f"not found: the status is at {PATH}\n".encode())
                 return
@@ -121,6 +136,17 @@ def handler(cache: Cache, networks, origins=("null",)):
                 self._send(503, f"status unavailable: {exc}\n".encode())
                 return
             self._send(200, body, "application/json")
+
+        def _logs(self, instance: int):
+            if logs is None or not allowed(self.client_address[0], logs_networks):
+                self._send(403, b"forbidden: logs go to isaac_sim_status_server_logs_allow alone\n")
+                return
+            try:
+                body = logs(instance)
+            except Exception as exc:  # the journal could not be read: say so, keep serving
+                self._send(503, f"logs unavailable: {exc}\n".encode())
+                return
+            self._send(200, body)
 
         do_HEAD = do_GET  # noqa: N815
 
@@ -149,11 +175,13 @@ class _Server(http.server.ThreadingHTTPServer):
         return False
 
 
-def server(address: str, port: int, cache: Cache, networks, origins=("null",)) -> http.server.ThreadingHTTPServer:
+def server(
+    address: str, port: int, cache: Cache, networks, origins=("null",), logs=None, logs_networks=()
+) -> http.server.ThreadingHTTPServer:
     srv_class = _Server
     if ":" in address:
         srv_class = type("V6", (_Server,), {"address_family": socket.AF_INET6})
-    srv = srv_class((address, port), handler(cache, networks, tuple(origins)))
+    srv = srv_class((address, port), handler(cache, networks, tuple(origins), logs, tuple(logs_networks)))
     srv.networks = networks
     srv.daemon_threads = True
     return srv

@@ -300,6 +300,10 @@ def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
             "isaac_sim_status_server_allow: empty, so nobody could read the status. Fix: list the networks the "
             "dashboard is opened from, e.g. [10.20.0.0/16], or set isaac_sim_status_server_enabled: false."
         )
+    logs_networks, logs_errors = status_server.parse_networks(
+        want.get("logs_allow"), "isaac_sim_status_server_logs_allow"
+    )
+    errors += logs_errors
     # a URL a browser can open: the host's public address when listening on every address
     shown = cfg.get("public_address") if bound is not None and bound.is_unspecified else address
     host = f"[{shown}]" if ":" in str(shown) else shown
@@ -308,6 +312,7 @@ def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
         "address": address,
         "port": port,
         "allow": [str(n) for n in networks],
+        "logs_allow": [str(n) for n in logs_networks],
         "origins": [str(o) for o in want.get("origins") or []],
         "url": f"http://{host}:{port}/status",
     }, errors

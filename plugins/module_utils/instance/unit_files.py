@@ -265,13 +265,14 @@ def render_hub_dropin(managed: str) -> str:
 
 def render_status_unit(server: dict, managed: str = layout.MANAGED) -> str:
     """The host's read-only status endpoint. server: name (the inventory's), address, port, allow
-    (networks), origins, gpu_source."""
+    (networks), logs_allow (networks given the instances' logs), origins, gpu_source."""
     argv = [
         f"/usr/bin/python3 {layout.LIBEXEC_DIR}/{layout.STATUS_SCRIPT} --lib {layout.LIB_DIR} "
         f"--name {shlex.quote(server['name'])}",
         f"--address {server['address']} --port {server['port']}",
     ]
     argv += [f"--allow {net}" for net in server.get("allow") or ()]
+    argv += [f"--logs-allow {net}" for net in server.get("logs_allow") or ()]
     argv += [f"--origin {shlex.quote(origin)}" for origin in server.get("origins") or ()]
     argv.append(f"--gpu-source {server['gpu_source']}")
     service = [

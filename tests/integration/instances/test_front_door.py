@@ -6,7 +6,10 @@ them, through Python's own HTTP client with the CA the role made (nothing trusts
 """
 
 import json
+import urllib.error
+import urllib.request
 
+import pytest
 import testbed
 from browser import chromium, console_errors
 from frontdoor import UNITS, ca_dir, door_inventory, login, request, settings
@@ -85,7 +88,34 @@ def dashboard_in_chromium(host, address, tmp_path):
         wait_for(lambda: driver.current_url == f"https://{address}/dashboard.html", timeout=10, what="the dashboard")
         wait_for(lambda: driver.find_elements(*direct), timeout=15, what="the direct addresses")
         assert driver.find_element("tag name", "body").get_attribute("data-role") == "operator"
+        # and each instance's journal, through the door
+        hrefs = [a.get_attribute("href") for a in driver.find_elements("css selector", "a[data-kind=logs]")]
+        assert sorted(hrefs) == [
+            f"https://{address}/operator/hosts/{testbed.name(host)}/logs/{i}" for i in range(INSTANCES)
+        ]
     assert "login refused user=vic" in journal(host, UNITS[1])
+
+
+def check_the_logs(host, address, viewer, operator):
+    """An instance's journal through the front door: an operator gets it, a viewer does not, and
+    the host gives it to the door's address alone (isaac_sim_status_server_logs_allow)."""
+    name = testbed.name(host)
+    logs = f"/operator/hosts/{name}/logs/1"
+    assert request(address, "GET", logs, cookie=viewer)[0].status == 403
+    assert f"refused user=vic path='{logs}'" in journal(host, UNITS[1])
+    response, data, _v = request(address, "GET", logs, cookie=operator)
+    assert response.status == 200 and response.getheader("Content-Type").startswith("text/plain"), data[:300]
+    last = data.decode().splitlines()[-1]
+    assert last in sh(host, "journalctl -u isaac-sim@1.service -o short-iso --no-pager -q -n 400").stdout
+    assert len(data.decode().splitlines()) <= 200
+    # instance numbers only; not past the door's own path
+    assert request(address, "GET", f"/operator/hosts/{name}/logs/100", cookie=operator)[0].status == 404
+    # the host itself: not to this machine, which may read its status
+    direct = urllib.request.Request(f"http://{address}:8290/logs/1")
+    with pytest.raises(urllib.error.HTTPError, match="403"):
+        urllib.request.urlopen(direct, timeout=5)
+    with urllib.request.urlopen(f"http://{address}:8290/status", timeout=5) as answer:
+        assert answer.status == 200
 
 
 def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_cleanly(host, tmp_path):
@@ -139,6 +169,7 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
             assert request(address, "GET", path, cookie=viewer)[0].status == 403, path
             assert request(address, "GET", path, cookie=operator)[0].status == 404, path
         assert "refused user=vic path='/%6Fperator/logs'" in journal(host, UNITS[1])
+        check_the_logs(host, address, viewer, operator)
 
         # the dashboard, served behind the login, in a browser that trusts the collection's CA
         dashboard_in_chromium(host, address, tmp_path)

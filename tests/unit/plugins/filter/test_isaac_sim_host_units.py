@@ -13,6 +13,7 @@ STATUS = {
     "address": "0.0.0.0",
     "port": 8290,
     "allow": ["10.0.0.0/8", "127.0.0.1/32"],
+    "logs_allow": ["10.0.0.9/32"],
     "origins": ["http://dash:8080"],
     "gpu_source": "auto",
 }
@@ -32,7 +33,7 @@ def test_status_unit_runs_the_server_with_its_settings_sandboxed():
     assert start == (
         f"ExecStart=/usr/bin/python3 {layout.LIBEXEC_DIR}/{layout.STATUS_SCRIPT} --lib {layout.LIB_DIR}"
         " --name 'gpu host 1' --address 0.0.0.0 --port 8290 --allow 10.0.0.0/8 --allow 127.0.0.1/32"
-        " --origin http://dash:8080 --gpu-source auto"
+        " --logs-allow 10.0.0.9/32 --origin http://dash:8080 --gpu-source auto"
     )
     for key, value in sandbox.reader():
         assert f"{key}={value}" in text

@@ -334,3 +334,10 @@ def test_the_door_says_its_address_certificate_relay_and_each_instance_s_entranc
     assert said["relay"] is None and said["certificate"] == {"not_after": ""} and said["url"] == "https://fleet.lab/"
     # who is logged in: asked of the login service, which reads the session itself
     assert "location = /session { proxy_pass http://127.0.0.1:9480; }" in front_door.nginx_conf(GOOD, "managed")
+
+
+def test_an_instance_s_logs_go_through_the_door_to_operators_alone():
+    conf = front_door.nginx_conf(dict(GOOD, backends=[dict(GOOD["backends"][0], name="gpu-1.lab")]), "managed")
+    block = conf.split("    location ~ ^/operator/hosts/gpu-1[.]lab/logs/([0-9][0-9]?)$ {", 1)[1].split("}", 1)[0]
+    assert "auth_request /fleet-auth-operator;" in block and "proxy_pass http://10.0.0.5:8290/logs/$1;" in block
+    assert 'proxy_set_header Cookie "";' in block

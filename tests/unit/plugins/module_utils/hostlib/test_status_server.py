@@ -15,11 +15,12 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import stat
 
 
 @contextlib.contextmanager
-def serving(read, allow=("127.0.0.0/8",), ttl=60.0):
+def serving(read, allow=("127.0.0.0/8",), ttl=60.0, logs=None, logs_allow=()):
     networks, errors = status_server.parse_networks(allow)
-    assert errors == []
+    logs_networks, logs_errors = status_server.parse_networks(logs_allow)
+    assert errors == logs_errors == []
     cache = status_server.Cache(read, ttl)
-    srv = status_server.server("127.0.0.1", 0, cache, networks)
+    srv = status_server.server("127.0.0.1", 0, cache, networks, logs=logs, logs_networks=logs_networks)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     try:
         yield f"http://127.0.0.1:{srv.server_address[1]}", cache
@@ -128,3 +129,45 @@ def test_a_network_that_does_not_parse_is_named():
         "isaac_sim_status_server_allow: 'lab-net' is not a network. Fix: write it as CIDR, "
         "e.g. 10.20.0.0/16, or a single address."
     ]
+
+
+def test_an_instance_s_logs_go_to_the_networks_named_for_them_alone():
+    asked = []
+
+    def logs(instance):
+        asked.append(instance)
+        if instance == 7:
+            raise OSError("journalctl failed")
+        return f"2026-11-27T09:00:00+0000 host isaac-sim-{instance}: ready\n".encode()
+
+    # not given: nobody gets them, though the status itself is there
+    with serving(lambda: {"ok": 1}, logs=logs) as (url, _cache):
+        code, _h, body = call(url + "/logs/1")
+        assert code == 403 and b"isaac_sim_status_server_logs_allow" in body and asked == []
+        assert call(url + "/status")[0] == 200
+    with serving(lambda: {"ok": 1}, logs=logs, logs_allow=["10.9.9.9/32"]) as (url, _cache):
+        assert call(url + "/logs/1")[0] == 403 and asked == []
+    with serving(lambda: {"ok": 1}, logs=logs, logs_allow=["127.0.0.1/32"]) as (url, _cache):
+        code, headers, body = call(url + "/logs/3")
+        assert (code, body) == (200, b"2026-11-27T09:00:00+0000 host isaac-sim-3: ready\n")
+        assert headers["Content-Type"] == "text/plain; charset=utf-8" and asked == [3]
+        # instance numbers only; a journal that cannot be read is said, and the server goes on
+        for path in ("/logs/100", "/logs/x", "/logs/1/../../status", "/logs/"):
+            assert call(url + path)[0] == 404, path
+        assert call(url + "/logs/7")[0] == 503 and call(url + "/logs/3")[0] == 200
+
+
+def test_the_journal_is_asked_for_the_unit_s_last_lines_as_plain_text():
+    assert status_server.journal_argv("isaac-sim@2.service") == [
+        "journalctl",
+        "-u",
+        "isaac-sim@2.service",
+        "-n",
+        "200",
+        "-o",
+        "short-iso",
+        "--no-pager",
+        "-q",
+    ]
+    _n, errors = status_server.parse_networks(["x"], "isaac_sim_status_server_logs_allow")
+    assert errors[0].startswith("isaac_sim_status_server_logs_allow: 'x' is not a network. Fix:")

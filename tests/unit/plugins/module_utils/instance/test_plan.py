@@ -342,9 +342,13 @@ def test_the_status_endpoint_listens_on_every_address_and_says_its_url_at_the_pu
         "address": "0.0.0.0",
         "port": 8290,
         "allow": ["10.0.0.0/8"],
+        "logs_allow": [],
         "origins": ["null"],
         "url": "http://10.0.0.5:8290/status",
     }
+    # the instances' logs to the front door alone, where asked
+    door = plan.build(cfg(status_server=dict(STATUS, logs_allow=["10.0.0.9"])), HOST)["status_server"]
+    assert door["logs_allow"] == ["10.0.0.9/32"]
     # the public address may be a name: only the URL uses it
     named = plan.build(cfg(public_address="gpu-1.lab", status_server=STATUS), HOST)["status_server"]
     assert named["url"] == "http://gpu-1.lab:8290/status"
@@ -366,6 +370,7 @@ def test_the_status_endpoint_listens_on_every_address_and_says_its_url_at_the_pu
         ({"address": "gpu-1.lab"}, HOST, "isaac_sim_status_server_address: 'gpu-1.lab' is not an IP address"),
         ({"allow": ["lab-net"]}, HOST, "isaac_sim_status_server_allow: 'lab-net' is not a network"),
         ({"allow": []}, HOST, "isaac_sim_status_server_allow: empty, so nobody could read the status"),
+        ({"logs_allow": ["door"]}, HOST, "isaac_sim_status_server_logs_allow: 'door' is not a network"),
     ],
 )
 def test_bad_status_endpoint_settings_are_refused_before_any_change(settings, host, wanted):
