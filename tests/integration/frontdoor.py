@@ -53,9 +53,12 @@ def door_inventory(name: str) -> Path:
     return inventory
 
 
-def request(address, method, path, body=None, cookie=None, tls=True, headers=None, port=None):
+def request(address, method, path, body=None, cookie=None, tls=True, headers=None, port=None, client_cert=None):
+    """client_cert: (certificate, key) files the client presents."""
     if tls:
         context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
+        if client_cert:
+            context.load_cert_chain(*map(str, client_cert))
         conn = http.client.HTTPSConnection(address, port or 443, context=context, timeout=10)
     else:
         conn = http.client.HTTPConnection(address, port or 80, timeout=10)

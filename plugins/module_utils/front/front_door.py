@@ -103,6 +103,7 @@ def check(p: dict) -> list:
     if not isinstance(hours, (int, float)) or isinstance(hours, bool) or not 0 < hours <= 24 * 30:
         errors.append(f"front_door_session_hours: {hours!r} is not a number of hours of 0-720. Fix: e.g. 8.")
     errors += _user_errors(p.get("users"))
+    errors += _client_ca_errors(p)
     for backend in p.get("backends") or []:
         if not _NAME_RE.fullmatch(str(backend.get("name", ""))):
             errors.append(
@@ -124,6 +125,24 @@ def check(p: dict) -> list:
             "playbooks/front_door.yml with those hosts reachable and within --limit."
         )
     return errors
+
+
+def _client_ca_errors(p: dict) -> list:
+    """client_ca_path: front_door_client_ca as given; client_ca: the file's text (None: not a file)."""
+    path = p.get("client_ca_path") or ""
+    if not path:
+        return []
+    text = p.get("client_ca")
+    if text is None:
+        why = "is not a file on the controller"
+    elif "-----BEGIN CERTIFICATE-----" not in str(text):
+        why = "holds no PEM certificate"
+    else:
+        return []
+    return [
+        f"front_door_client_ca: {path!r} {why}. Fix: the path of the PEM certificate (or bundle) of the CA "
+        "that signs your people's client certificates, or empty for none."
+    ]
 
 
 def viewers(p: dict) -> list:
@@ -288,7 +307,9 @@ def nginx_conf(p: dict, managed: str) -> str:
         "  default_type application/octet-stream;",
         "  server_tokens off;",
         *(f"  {kind}_temp_path {RUN_DIR}/{kind};" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")),
-        "  log_format fleet '$remote_addr user=$fleet_user \"$request\" $status';",
+        '  log_format fleet \'$remote_addr user=$fleet_user "$request" $status'
+        + (' cert="$ssl_client_s_dn"' if p.get("client_ca") else "")
+        + "';",
         "  access_log syslog:server=unix:/dev/log,tag=isaac_sim_front_door,nohostname fleet;",
         # login attempts only: showing the login page costs nothing
         '  map $request_method $fleet_login_key { POST $binary_remote_addr; default ""; }',
@@ -315,6 +336,17 @@ def nginx_conf(p: dict, managed: str) -> str:
             *([f"    listen [::]:{listen} ssl;"] if ipv6 else []),
             f"    ssl_certificate {CONFIG_DIR}/door.crt;",
             f"    ssl_certificate_key {CONFIG_DIR}/door.key;",
+            # with a client CA, no request is read without a certificate it signed (nginx: 400)
+            *(
+                [
+                    f"    ssl_client_certificate {CONFIG_DIR}/client-ca.crt;",
+                    "    ssl_verify_client on;",
+                    # a site's PKI: root, intermediates, the person's certificate
+                    "    ssl_verify_depth 3;",
+                ]
+                if p.get("client_ca")
+                else []
+            ),
             '    add_header Strict-Transport-Security "max-age=31536000" always;',
             "    add_header X-Content-Type-Options nosniff always;",
             "    add_header Referrer-Policy same-origin always;",
@@ -468,7 +500,10 @@ def door_json(p: dict) -> str:
             f"{door}/viewers/{viewer['host']}/{viewer['instance']}/"
         )
     relay = (
-        {"url": turn.url(p["server_name"], p["turn_port"]), "ports": f"{p['turn_min_port']}-{p['turn_max_port']}"}
+        {
+            "url": turn.url(_bracketed(p["server_name"]), p["turn_port"]),
+            "ports": f"{p['turn_min_port']}-{p['turn_max_port']}",
+        }
         if p.get("turn")
         else None
     )
@@ -607,6 +642,11 @@ def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: st
             f"{CONFIG_DIR}/door.key": {"content": key, "mode": "0600"},
             f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
             f"{CONFIG_DIR}/www/front-door.json": {"content": door_json(p), "mode": "0644"},
+            **(
+                {f"{CONFIG_DIR}/client-ca.crt": {"content": p["client_ca"], "mode": "0644"}}
+                if p.get("client_ca")
+                else {}
+            ),
         },
     }
     if p.get("turn"):

@@ -6,6 +6,8 @@ them, through Python's own HTTP client with the CA the role made (nothing trusts
 """
 
 import json
+import os
+import subprocess
 import urllib.error
 import urllib.request
 
@@ -77,7 +79,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         assert "certificate until" in line and "relay active (turns:" in line, line
         # a viewer sees no instance's direct address, an operator does
         wait_for(lambda: driver.find_element("tag name", "body").get_attribute("data-role") == "viewer", timeout=10)
-        direct = "css selector", ".instance-card [data-kind]:not([data-kind=entrance])"
+        direct = "css selector", ".instance-card [data-kind]:not([data-kind=entrance]):not([data-kind=logs])"
         assert driver.find_elements(*direct) == []
         assert console_errors(driver) == []
         driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
@@ -94,6 +96,37 @@ def dashboard_in_chromium(host, address, tmp_path):
             f"https://{address}/operator/hosts/{testbed.name(host)}/logs/{i}" for i in range(INSTANCES)
         ]
     assert "login refused user=vic" in journal(host, UNITS[1])
+
+
+def check_client_certificates(host, address, pki):
+    """front_door_client_ca: without a certificate its CA signed, no page answers (nginx: 400); with
+    one, the login page as before, and the access log names the certificate's subject."""
+    pki.mkdir()
+
+    def openssl(*args):
+        subprocess.run(["openssl", *map(str, args)], check=True, capture_output=True)
+
+    for ca in ("people-ca", "other-ca"):
+        openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", 2, "-subj", f"/CN={ca}",
+                "-keyout", pki / f"{ca}.key", "-out", pki / f"{ca}.crt")  # fmt: skip
+    for person, ca in (("ana", "people-ca"), ("eve", "other-ca")):
+        openssl("req", "-new", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={person}",
+                "-keyout", pki / f"{person}.key", "-out", pki / f"{person}.csr")  # fmt: skip
+        openssl("x509", "-req", "-in", pki / f"{person}.csr", "-CA", pki / f"{ca}.crt", "-CAkey", pki / f"{ca}.key",
+                "-set_serial", "0x" + os.urandom(8).hex(), "-days", 2, "-out", pki / f"{person}.crt")  # fmt: skip
+    bad = run(host, front_door_server_name=address, front_door_client_ca=str(pki / "nothing.pem"))
+    said = bad.stdout + bad.stderr
+    assert (
+        bad.returncode != 0 and f"front_door_client_ca: '{pki / 'nothing.pem'}' is not a file on the controller" in said
+    )
+    ok(run(host, front_door_server_name=address, front_door_client_ca=str(pki / "people-ca.crt")))
+    ana, eve = ((pki / f"{p}.crt", pki / f"{p}.key") for p in ("ana", "eve"))
+    assert request(address, "GET", "/login")[0].status == 400
+    assert request(address, "GET", "/login", client_cert=eve)[0].status == 400
+    assert request(address, "GET", "/login", client_cert=ana)[0].status == 200
+    # a certificate is no login: the pages behind still ask for one
+    assert request(address, "GET", f"/hosts/{testbed.name(host)}/status", client_cert=ana)[0].status == 302
+    assert 'cert="CN=ana"' in journal(host, UNITS[0])
 
 
 def check_the_logs(host, address, viewer, operator):
@@ -183,6 +216,7 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         # the distribution's own nginx and coturn, installed by the role, do not run
         for own in ("nginx.service", "coturn.service"):
             assert sh(host, f"systemctl is-active {own}", check=False).stdout.strip() != "active", own
+        check_client_certificates(host, address, tmp_path / "people")
     finally:
         gone = ok(run(host, front_door_server_name=address, front_door_state="absent"))
     assert "changed" in first.stdout

@@ -105,6 +105,14 @@ def test_good_settings_pass():
             "front_door_viewer_port_base: 9480 gives front_door_hosts: gpu-1 instance 0 port 9480, which "
             "front_door_auth_port already takes",
         ),
+        (
+            {"client_ca_path": "/tmp/no-such.pem", "client_ca": None},
+            "front_door_client_ca: '/tmp/no-such.pem' is not a file on the controller. Fix:",
+        ),
+        (
+            {"client_ca_path": "/etc/hosts", "client_ca": "127.0.0.1 localhost"},
+            "front_door_client_ca: '/etc/hosts' holds no PEM certificate. Fix:",
+        ),
     ],
 )
 def test_each_bad_setting_is_named_with_its_fix(over, start):
@@ -332,6 +340,8 @@ def test_the_door_says_its_address_certificate_relay_and_each_instance_s_entranc
     # no relay, and an expiry openssl did not give: said so, not made up
     said = json.loads(front_door.door_json(dict(GOOD, cert_not_after="garbage")))
     assert said["relay"] is None and said["certificate"] == {"not_after": ""} and said["url"] == "https://fleet.lab/"
+    six = dict(GOOD, server_name="fd00::1", turn=True, turn_port=5349, turn_min_port=1, turn_max_port=2)
+    assert json.loads(front_door.door_json(six))["relay"]["url"] == "turns:[fd00::1]:5349?transport=tcp"
     # who is logged in: asked of the login service, which reads the session itself
     assert "location = /session { proxy_pass http://127.0.0.1:9480; }" in front_door.nginx_conf(GOOD, "managed")
 
@@ -341,3 +351,25 @@ def test_an_instance_s_logs_go_through_the_door_to_operators_alone():
     block = conf.split("    location ~ ^/operator/hosts/gpu-1[.]lab/logs/([0-9][0-9]?)$ {", 1)[1].split("}", 1)[0]
     assert "auth_request /fleet-auth-operator;" in block and "proxy_pass http://10.0.0.5:8290/logs/$1;" in block
     assert 'proxy_set_header Cookie "";' in block
+
+
+def test_with_a_client_ca_every_tls_port_asks_for_a_certificate_it_signed():
+    pem = "-----BEGIN CERTIFICATE-----\nMIIB\n-----END CERTIFICATE-----\n"
+    asked = dict(VIEWERS, client_ca_path="/home/me/people-ca.pem", client_ca=pem)
+    assert front_door.check(asked) == []
+    conf = front_door.nginx_conf(asked, "managed")
+    servers = conf.split("  server {")[1:]
+    tls = [block for block in servers if " ssl;" in block]
+    # the main port and the three viewers' ports; the plain-HTTP redirect asks nothing
+    assert len(tls) == 4 and all("ssl_verify_client on;\n    ssl_verify_depth 3;" in block for block in tls)
+    assert all("ssl_client_certificate /etc/isaac-sim/front-door/client-ca.crt;" in block for block in tls)
+    assert "ssl_verify_client" not in servers[0]
+    assert 'cert="$ssl_client_s_dn"' in conf
+    files = front_door.files(asked, "managed", "CERT", "KEY", "CODE")[front_door.UNIT]
+    assert files["/etc/isaac-sim/front-door/client-ca.crt"] == {"content": pem, "mode": "0644"}
+    # none given: none asked, no file
+    plain = front_door.nginx_conf(dict(VIEWERS, client_ca_path="", client_ca=""), "managed")
+    assert "ssl_verify_client" not in plain and "ssl_client_s_dn" not in plain
+    assert (
+        "/etc/isaac-sim/front-door/client-ca.crt" not in front_door.files(VIEWERS, "m", "C", "K", "X")[front_door.UNIT]
+    )
