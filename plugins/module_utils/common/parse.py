@@ -22,7 +22,10 @@ _UNITS = {None: 1, "k": 1024, "m": 1024**2, "g": 1024**3, "t": 1024**4, "p": 102
 
 
 def is_ip(text: str) -> bool:
-    """An IPv4 or IPv6 address (not a network, not a name)."""
+    """An IPv4 or IPv6 address written plainly: not a network, not a name, no IPv6 zone (%eth0),
+    nothing around it (the callers write it into configuration files)."""
+    if not isinstance(text, str) or re.fullmatch(r"[0-9A-Fa-f:.]+", text) is None:
+        return False
     try:
         ipaddress.ip_address(text)
     except ValueError:

@@ -58,11 +58,6 @@ CIPHERS = (
 )
 
 
-def _plain_ip(text: str) -> bool:
-    """An IP address with nothing else in it (no IPv6 scope: it goes into configuration files)."""
-    return is_ip(text) and re.fullmatch(r"[0-9A-Fa-f:.]+", text) is not None
-
-
 def _port(value):
     # a number given as text (ansible-core templates set_fact values to text)
     return int(value) if str(value).isdigit() else value
@@ -72,7 +67,7 @@ def check(p: dict) -> list:
     """Errors in the role's settings, each naming the variable and the fix."""
     errors = []
     name = str(p.get("server_name") or "")
-    if not _HOST_RE.fullmatch(name) and not _plain_ip(name):
+    if not _HOST_RE.fullmatch(name) and not is_ip(name):
         errors.append(
             f"front_door_server_name: {name!r} is neither a host name nor an IP address. "
             "Fix: the name browsers reach the front door at, e.g. fleet.lab."
@@ -208,12 +203,12 @@ def _turn_errors(p: dict, ports: dict) -> list:
             f"front_door_turn_min_port and front_door_turn_max_port: {low!r}-{high!r} is not a range of ports of "
             "1024-65535. Fix: e.g. 50000 and 50199 (each relayed stream takes a port of it)."
         ]
-    if p.get("turn_address") and not _plain_ip(str(p["turn_address"])):
+    if p.get("turn_address") and not is_ip(str(p["turn_address"])):
         errors.append(
             f"front_door_turn: the front door host's address {p['turn_address']!r} is not an IP address the relay "
             "can relay from. Fix: give the host a default IPv4 route, or front_door_turn: false."
         )
-    named = [a for a in p.get("peers") or [] if not _plain_ip(str(a))]
+    named = [a for a in p.get("peers") or [] if not is_ip(str(a))]
     if named:
         errors.append(
             f"front_door_hosts: instances stream from {', '.join(map(str, named))}, and the relay allows peers by IP "

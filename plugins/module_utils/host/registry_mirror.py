@@ -55,7 +55,7 @@ def check(p: dict) -> list:
             "without an API key). Fix: set it from a vault."
         )
     address = str(p.get("address") or "")
-    if not is_ip(address) and not _HOST_RE.match(address):
+    if not is_ip(address) and not _HOST_RE.fullmatch(address):
         errors.append(
             f"registry_mirror_address: {address!r} is neither an IP address nor a host name. "
             "Fix: the address the fleet's hosts reach the mirror at."

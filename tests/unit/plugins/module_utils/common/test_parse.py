@@ -40,3 +40,21 @@ def test_as_int_takes_ints_and_digit_strings_only(value, expected):
 
 def test_docker_size_is_one_word_as_docker_s_flags_want_it():
     assert parse.docker_size("1 GB") == "1g" and parse.docker_size("2GiB") == "2g" and parse.docker_size("512") == "512"
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("10.0.0.5", True),
+        ("fd00::1", True),
+        ("::ffff:10.0.0.5", True),
+        ("fe80::1%eth0", False),
+        ("10.0.0.5\n", False),
+        (" 10.0.0.5", False),
+        ("10.0.0.0/8", False),
+        ("gpu-1.lab", False),
+        (None, False),
+    ],
+)
+def test_an_ip_is_plain_or_it_is_none(text, expected):
+    assert parse.is_ip(text) is expected

@@ -33,6 +33,9 @@ def test_good_settings_pass():
         ({"upstream": "https://nvcr.io/nvidia"}, "registry_mirror_upstream: 'https://nvcr.io/nvidia'"),
         ({"password": ""}, "registry_mirror_password: empty"),
         ({"address": "mirror lab"}, "registry_mirror_address: 'mirror lab' is neither"),
+        # what goes into the mirror's configuration and certificate is plain: no line after it, no IPv6 zone
+        ({"address": "mirror.lab\n"}, "registry_mirror_address: 'mirror.lab\\n' is neither"),
+        ({"address": "fe80::1%eth0"}, "registry_mirror_address: 'fe80::1%eth0' is neither"),
         ({"port": 443}, "registry_mirror_port: 443 is not a port of 1024-65535"),
         ({"upstream": "https://me:secret@nvcr.io"}, "registry_mirror_upstream: holds credentials"),
         ({"allowed_networks": []}, "registry_mirror_allowed_networks: empty"),
