@@ -474,6 +474,11 @@ def door_url(p: dict) -> str:
     return f"https://{_bracketed(p['server_name'])}" + ("" if port == 443 else f":{port}")
 
 
+def relay_url(p: dict) -> str:
+    """The TURN relay as the login service hands it out and front-door.json names it."""
+    return turn.url(_bracketed(p["server_name"]), p["turn_port"])
+
+
 def not_after(openssl_enddate: str) -> str:
     """openssl x509 -enddate's "notAfter=Nov 26 09:00:00 2027 GMT" as ISO 8601 UTC; "" if it is not that."""
     text = openssl_enddate.strip().removeprefix("notAfter=")
@@ -496,7 +501,7 @@ def door_json(p: dict) -> str:
         )
     relay = (
         {
-            "url": turn.url(_bracketed(p["server_name"]), p["turn_port"]),
+            "url": relay_url(p),
             "ports": f"{p['turn_min_port']}-{p['turn_max_port']}",
         }
         if p.get("turn")
@@ -595,7 +600,7 @@ def auth_unit(p: dict, managed: str) -> str:
                         + (f" --form-action https://{_bracketed(p['server_name'])}:*" if viewers(p) else "")
                         # the relay's credentials live as long as a session
                         + (
-                            f" --turn-url {turn.url(_bracketed(p['server_name']), p['turn_port'])}"
+                            f" --turn-url {relay_url(p)}"
                             f" --turn-secret {CONFIG_DIR}/turn.secret"
                             f" --turn-seconds {int(float(p['session_hours']) * 3600)}"
                             if p.get("turn")

@@ -123,11 +123,12 @@ def handler(cache: Cache, networks, origins=("null",), logs=None, logs_networks=
         def do_GET(self):  # noqa: N802 - http.server's naming
             if not self._allowed():
                 return
-            wanted = LOGS_RE.fullmatch(self.path.split("?", 1)[0])
+            path = self.path.split("?", 1)[0]
+            wanted = LOGS_RE.fullmatch(path)
             if wanted:
                 self._logs(int(wanted.group(1)))
                 return
-            if self.path.split("?", 1)[0] not in (PATH, PATH + "/"):
+            if path not in (PATH, PATH + "/"):
                 self._send(404, f"not found: the status is at {PATH}\n".encode())
                 return
             try:

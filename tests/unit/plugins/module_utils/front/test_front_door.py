@@ -314,18 +314,7 @@ def test_a_viewer_s_port_follows_its_host_s_place_whatever_serves_a_status_endpo
 
 
 def test_the_door_says_its_address_certificate_relay_and_each_instance_s_entrance():
-    relay = dict(
-        VIEWERS,
-        port=8443,
-        turn=True,
-        turn_port=5349,
-        turn_min_port=50000,
-        turn_max_port=50199,
-        turn_gid=101,
-        turn_address="10.0.0.2",
-        peers=["10.0.0.5"],
-        cert_not_after="notAfter=Nov 26 09:00:00 2027 GMT\n",
-    )
+    relay = dict(RELAYED, port=8443, cert_not_after="notAfter=Nov 26 09:00:00 2027 GMT\n")
     files = front_door.files(relay, "managed", "CERT", "KEY", "CODE", "SECRET")
     said = json.loads(files[front_door.UNIT]["/etc/isaac-sim/front-door/www/front-door.json"]["content"])
     assert said == {
