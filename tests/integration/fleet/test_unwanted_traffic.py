@@ -1,14 +1,15 @@
 """The firewall (isaac_sim_allowed_networks) on the fleet's three hosts, probed from the others.
 
-Runs last of the fleet's modules (file order). The first host is deployed with the second host as
-its only allowed network (and the third for the status endpoint alone): from the second every
-instance's signal port, stream port (a real UDP exchange with the stand-in) and web viewer answer;
-from the third, and from this machine, none does. The site's own nftables table and Docker's rules
-stay byte for byte; a Docker restart, a reboot and a restart of the site's nftables.service keep the
-rules. playbooks/audit.yml finds the first host clean, probed from this machine and from the third,
-and names each finding planted on it (a container with an added capability and Docker's socket,
-a file with the registry key, a port opened by hand). The third host (no web viewer there) scales
-4 -> 2 and exactly the rules of instances 2 and 3 go.
+Runs after every fleet module but the gateway's (file order), which takes the first host's viewers
+from here. The first host is deployed with the second host as its only allowed network (and the
+third for the status endpoint alone): from the second every instance's signal port, stream port (a
+real UDP exchange with the stand-in) and web viewer answer; from the third, and from this machine,
+none does. The site's own nftables table and Docker's rules stay byte for byte; a Docker restart, a
+reboot and a restart of the site's nftables.service keep the rules. playbooks/audit.yml finds the
+first host clean, probed from this machine and from the third, and names each finding planted on it
+(a container with an added capability and Docker's socket, a file with the registry key, a port
+opened by hand). The third host (no web viewer there) scales 4 -> 2 and exactly the rules of
+instances 2 and 3 go.
 """
 
 from __future__ import annotations
