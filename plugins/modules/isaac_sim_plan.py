@@ -310,11 +310,14 @@ stale_ids:
   sample: [2, 3]
 host:
   description: What was found on the host - memory, GPUs, ports held, whether the image is there (and its id),
-    whether the metrics timer is installed, how many instances serve now.
+    whether the metrics timer is installed, how many instances serve now and which (C(active_ids), null when
+    systemd did not say), whether a killed deploy left a warm run behind (C(warm_leftovers)), and from both
+    whether any instance could start on empty caches (C(cold_start_possible)).
   returned: success
   type: dict
   sample: {memory_bytes: 68719476736, gpu_count: 2, gpus: [], ports_held: [], image_present: true,
-           image_id: "sha256:9c15...", metrics_timer: false, serving: 4}
+           image_id: "sha256:9c15...", metrics_timer: false, serving: 4, active_ids: [0, 1, 2, 3],
+           warm_leftovers: false, cold_start_possible: false}
 """
 
 from ansible.module_utils.basic import AnsibleModule

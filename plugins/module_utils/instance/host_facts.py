@@ -198,13 +198,39 @@ def _units(probe: Probe, p: dict, host: dict) -> None:
     host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
     # the firewall's nft: installed by the role only where missing (no package manager call on a re-run)
     host["nft"] = probe.which("nft") is not None
-    # instances serving now: a Docker restart on this host waits for the canary batches
+    # instances serving now: a Docker restart on this host waits for the canary batches; which ones
+    # (None: systemd did not say) tells the deploy whether any instance could start on empty caches
     systemctl = probe.which("systemctl")
-    host["serving"] = 0
+    host["serving"], host["active_ids"] = 0, None
     if systemctl:
         argv = [systemctl, "list-units", layout.UNIT_GLOB, "--state=active", "--plain", "--no-legend"]
         rc, out, _err = probe.run(argv)
-        host["serving"] = len([line for line in out.splitlines() if line.strip()]) if rc == 0 else 0
+        if rc == 0:
+            names = [line.split()[0] for line in out.splitlines() if line.strip()]
+            host["serving"] = len(names)
+            host["active_ids"] = sorted(int(m.group(1)) for m in map(layout.UNIT_RE.match, names) if m)
+
+
+def _warm_leftovers(probe: Probe, p: dict, host: dict, docker) -> None:
+    """Whether a killed deploy left a warm run or its scratch behind (instance/warm_cache.py sweeps them):
+    True when it cannot be told (Docker does not answer)."""
+    store = layout.warm_dir(p["data_root"])
+    names = os.listdir(store) if os.path.isdir(store) else []
+    scratch = any(n.startswith(".") or n.endswith(".partial") for n in names)
+    runs = False
+    if docker:
+        try:
+            runs = bool(probe.docker.labelled(layout.LABEL_WARM))
+        except DockerError:
+            runs = True
+    host["warm_leftovers"] = scratch or runs
+
+
+def cold_start_possible(ids: list, host: dict) -> bool:
+    """Whether the deploy must ask which instances would start on empty caches: not when every instance
+    of the plan runs now and nothing of a warm run is left (the probe would find nothing, and sweep nothing)."""
+    active = host.get("active_ids")
+    return active is None or not set(ids) <= set(active) or host.get("warm_leftovers", True)
 
 
 def _lan(probe: Probe, host: dict, docker) -> None:
@@ -255,6 +281,7 @@ def facts(probe: Probe, p: dict) -> dict:
     _gpus(probe, p, host, docker)
     _images(probe, p, host, docker)
     _units(probe, p, host)
+    _warm_leftovers(probe, p, host, docker)
     own_addresses = p["network_mode"] == network.MACVLAN
     if own_addresses:
         _lan(probe, host, docker)
@@ -280,4 +307,5 @@ def plan_host(probe: Probe, p: dict) -> dict:
     keep_encoders(probe, p, host)
     existing = hostprobe.existing_instances(p["config_dir"], os.path.join(p["systemd_dir"], layout.TARGET + ".wants"))
     stale = [i for i in existing if i not in result["ids"]]
+    host["cold_start_possible"] = cold_start_possible(result["ids"], host)
     return {"plan": result, "stale_ids": stale, "host": host, "warnings": result["warnings"]}

@@ -78,6 +78,10 @@ def host(tmp_path, monkeypatch):
             commands.append(f"GET /containers/json name={name_prefix}")
             return []
 
+        def labelled(self, label):
+            commands.append(f"GET /containers/json label={label}")
+            return []
+
         def network(self, name):
             return None
 
@@ -147,6 +151,10 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
         "hub_unit": False,
         "nft": False,
         "serving": 2,
+        # instances 2 and 3 do not run: they could start on empty caches, so the deploy asks
+        "active_ids": [0, 1],
+        "warm_leftovers": False,
+        "cold_start_possible": True,
     }
     # instances 4 and 5 were set up before and are no longer planned
     assert result["stale_ids"] == [4, 5]
@@ -223,7 +231,7 @@ def test_macvlan_reads_the_lan_and_a_docker_that_does_not_answer_is_an_error(hos
         def image(self, ref):
             raise DockerError("cannot reach the Docker daemon")
 
-        containers = network = image
+        containers = labelled = network = image
 
     monkeypatch.setattr(host_facts, "DockerSocket", NoDocker)
     macvlan = dict(args, network_mode="macvlan", address_pool=["10.0.0.50-10.0.0.57"])

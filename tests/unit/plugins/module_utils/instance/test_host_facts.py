@@ -18,8 +18,9 @@ class Docker:
     """Docker's API as DockerSocket answers it: images by reference ({ref: Id}), our containers'
     ids, our network; down: every call raises as when the daemon does not answer."""
 
-    def __init__(self, asked, images=None, ids=(), network=None, down=False):
+    def __init__(self, asked, images=None, ids=(), network=None, down=False, warm_runs=()):
         self.asked, self.images, self.ids, self.net, self.down = asked, images or {}, ids, network, down
+        self.warm_runs = warm_runs
 
     def _ask(self, what):
         self.asked.append(what)
@@ -33,6 +34,10 @@ class Docker:
     def containers(self, name_prefix):
         self._ask(f"docker containers {name_prefix}")
         return [{"Id": i} for i in self.ids]
+
+    def labelled(self, label):
+        self._ask(f"docker labelled {label}")
+        return [{"Id": i} for i in self.warm_runs]
 
     def network(self, name):
         self._ask(f"docker network {name}")
@@ -119,6 +124,7 @@ def test_facts_are_read_with_one_query_each(tmp_path):
         f"{PYTHON} -c import",
         "docker image nvcr.io/nvidia/isaac-sim:6.0.1",
         "/usr/bin/systemctl list-units isaac-sim@*.service",
+        "docker labelled org.isaacsim.fleet.warm",
     ]
 
 
@@ -280,3 +286,57 @@ def test_a_mirror_is_asked_through_a_host_only_once_its_docker_trusts_it(tmp_pat
     (tmp_path / "certs.d" / "m.lab:5443" / "ca.crt").write_text("PEM")
     assert host_facts.facts(found, params(tmp_path, registry_mirror="m.lab:5443"))["mirror_trusted"] is True
     assert host_facts.facts(found, params(tmp_path))["mirror_trusted"] is False
+
+
+ACTIVE = "isaac-sim@0.service loaded active running Isaac Sim instance 0\nisaac-sim@2.service loaded active running x\n"
+
+
+def units_probe(tmp_path, listed=ACTIVE, rc=0, **docker):
+    found, asked = probe(tmp_path, installed=("docker", "systemctl"), **docker)
+    plain = found.run
+    found.run = lambda argv: (rc, listed, "") if "list-units" in argv else plain(argv)
+    return found, asked
+
+
+@pytest.mark.parametrize(
+    ("listed", "rc", "ids", "active", "possible"),
+    [
+        # every instance of the plan runs: none could start on empty caches
+        (ACTIVE, 0, [0, 2], [0, 2], False),
+        # instance 1 does not run: it could
+        (ACTIVE, 0, [0, 1, 2], [0, 2], True),
+        # systemd did not answer: it cannot be told, so the deploy asks
+        ("", 1, [0, 2], None, True),
+    ],
+)
+def test_which_instances_run_tells_whether_one_could_start_on_empty_caches(tmp_path, listed, rc, ids, active, possible):
+    found, _asked = units_probe(tmp_path, listed, rc)
+    host = host_facts.facts(found, params(tmp_path, data_root=str(tmp_path)))
+    assert host["active_ids"] == active and host["serving"] == len(active or [])
+    assert host["warm_leftovers"] is False
+    assert host_facts.cold_start_possible(ids, host) is possible
+
+
+@pytest.mark.parametrize(
+    ("left", "docker", "leftovers"),
+    [
+        # a warm run's container a killed deploy left, which the warm probe removes
+        ([], {"warm_runs": ["c0ffee"]}, True),
+        # its scratch directory or a partly written archive
+        ([".k1.abc/"], {}, True),
+        (["k1.tar.partial"], {}, True),
+        # an archive kept is no leftover
+        (["k1.tar"], {}, False),
+        # Docker does not answer: cannot be told
+        ([], {"down": True}, True),
+    ],
+)
+def test_what_a_killed_warm_run_left_makes_the_deploy_ask(tmp_path, left, docker, leftovers):
+    store = tmp_path / "warm-caches"
+    store.mkdir()
+    for name in left:
+        (store / name.rstrip("/")).mkdir() if name.endswith("/") else (store / name).write_text("x")
+    found, _asked = units_probe(tmp_path, **docker)
+    host = host_facts.facts(found, params(tmp_path, data_root=str(tmp_path)))
+    assert host["warm_leftovers"] is leftovers
+    assert host_facts.cold_start_possible([0, 2], host) is leftovers
