@@ -216,7 +216,12 @@ def _warm_leftovers(probe: Probe, p: dict, host: dict, docker) -> None:
     True when it cannot be told (Docker does not answer)."""
     store = layout.warm_dir(p["data_root"])
     names = os.listdir(store) if os.path.isdir(store) else []
-    scratch = any(n.startswith(".") or n.endswith(".partial") for n in names)
+    # what the sweep removes: a dot-directory (not a link) or a partly written archive
+    scratch = any(
+        (n.startswith(".") and os.path.isdir(os.path.join(store, n)) and not os.path.islink(os.path.join(store, n)))
+        or n.endswith(".partial")
+        for n in names
+    )
     runs = False
     if docker:
         try:
@@ -227,8 +232,10 @@ def _warm_leftovers(probe: Probe, p: dict, host: dict, docker) -> None:
 
 
 def cold_start_possible(ids: list, host: dict) -> bool:
-    """Whether the deploy must ask which instances would start on empty caches: not when every instance
-    of the plan runs now and nothing of a warm run is left (the probe would find nothing, and sweep nothing)."""
+    """Whether an instance of this host could start on empty caches: not when every instance of the plan
+    runs now and nothing of a warm run is left (its probe would find and sweep nothing). The deploy leaves
+    the probes out only where no host of the play could: each probe also says which caches its host keeps
+    for the others."""
     active = host.get("active_ids")
     return active is None or not set(ids) <= set(active) or host.get("warm_leftovers", True)
 

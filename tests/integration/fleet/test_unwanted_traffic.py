@@ -1,7 +1,7 @@
 """The firewall (isaac_sim_allowed_networks) on the fleet's three hosts, probed from the others.
 
-Runs after every fleet module but the gateway's (file order), which takes the first host's viewers
-from here. The first host is deployed with the second host as its only allowed network (and the
+Runs after every fleet module but the gateway's (file order), which finds the first host's viewers
+in place. The first host is deployed with the second host as its only allowed network (and the
 third for the status endpoint alone): from the second every instance's signal port, stream port (a
 real UDP exchange with the stand-in) and web viewer answer; from the third, and from this machine,
 none does. The site's own nftables table and Docker's rules stay byte for byte; a Docker restart, a

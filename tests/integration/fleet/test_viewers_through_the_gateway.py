@@ -3,10 +3,12 @@ it), in front of the three hosts' status endpoints and the first host's web view
 this machine as a browser outside the fleet would reach it, and its TURN relay carrying a host's
 stream to a peer that can reach nothing but the gateway's TLS port.
 
-Runs last of the fleet's modules (file order), after test_unwanted_traffic.py left a web viewer
-beside each of the first host's instances: a deploy then lets that host's signal and viewer ports
-answer the gateway alone, and its journal to the gateway (isaac_sim_status_server_logs_allow).
-The third host runs two instances by then (that module's scale-down).
+Runs last of the fleet's modules (file order). Its deploy of the first host asks for a web viewer
+beside each instance, lets the host's signal and viewer ports answer the gateway alone and gives
+its journal to the gateway (isaac_sim_status_server_logs_allow); after test_unwanted_traffic.py,
+which left those viewers, the deploy changes the firewall and the status endpoint and restarts no
+instance. The third host runs two instances by then (that module's scale-down), so the fixture
+waits for the first host's four alone.
 """
 
 from __future__ import annotations
@@ -123,7 +125,7 @@ def check_the_logs(door: str, first: str, operator: str, viewer: str) -> None:
     last = data.decode().strip().splitlines()[-1]
     assert last and last in sh(first, "journalctl -u isaac-sim@1.service -o short-iso --no-pager -q -n 400")
     assert request(door, "GET", path, cookie=viewer)[0].status == 403
-    assert f"refused user=vic path='{path}'" in sh(DOOR, f"journalctl -u {UNITS[1]} --no-pager -o cat")
+    said(DOOR, UNITS[1], f"refused user=vic path='{path}'")
 
 
 def in_chromium(door: str, first: str, fleet: list, report) -> None:
@@ -175,7 +177,14 @@ def in_chromium(door: str, first: str, fleet: list, report) -> None:
         driver.get(f"https://{door}:{port}/?connect")
         testbed.wait_for(lambda: body("data-signalling") == "open", timeout=15, what="the signalling")
         assert console_errors(driver) == []
-    assert "login refused user=vic" in sh(DOOR, f"journalctl -u {UNITS[1]} --no-pager -o cat")
+    said(DOOR, UNITS[1], "login refused user=vic")
     # the stand-in's signal port on the first host saw it come through the gateway, from the viewer's page
     seen = f"signalling from {door}, GET /, Origin https://{door}:{port}"
-    assert f"streaming session started ({seen})" in sh(first, "journalctl -u isaac-sim@1 --no-pager -o cat")
+    said(first, "isaac-sim@1", f"streaming session started ({seen})")
+
+
+def said(host: str, unit: str, line: str) -> None:
+    """The unit's journal on host has the line, once journald has taken it in."""
+    testbed.wait_for(
+        lambda: line in sh(host, f"journalctl -u {unit} --no-pager -o cat"), timeout=10, what=f"{line!r} on {host}"
+    )

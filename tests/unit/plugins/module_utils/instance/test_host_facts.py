@@ -305,6 +305,8 @@ def units_probe(tmp_path, listed=ACTIVE, rc=0, **docker):
         (ACTIVE, 0, [0, 2], [0, 2], False),
         # instance 1 does not run: it could
         (ACTIVE, 0, [0, 1, 2], [0, 2], True),
+        # a scale-down: the instances kept all run
+        (ACTIVE, 0, [0], [0, 2], False),
         # systemd did not answer: it cannot be told, so the deploy asks
         ("", 1, [0, 2], None, True),
     ],
@@ -325,8 +327,8 @@ def test_which_instances_run_tells_whether_one_could_start_on_empty_caches(tmp_p
         # its scratch directory or a partly written archive
         ([".k1.abc/"], {}, True),
         (["k1.tar.partial"], {}, True),
-        # an archive kept is no leftover
-        (["k1.tar"], {}, False),
+        # an archive kept is no leftover, nor a file of the user's whose name starts with a dot
+        (["k1.tar", ".keep"], {}, False),
         # Docker does not answer: cannot be told
         ([], {"down": True}, True),
     ],
