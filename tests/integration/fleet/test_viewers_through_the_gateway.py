@@ -70,8 +70,8 @@ def test_one_gateway_serves_every_host_and_its_viewers_behind_its_login(fleet, t
     direct = [("tcp", SIGNAL + 1, ""), ("tcp", VIEWER + 1, "/stream-config.js")]
 
     def answers(where: str) -> bool:
-        said = probe(where, ip(first), direct)
-        return said[f"tcp/{SIGNAL + 1}"].startswith("isaac-sim-standin signal") and " 200" in said[f"tcp/{VIEWER + 1}"]
+        got = probe(where, ip(first), direct)
+        return got[f"tcp/{SIGNAL + 1}"].startswith("isaac-sim-standin signal") and " 200" in got[f"tcp/{VIEWER + 1}"]
 
     # a host that is not the front door reaches neither; the front door's host reaches both
     assert set(probe(second, ip(first), direct).values()) == {"timeout"}
@@ -125,7 +125,7 @@ def check_the_logs(door: str, first: str, operator: str, viewer: str) -> None:
     last = data.decode().strip().splitlines()[-1]
     assert last and last in sh(first, "journalctl -u isaac-sim@1.service -o short-iso --no-pager -q -n 400")
     assert request(door, "GET", path, cookie=viewer)[0].status == 403
-    said(DOOR, UNITS[1], f"refused user=vic path='{path}'")
+    in_journal(DOOR, UNITS[1], f"refused user=vic path='{path}'")
 
 
 def in_chromium(door: str, first: str, fleet: list, report) -> None:
@@ -134,9 +134,9 @@ def in_chromium(door: str, first: str, fleet: list, report) -> None:
     live behind the gateway, each instance's entrance, and a viewer of the first host whose page
     signals to the gateway over WSS, which relays it to the stand-in's signal port."""
     ok(front_door({"fleet_report_dir": str(report), "fleet_report_refresh": 1}, name="status.yml"))
-    said = json.loads((report / "status.json").read_text())
+    status = json.loads((report / "status.json").read_text())
     # an entrance is a web viewer's: the first host's instances alone have one
-    entrances = sorted(i["entrance"] for h in said["hosts"] for i in h["instances"] if i.get("entrance"))
+    entrances = sorted(i["entrance"] for h in status["hosts"] for i in h["instances"] if i.get("entrance"))
     assert entrances == [f"https://{door}/viewers/{first}/{i}/" for i in range(4)]
     port = DOOR_VIEWER + 1
     with chromium(trust_ca=ca_dir() / "ca.crt") as driver:
@@ -177,13 +177,13 @@ def in_chromium(door: str, first: str, fleet: list, report) -> None:
         driver.get(f"https://{door}:{port}/?connect")
         testbed.wait_for(lambda: body("data-signalling") == "open", timeout=15, what="the signalling")
         assert console_errors(driver) == []
-    said(DOOR, UNITS[1], "login refused user=vic")
+    in_journal(DOOR, UNITS[1], "login refused user=vic")
     # the stand-in's signal port on the first host saw it come through the gateway, from the viewer's page
     seen = f"signalling from {door}, GET /, Origin https://{door}:{port}"
-    said(first, "isaac-sim@1", f"streaming session started ({seen})")
+    in_journal(first, "isaac-sim@1", f"streaming session started ({seen})")
 
 
-def said(host: str, unit: str, line: str) -> None:
+def in_journal(host: str, unit: str, line: str) -> None:
     """The unit's journal on host has the line, once journald has taken it in."""
     testbed.wait_for(
         lambda: line in sh(host, f"journalctl -u {unit} --no-pager -o cat"), timeout=10, what=f"{line!r} on {host}"
