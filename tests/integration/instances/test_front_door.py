@@ -32,6 +32,12 @@ def journal(host, unit):
     return sh(host, f"journalctl -u {unit} --no-pager -o cat").stdout
 
 
+def in_journal(host, unit, line):
+    """The unit's journal has the line, once journald has taken it in (it reads the unit's output
+    on its own time: a line written a moment ago may not be there yet)."""
+    wait_for(lambda: line in journal(host, unit), timeout=10, what=f"{line!r} in the journal of {unit}")
+
+
 def dashboard_in_chromium(host, address, tmp_path):
     report = tmp_path / "report"
     ok(
@@ -95,7 +101,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         assert sorted(hrefs) == [
             f"https://{address}/operator/hosts/{testbed.name(host)}/logs/{i}" for i in range(INSTANCES)
         ]
-    assert "login refused user=vic" in journal(host, UNITS[1])
+    in_journal(host, UNITS[1], "login refused user=vic")
 
 
 def check_client_certificates(host, address, pki):
@@ -126,7 +132,7 @@ def check_client_certificates(host, address, pki):
     assert request(address, "GET", "/login", client_cert=ana)[0].status == 200
     # a certificate is no login: the pages behind still ask for one
     assert request(address, "GET", f"/hosts/{testbed.name(host)}/status", client_cert=ana)[0].status == 302
-    assert 'cert="CN=ana"' in journal(host, UNITS[0])
+    in_journal(host, UNITS[0], 'cert="CN=ana"')
 
 
 def check_the_logs(host, address, viewer, operator):
@@ -135,7 +141,7 @@ def check_the_logs(host, address, viewer, operator):
     name = testbed.name(host)
     logs = f"/operator/hosts/{name}/logs/1"
     assert request(address, "GET", logs, cookie=viewer)[0].status == 403
-    assert f"refused user=vic path='{logs}'" in journal(host, UNITS[1])
+    in_journal(host, UNITS[1], f"refused user=vic path='{logs}'")
     response, data, _v = request(address, "GET", logs, cookie=operator)
     assert response.status == 200 and response.getheader("Content-Type").startswith("text/plain"), data[:300]
     last = data.decode().splitlines()[-1]
@@ -168,13 +174,13 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         assert response.status == 302 and response.getheader("Location") == f"/login?next={status_path}"
         assert version in ("TLSv1.2", "TLSv1.3")
         assert response.getheader("Strict-Transport-Security") == "max-age=31536000"
-        assert "refused user=- path='" + status_path in journal(host, UNITS[1])
+        in_journal(host, UNITS[1], "refused user=- path='" + status_path)
         # a page's own request (fetch) gets 401, as it cannot follow a login page
         assert request(address, "GET", status_path, headers={"Sec-Fetch-Dest": "empty"})[0].status == 401
 
         # a wrong password is refused and written down with the user's name
         assert login(address, "olga", "guess").status == 401
-        assert "login refused user=olga" in journal(host, UNITS[1])
+        in_journal(host, UNITS[1], "login refused user=olga")
 
         # the operator logs in: a Secure, HttpOnly, SameSite cookie; the status comes through
         response = login(address, "olga", "op-secret")
@@ -201,7 +207,7 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         ):
             assert request(address, "GET", path, cookie=viewer)[0].status == 403, path
             assert request(address, "GET", path, cookie=operator)[0].status == 404, path
-        assert "refused user=vic path='/%6Fperator/logs'" in journal(host, UNITS[1])
+        in_journal(host, UNITS[1], "refused user=vic path='/%6Fperator/logs'")
         check_the_logs(host, address, viewer, operator)
 
         # the dashboard, served behind the login, in a browser that trusts the collection's CA
