@@ -346,6 +346,8 @@ def nginx_conf(p: dict, managed: str) -> str:
             "    add_header X-Content-Type-Options nosniff always;",
             "    add_header Referrer-Policy same-origin always;",
             "    add_header X-Frame-Options DENY always;",
+            # nothing behind the login stays in a browser's cache: after a logout, the page asks again
+            '    add_header Cache-Control "no-store" always;',
             "    set $fleet_user -;",
             "    absolute_redirect off;",
             *ask("/fleet-auth"),

@@ -90,6 +90,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         assert console_errors(driver) == []
         driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
         driver.get(f"https://{address}/logout")
+        # the page kept nothing in the browser's cache (Cache-Control: no-store): the login again
         driver.get(f"https://{address}/dashboard.html")
         wait_for(lambda: "/login?next=/dashboard.html" in driver.current_url, timeout=15, what="the login page")
         log_in("olga", "op-secret")

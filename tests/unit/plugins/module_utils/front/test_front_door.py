@@ -130,6 +130,8 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     assert "limit_req_zone $fleet_login_key zone=fleet_login:1m rate=10r/m;" in conf
     assert f"ssl_ciphers {front_door.CIPHERS};" in conf and "ssl_session_tickets off;" in conf
     assert "add_header X-Frame-Options DENY always;" in conf
+    # nothing behind the login is kept in a browser's cache (a logout would leave the page there)
+    assert conf.count('add_header Cache-Control "no-store" always;') == conf.count("ssl_certificate ") >= 1
     backend = conf.split("location = /hosts/gpu-1/status {", 1)[1].split("}", 1)[0]
     assert "auth_request /fleet-auth;" in backend and "proxy_pass http://10.0.0.5:8290/status;" in backend
     # the session never travels to the hosts behind (plain HTTP)
@@ -188,6 +190,7 @@ def test_a_viewer_s_port_serves_its_page_and_its_signalling_behind_the_login():
     server = conf.split("    listen 20103 ssl;", 1)[1].split("\n  }\n", 1)[0]
     assert "ssl_certificate /etc/isaac-sim/front-door/door.crt;" in server
     assert 'Strict-Transport-Security "max-age=31536000" always' in server
+    assert 'add_header Cache-Control "no-store" always;' in server
     root = server.split("    location / {", 1)[1]
     assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
     # no session: the login on the door's own port, then back here through the entrance
