@@ -207,6 +207,13 @@ def warm_dir(data_root: str = DATA_ROOT) -> str:
     return os.path.join(data_root, "warm-caches")
 
 
+def warm_scratch(store: str, name: str) -> bool:
+    """Whether `name` in the warmed caches' directory is what a killed warm run left: its scratch (a
+    dot-directory, not a link) or a partly written archive."""
+    path = os.path.join(store, name)
+    return (name.startswith(".") and os.path.isdir(path) and not os.path.islink(path)) or name.endswith(".partial")
+
+
 def instance_id(pattern: re.Pattern, name: str):
     """The instance number in a unit, env-file or marker name, else None."""
     match = pattern.match(os.path.basename(name))

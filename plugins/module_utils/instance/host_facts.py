@@ -216,12 +216,7 @@ def _warm_leftovers(probe: Probe, p: dict, host: dict, docker) -> None:
     True when it cannot be told (Docker does not answer)."""
     store = layout.warm_dir(p["data_root"])
     names = os.listdir(store) if os.path.isdir(store) else []
-    # what the sweep removes: a dot-directory (not a link) or a partly written archive
-    scratch = any(
-        (n.startswith(".") and os.path.isdir(os.path.join(store, n)) and not os.path.islink(os.path.join(store, n)))
-        or n.endswith(".partial")
-        for n in names
-    )
+    scratch = any(layout.warm_scratch(store, n) for n in names)
     runs = False
     if docker:
         try:

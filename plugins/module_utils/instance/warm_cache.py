@@ -333,9 +333,11 @@ class Warmer:
             self.run(["docker", "rm", "-f"] + ids)
         for name in os.listdir(store) if os.path.isdir(store) else []:
             path = os.path.join(store, name)
-            if name.startswith(".") and os.path.isdir(path) and not os.path.islink(path):
+            if not layout.warm_scratch(store, name):
+                continue
+            if os.path.isdir(path) and not os.path.islink(path):
                 shutil.rmtree(path, ignore_errors=True)
-            elif name.endswith(".partial"):
+            else:
                 os.unlink(path)
 
     def warm(self, plan: dict, inst: dict, image_id: str, store: str, kid: str, k: dict) -> dict:

@@ -69,3 +69,15 @@ def test_split_args_reads_as_shlex_does(seed):
             assert layout.split_args(text) == want, text
         args = ["".join(rng.choice(alphabet) for _m in range(rng.randint(0, 8))) for _k in range(rng.randint(0, 5))]
         assert layout.split_args(layout.join_args(args)) == args
+
+
+def test_a_killed_warm_run_s_leftovers_are_its_dot_directories_and_partial_archives(tmp_path):
+    (tmp_path / ".k1.abc").mkdir()
+    (tmp_path / "k1.tar.partial").write_text("x")
+    (tmp_path / "k1.tar").write_text("x")
+    (tmp_path / ".keep").write_text("a user's file")
+    (tmp_path / ".linked").symlink_to(tmp_path / ".k1.abc")
+    left = sorted(
+        n for n in ("k1.tar", ".k1.abc", "k1.tar.partial", ".keep", ".linked") if layout.warm_scratch(str(tmp_path), n)
+    )
+    assert left == [".k1.abc", "k1.tar.partial"]

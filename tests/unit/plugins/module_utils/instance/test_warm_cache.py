@@ -297,3 +297,20 @@ def test_a_broken_archive_is_a_warning_the_instances_start_cold_and_it_is_remove
     out = warm_cache.call(dict(params, state="seed"), False, run)
     assert out["seeded"] == {} and out["changed"] is False and "instance 0 starts on empty caches" in out["warnings"][0]
     assert os.listdir(store) == []
+
+
+def test_the_sweep_removes_a_killed_warm_run_and_its_scratch_and_nothing_else(tmp_path):
+    asked = []
+
+    def run(argv):
+        asked.append(argv)
+        return (0, "c0ffee\n", "") if argv[:2] == ["docker", "ps"] else (0, "", "")
+
+    (tmp_path / ".k1.abc" / "cache").mkdir(parents=True)
+    (tmp_path / "k1.tar.partial").write_text("x")
+    (tmp_path / "k1.tar").write_text("x")
+    (tmp_path / ".keep").write_text("a user's file")
+    (tmp_path / ".linked").symlink_to(tmp_path / "k1.tar")
+    warm_cache.Warmer(run).sweep(str(tmp_path))
+    assert ["docker", "rm", "-f", "c0ffee"] in asked
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".keep", ".linked", "k1.tar"]
