@@ -276,6 +276,13 @@ options:
     description: Where the unit files live.
     type: path
     default: /etc/systemd/system
+  host_services:
+    description:
+      - Host services to read for the deploy, each unit's name to its C(files) and C(directories) (paths), returned in
+        C(host.host_services) with their unit's state and each file's digest, mode and owner. Where one is as
+        the deploy wants it, the deploy leaves out the call of M(isaacsim.fleet.isaac_sim_host_service).
+    type: dict
+    default: {}
 """
 
 EXAMPLES = r"""
@@ -312,7 +319,8 @@ host:
   description: What was found on the host - memory, GPUs, ports held, whether the image is there (and its id),
     whether the metrics timer is installed, how many instances serve now and which (C(active_ids), null when
     systemd did not say), whether a killed deploy left a warm run behind (C(warm_leftovers)), and from both
-    whether any instance could start on empty caches (C(cold_start_possible)).
+    whether any instance could start on empty caches (C(cold_start_possible)), and the host services asked
+    about (C(host_services)).
   returned: success
   type: dict
   sample: {memory_bytes: 68719476736, gpu_count: 2, gpus: [], ports_held: [], image_present: true,
@@ -379,6 +387,7 @@ ARGUMENT_SPEC = dict(
     instance_addresses=dict(type="dict", default={}),
     config_dir=dict(type="path", default="/etc/isaac-sim"),
     systemd_dir=dict(type="path", default="/etc/systemd/system"),
+    host_services=dict(type="dict", default={}),
 )
 
 

@@ -61,6 +61,7 @@ def where(tasks_of_runs):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=3, help="re-runs and no-op plays to take the median of")
+    parser.add_argument("--all", action="store_true", help="print every task of the re-run, in order")
     args = parser.parse_args()
 
     with bench_host(HOST) as (inv, tmp):
@@ -88,6 +89,10 @@ def main():
     print("slowest tasks:")
     for (_i, name, _path, status), seconds in sorted(rows, key=lambda r: -r[1])[:12]:
         print(f"  {seconds:6.2f}  {name} ({status})")
+    if args.all:
+        print("every task, in order:")
+        for (_i, name, path, status), seconds in rows:
+            print(f"  {seconds:6.2f}  {status:8} {name}  [{path.split('/isaacsim/fleet/')[-1]}]")
     return 0 if changed == 0 else 1
 
 

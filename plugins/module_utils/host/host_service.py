@@ -10,9 +10,11 @@ only adapts it). Instances never come here: they change only through the lifecyc
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import tempfile
+from types import SimpleNamespace
 
 UNIT_SUFFIXES = (".service", ".timer", ".socket")
 
@@ -227,3 +229,55 @@ class Service:
                     actions=verbs,
                     changed_files=changed,
                 )
+
+
+def digest(content: str) -> str:
+    return hashlib.sha256(content.encode("utf-8", "surrogateescape")).hexdigest()
+
+
+def seen(files: list, directories: list, show: dict) -> dict:
+    """What the plan reads of a host service, so in_place can tell on the controller whether the module
+    would change anything: its unit's state, and each file's digest, mode and owner (null: none)."""
+    out = {"ActiveState": show.get("ActiveState", ""), "UnitFileState": show.get("UnitFileState", "")}
+    out["files"] = {}
+    for path in files:
+        have = read_file(path)
+        out["files"][path] = None if have is None else [digest(have[0]), *have[1:]]
+    out["directories"] = {}
+    for path in directories:
+        try:
+            st = os.stat(path)
+            out["directories"][path] = [st.st_mode & 0o7777, st.st_uid, st.st_gid]
+        except OSError:
+            out["directories"][path] = None
+    return out
+
+
+def in_place(params: dict, host: dict) -> bool:
+    """Whether the module, given params (name, files, directories, state), would do nothing on the host
+    as seen() read it: the same decision as Service.apply, on digests instead of contents. False for
+    state absent, a bad parameter, or a file or directory the host was not asked about."""
+    if params.get("state", "started") != "started" or not host:
+        return False
+    try:
+        files = wanted_files(dict({"remove": [], "directories": []}, **params))
+    except ServiceError:
+        return False
+    have_files, have_dirs = host.get("files", {}), host.get("directories", {})
+    if not set(files) <= set(have_files):
+        return False
+    if any(d.get("path") not in have_dirs for d in params.get("directories", [])):
+        return False
+    digested = {path: dict(want, content=digest(want["content"])) for path, want in files.items()}
+
+    def read(path):
+        return None if have_files[path] is None else tuple(have_files[path])
+
+    def stat(path):
+        if have_dirs[path] is None:
+            raise OSError(path)
+        mode, uid, gid = have_dirs[path]
+        return SimpleNamespace(st_mode=mode, st_uid=uid, st_gid=gid)
+
+    fix = directories_to_fix(params.get("directories", []), stat)
+    return not actions("started", host, changed_files(digested, read), [], directories=bool(fix))

@@ -15,6 +15,7 @@ import json
 import os
 import sys
 
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, gpu_usage, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, nvenc, plan
@@ -211,6 +212,24 @@ def _units(probe: Probe, p: dict, host: dict) -> None:
             host["active_ids"] = sorted(int(m.group(1)) for m in map(layout.UNIT_RE.match, names) if m)
 
 
+def _host_services(probe: Probe, p: dict, host: dict) -> None:
+    """The host services the plan was asked about ({unit: {files, directories}}), as host_service.seen reads
+    them: the deploy leaves out the module call of one that is as wanted already."""
+    wanted = p.get("host_services") or {}
+    systemctl = probe.which("systemctl")
+    shows = {}
+    if wanted and systemctl:
+        rc, out, _err = probe.run([systemctl, "show", "-p", "Id", "-p", "ActiveState", "-p", "UnitFileState", *wanted])
+        # a block of lines per unit, each with its Id
+        for block in out.strip().split("\n\n") if rc == 0 else []:
+            fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+            shows[fields.get("Id", "")] = fields
+    host["host_services"] = {
+        name: host_service.seen(list(spec.get("files") or []), list(spec.get("directories") or []), shows.get(name, {}))
+        for name, spec in wanted.items()
+    }
+
+
 def _warm_leftovers(probe: Probe, p: dict, host: dict, docker) -> None:
     """Whether a killed deploy left a warm run or its scratch behind (instance/warm_cache.py sweeps them):
     True when it cannot be told (Docker does not answer)."""
@@ -283,6 +302,7 @@ def facts(probe: Probe, p: dict) -> dict:
     _gpus(probe, p, host, docker)
     _images(probe, p, host, docker)
     _units(probe, p, host)
+    _host_services(probe, p, host)
     _warm_leftovers(probe, p, host, docker)
     own_addresses = p["network_mode"] == network.MACVLAN
     if own_addresses:

@@ -150,6 +150,8 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
         "status_unit": False,
         "hub_unit": False,
         "nft": False,
+        # no host service asked about (host_services): none read
+        "host_services": {},
         "serving": 2,
         # instances 2 and 3 do not run: they could start on empty caches, so the deploy asks
         "active_ids": [0, 1],

@@ -119,3 +119,80 @@ def test_removing_the_last_drop_in_removes_its_directory_and_no_other(tmp_path):
     (theirs / "site.conf").write_text("[Unit]\n")
     assert host_service.remove(str(ours / "hub.conf")) and not ours.exists()
     assert host_service.remove(str(theirs / "hub.conf")) and (theirs / "site.conf").exists()
+
+
+def _service(tmp_path):
+    """A host service on real files: a unit, a script and a directory, each as wanted."""
+    unit, script, data = tmp_path / "s.service", tmp_path / "bin" / "s", tmp_path / "data"
+    files = {
+        str(unit): {"content": "[Service]\nExecStart=/bin/true\n"},
+        str(script): {"content": "#!/bin/sh\n", "mode": "0755"},
+    }
+    directories = [{"path": str(data), "uid": os.getuid(), "gid": os.getgid(), "mode": "0750"}]
+    for path, want in files.items():
+        host_service.write_file(path, want["content"], want.get("mode", "0644"))
+    for d in directories:
+        host_service.fix_directory(d)
+    params = {"name": "s.service", "files": files, "directories": directories, "remove": [], "state": "started"}
+    return params, unit, script, data
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (None, True),
+        ("content", False),
+        ("mode", False),
+        ("missing", False),
+        ("inactive", False),
+        ("disabled", False),
+        ("directory mode", False),
+        ("directory missing", False),
+        ("owner", False),
+        ("not read", False),
+        ("absent", False),
+    ],
+)
+def test_in_place_is_the_module_s_own_decision_on_what_the_plan_read(tmp_path, change, expected):
+    """The deploy leaves out the module where in_place says so: it must never say so where the module
+    would have done something (checked against the module's own check-mode answer on the same files)."""
+    params, unit, script, data = _service(tmp_path)
+    show = dict(RUNNING)
+    if change == "content":
+        unit.write_text("[Service]\nExecStart=/bin/false\n")
+    elif change == "mode":
+        script.chmod(0o644)
+    elif change == "missing":
+        script.unlink()
+    elif change == "inactive":
+        show["ActiveState"] = "failed"
+    elif change == "disabled":
+        show["UnitFileState"] = "disabled"
+    elif change == "directory mode":
+        data.chmod(0o755)
+    elif change == "directory missing":
+        data.rmdir()
+    elif change == "owner":
+        params["files"][str(unit)].update(uid=os.getuid() + 1, gid=os.getgid())
+    seen = host_service.seen(list(params["files"]), [d["path"] for d in params["directories"]], show)
+    if change == "not read":
+        del seen["files"][str(unit)]
+    if change == "absent":
+        params["state"] = "absent"
+    module = host_service.Service(
+        params, "/bin/systemctl", lambda argv: (0, "\n".join(f"{k}={v}" for k, v in show.items()), "")
+    )
+    assert host_service.in_place(params, seen) is expected
+    if change not in ("not read", "absent"):
+        assert (module.apply(check=True)["actions"] == []) is expected
+
+
+def test_seen_keeps_digests_not_contents(tmp_path):
+    params, unit, _script, _data = _service(tmp_path)
+    seen = host_service.seen([str(unit), str(tmp_path / "none")], [str(tmp_path / "nodir")], RUNNING)
+    assert seen["files"][str(unit)][0] == host_service.digest(unit.read_text())
+    assert "ExecStart" not in str(seen)
+    assert seen["files"][str(tmp_path / "none")] is None and seen["directories"][str(tmp_path / "nodir")] is None
+    assert (seen["ActiveState"], seen["UnitFileState"]) == ("active", "enabled")
+    # nothing read (an older plan, or a plan not asked): never in place
+    assert host_service.in_place(params, {}) is False

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config, recorded
@@ -342,3 +343,46 @@ def test_what_a_killed_warm_run_left_makes_the_deploy_ask(tmp_path, left, docker
     host = host_facts.facts(found, params(tmp_path, data_root=str(tmp_path)))
     assert host["warm_leftovers"] is leftovers
     assert host_facts.cold_start_possible([0, 2], host) is leftovers
+
+
+def test_the_host_services_asked_about_are_read_with_one_systemctl_call(tmp_path):
+    """Each host service's unit state (one `systemctl show` for all) and its files' digests, for the
+    deploy to leave out a host service's module call where nothing would change."""
+    unit = tmp_path / "isaac-sim-status.service"
+    unit.write_text("[Unit]\n")
+    found, _asked = probe(tmp_path, installed=("systemctl",))
+    plain = found.run
+    calls = []
+    shown = (
+        "Id=isaac-sim-metrics.timer\nActiveState=inactive\nUnitFileState=\n\n"
+        "Id=isaac-sim-status.service\nActiveState=active\nUnitFileState=enabled\n"
+    )
+    found.run = lambda argv: (calls.append(argv), (0, shown, ""))[1] if "show" in argv else plain(argv)
+    wanted = {
+        "isaac-sim-status.service": {"files": [str(unit)]},
+        "isaac-sim-metrics.timer": {"files": [str(tmp_path / "none")], "directories": [str(tmp_path)]},
+    }
+    host = host_facts.facts(found, params(tmp_path, data_root=str(tmp_path), host_services=wanted))
+    status, metrics = (
+        host["host_services"]["isaac-sim-status.service"],
+        host["host_services"]["isaac-sim-metrics.timer"],
+    )
+    assert (status["ActiveState"], status["UnitFileState"]) == ("active", "enabled")
+    assert status["files"][str(unit)][0] == host_service.digest("[Unit]\n")
+    assert metrics["ActiveState"] == "inactive" and metrics["files"] == {str(tmp_path / "none"): None}
+    assert metrics["directories"][str(tmp_path)] is not None
+    assert len(calls) == 1
+    # not asked: nothing read, no call
+    assert host_facts.facts(found, params(tmp_path, data_root=str(tmp_path)))["host_services"] == {}
+
+
+def test_host_services_are_not_in_place_when_systemd_does_not_answer(tmp_path):
+    found, _asked = probe(tmp_path, installed=("systemctl",))
+    found.run = lambda argv: (1, "", "Failed to connect to bus")
+    wanted = {"isaac-sim-status.service": {"files": []}}
+    host = host_facts.facts(found, params(tmp_path, data_root=str(tmp_path), host_services=wanted))
+    assert host["host_services"]["isaac-sim-status.service"]["ActiveState"] == ""
+    assert (
+        host_service.in_place({"files": {}, "state": "started"}, host["host_services"]["isaac-sim-status.service"])
+        is False
+    )
