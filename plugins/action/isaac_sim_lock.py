@@ -51,46 +51,54 @@ def this_run(play: str) -> dict:
     }
 
 
+def hold(execute, lock: dict, host: str, check_mode: bool) -> dict:
+    """The module's result once the lock is taken, renewed or given back (lock: the lock's options, holder
+    filled), or the failure after `wait` seconds of another run holding it. execute(lock) -> (the lock's
+    part of the module's result, the whole result): the lock module's, or the plan's, which takes the lock
+    in its own call. A holder of this controller that has ended is taken over at once."""
+    me, wait = lock["holder"], int(lock.get("wait") or 0)
+    begun, told = time.monotonic(), False
+    while True:
+        looked, whole = execute(lock)
+        if whole.get("failed") or looked.get("acquired") or lock.get("state") in ("absent", "renewed"):
+            if looked.get("note"):
+                display.warning(f"{host}: {looked['note']}")
+            return whole
+        holder = looked.get("holder") or {}
+        if holder.get("controller") == me["controller"] and not _alive(holder.get("pid"), holder.get("started")):
+            lock = dict(lock, dead=holder.get("id", ""))
+            continue
+        who = runlock.holder_text(holder, time.time())
+        if check_mode:
+            display.warning(f"{host} is held by {who}; this dry run plans against a host that may be changing")
+            return dict(whole, failed=False)
+        if time.monotonic() - begun >= wait:
+            return dict(
+                whole,
+                failed=True,
+                msg=(
+                    f"{host} is held by {who}: another run is changing its instances, and this one changes "
+                    f"nothing while it does. Fix: wait for that run to end and run again, or set "
+                    f"isaac_sim_lock_wait (seconds) to wait for it; if that run is dead (killed, or its "
+                    f"controller gone), run again with -e isaac_sim_lock_break=true."
+                ),
+            )
+        if not told:
+            display.display(f"{host}: held by {who}; waiting up to {wait} s")
+            told = True
+        time.sleep(POLL_S)
+
+
 class ActionModule(ActionBase):
     _supports_check_mode = True
 
     def run(self, tmp=None, task_vars=None):
         result = super().run(tmp, task_vars)
-        args = dict(self._task.args)
-        me = this_run(task_vars.get("ansible_play_name", ""))
-        args["holder"] = me
-        host = task_vars.get("inventory_hostname")
-        wait = int(args.get("wait") or 0)
-        begun, told = time.monotonic(), False
-        while True:
-            looked = self._execute_module(module_args=args, task_vars=task_vars)
-            if looked.get("failed") or looked.get("acquired") or args.get("state") in ("absent", "renewed"):
-                if looked.get("note"):
-                    display.warning(f"{host}: {looked['note']}")
-                result.update(looked)
-                return result
-            holder = looked.get("holder") or {}
-            if holder.get("controller") == me["controller"] and not _alive(holder.get("pid"), holder.get("started")):
-                args["dead"] = holder.get("id", "")
-                continue
-            who = runlock.holder_text(holder, time.time())
-            if self._task.check_mode:
-                display.warning(f"{host} is held by {who}; this dry run plans against a host that may be changing")
-                result.update(looked, failed=False)
-                return result
-            if time.monotonic() - begun >= wait:
-                result.update(
-                    looked,
-                    failed=True,
-                    msg=(
-                        f"{host} is held by {who}: another run is changing its instances, and this one changes "
-                        f"nothing while it does. Fix: wait for that run to end and run again, or set "
-                        f"isaac_sim_lock_wait (seconds) to wait for it; if that run is dead (killed, or its "
-                        f"controller gone), run again with -e isaac_sim_lock_break=true."
-                    ),
-                )
-                return result
-            if not told:
-                display.display(f"{host}: held by {who}; waiting up to {wait} s")
-                told = True
-            time.sleep(POLL_S)
+        args = dict(self._task.args, holder=this_run(task_vars.get("ansible_play_name", "")))
+
+        def execute(lock):
+            looked = self._execute_module(module_args=lock, task_vars=task_vars)
+            return looked, looked
+
+        result.update(hold(execute, args, task_vars.get("inventory_hostname"), self._task.check_mode))
+        return result

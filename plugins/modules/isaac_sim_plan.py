@@ -14,7 +14,8 @@ description:
     and against the host (memory, GPUs, ports already held), and computes each instance's port block,
     GPU, directories, container arguments and environment.
   - Reports every problem at once, each naming the variable to change and how.
-  - Read-only; never changes the host. Runs the same in check mode.
+  - Read-only; never changes the host, but for the host's lock where O(lock) is given. Runs the same in check
+    mode, where the lock is only looked at.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   release:
@@ -283,6 +284,39 @@ options:
         the deploy wants it, the deploy leaves out the call of M(isaacsim.fleet.isaac_sim_host_service).
     type: dict
     default: {}
+  gather_facts:
+    description:
+      - Return the facts M(ansible.builtin.setup) returns with C(gather_subset=[min]) (same collectors), as
+        C(ansible_facts), gathered in this call - for a play that needs no other call of
+        M(ansible.builtin.setup) (C(gather_facts=false)).
+    type: bool
+    default: false
+  lock:
+    description:
+      - Take the host's lock (as M(isaacsim.fleet.isaac_sim_lock) does) before planning, in the same call.
+        Without it no lock is taken. When another run holds it, nothing is planned and the action plugin
+        waits up to O(lock.wait) seconds for it.
+    type: dict
+    suboptions:
+      holder:
+        description: This run, filled by the action plugin.
+        type: dict
+      stale_after:
+        description: Seconds after which a lock its run has not renewed is taken over; 0 never.
+        type: int
+        default: 3600
+      break_lock:
+        description: Take the lock from whichever run holds it.
+        type: bool
+        default: false
+      dead:
+        description: The id of a holder the controller found ended; filled by the action plugin.
+        type: str
+        default: ""
+      wait:
+        description: Seconds the action plugin waits for another run's lock before it fails.
+        type: int
+        default: 0
 """
 
 EXAMPLES = r"""
@@ -309,6 +343,14 @@ plan:
         name: isaac-sim-0
         ports: {signal: 49100, stream: 47998, http: 8011}
         gpu: 0
+ansible_facts:
+  description: Where O(gather_facts) is true and a plan was made, the facts of C(gather_subset=[min]).
+  returned: when gather_facts is true
+  type: dict
+lock:
+  description: Where O(lock) was given, what M(isaacsim.fleet.isaac_sim_lock) returns (acquired, holder, note).
+  returned: when lock is given
+  type: dict
 stale_ids:
   description: Instances set up on this host earlier that the plan no longer has.
   returned: success
@@ -327,6 +369,8 @@ host:
            image_id: "sha256:9c15...", metrics_timer: false, serving: 4, active_ids: [0, 1, 2, 3],
            warm_leftovers: false, cold_start_possible: false}
 """
+
+import time
 
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
@@ -388,16 +432,27 @@ ARGUMENT_SPEC = dict(
     config_dir=dict(type="path", default="/etc/isaac-sim"),
     systemd_dir=dict(type="path", default="/etc/systemd/system"),
     host_services=dict(type="dict", default={}),
+    gather_facts=dict(type="bool", default=False),
+    lock=dict(
+        type="dict",
+        options=dict(
+            holder=dict(type="dict"),
+            stale_after=dict(type="int", default=3600),
+            break_lock=dict(type="bool", default=False),
+            dead=dict(type="str", default=""),
+            wait=dict(type="int", default=0),
+        ),
+    ),
 )
 
 
 def main():
     module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
     try:
-        out = host_facts.plan_host(host_facts.bind(module), module.params)
+        out = host_facts.plan_held(host_facts.bind(module), module.params, time.time())
     except host_facts.PlanRefusedError as exc:
         module.fail_json(msg=exc.msg, **exc.fields)
-    for warning in out.pop("warnings"):
+    for warning in out.pop("warnings", []):
         module.warn(warning)
     module.exit_json(changed=False, **out)
 

@@ -15,10 +15,17 @@ import json
 import os
 import sys
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
+from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service, min_facts
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, gpu_usage, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import companions, hostprobe, network, nvenc, plan
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
+    companions,
+    hostprobe,
+    network,
+    nvenc,
+    plan,
+    runlock,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import RELEASES, STREAMS, default_image
 
 PROC = "/proc"
@@ -36,14 +43,25 @@ class Probe:
     command is installed: a socket call instead of a CLI process each (milliseconds, not tens);
     default_ipv4() -> the source address of the default route; proc and sys_net: where /proc and
     /sys/class/net are; python: the interpreter the encoder probe runs in (nvenc.py); check_mode:
-    nothing is written (the encoder cache is kept only by a real run).
+    nothing is written (the encoder cache is kept only by a real run); min_facts() -> the facts
+    setup's gather_subset [min] returns, collected in the plan's call (host/min_facts.py).
     """
 
     def __init__(
-        self, which, run, docker, default_ipv4, proc=PROC, sys_net=SYS_NET, python=sys.executable, check_mode=False
+        self,
+        which,
+        run,
+        docker,
+        default_ipv4,
+        proc=PROC,
+        sys_net=SYS_NET,
+        python=sys.executable,
+        check_mode=False,
+        min_facts=dict,
     ):
         self.which, self.run, self.docker, self.default_ipv4 = which, run, docker, default_ipv4
         self.proc, self.sys_net, self.python, self.check_mode = proc, sys_net, python, check_mode
+        self.min_facts = min_facts
 
 
 def bind(module) -> Probe:
@@ -57,6 +75,7 @@ def bind(module) -> Probe:
         SYS_NET,
         sys.executable,
         module.check_mode,
+        lambda: min_facts.collect(module),
     )
 
 
@@ -331,3 +350,27 @@ def plan_host(probe: Probe, p: dict) -> dict:
     stale = [i for i in existing if i not in result["ids"]]
     host["cold_start_possible"] = cold_start_possible(result["ids"], host)
     return {"plan": result, "stale_ids": stale, "host": host, "warnings": result["warnings"]}
+
+
+def plan_held(probe: Probe, p: dict, now: float) -> dict:
+    """plan_host, with the host's lock taken first in the same call where p["lock"] is given (its result
+    under "lock", as isaac_sim_lock returns it), and where p["gather_facts"] the facts setup's gather_subset
+    [min] would return (as ansible_facts). Held by another run: only the lock's result, nothing planned,
+    but in check mode, where the lock is only looked at and the dry run plans all the same."""
+    if p.get("gather_facts"):
+        out = plan_held(probe, dict(p, gather_facts=False), now)
+        # only with a plan: a call that waits for another run's lock gathers nothing
+        return dict(out, ansible_facts=probe.min_facts()) if "plan" in out else out
+    if not p.get("lock"):
+        return plan_host(probe, p)
+    try:
+        held = {"lock": runlock.request(dict(p["lock"], state="present"), now, probe.check_mode)}
+    except runlock.LockError as exc:
+        raise PlanRefusedError(str(exc)) from exc
+    if not held["lock"]["acquired"] and not probe.check_mode:
+        return held
+    try:
+        return dict(plan_host(probe, p), **held)
+    except PlanRefusedError as exc:
+        exc.fields.update(held)
+        raise

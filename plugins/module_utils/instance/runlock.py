@@ -178,7 +178,7 @@ def request(p: dict, now: float, check=False, path: str = "", guard: str = "", r
     renewed or given back for p["holder"]; in check mode only what would be. path, guard,
     record_path: the lock's files (LOCK, GUARD, RECORD when empty)."""
     path, guard, record_path = path or LOCK, guard or GUARD, record_path or RECORD
-    me = p["holder"]
+    me = p.get("holder") or {}
     if not me.get("id"):
         raise LockError(
             "holder: needs an id. Fix: call isaacsim.fleet.isaac_sim_lock as a task (its action plugin fills it)."

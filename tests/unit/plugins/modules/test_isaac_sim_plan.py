@@ -11,7 +11,7 @@ import pytest
 from ansible.module_utils import basic
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts, runlock
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_plan
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import recorded, run_module
 
@@ -240,3 +240,52 @@ def test_macvlan_reads_the_lan_and_a_docker_that_does_not_answer_is_an_error(hos
     result = run_module(isaac_sim_plan.main, macvlan, capsys)
     assert result["msg"] == "could not ask Docker for the network isaac-sim-macvlan: cannot reach the Docker daemon"
     assert "ip -j -4 addr show" in commands and "ip -j -4 route show default" in commands
+
+
+ALICE = {"id": "ctl-1:100:5", "user": "alice", "controller": "ctl-1", "pid": 100, "started": "5", "play": "Deploy"}
+BOB = {"id": "ctl-2:200:7", "user": "bob", "controller": "ctl-2", "pid": 200, "started": "7", "play": "Deploy"}
+
+
+@pytest.fixture()
+def lock(tmp_path, monkeypatch):
+    where = tmp_path / "run" / "lock"
+    monkeypatch.setattr(runlock, "LOCK", str(where / "isaac-sim.json"))
+    monkeypatch.setattr(runlock, "GUARD", str(where / ".isaac-sim.guard"))
+    monkeypatch.setattr(runlock, "RECORD", str(where / "isaac-sim.rollout.json"))
+    return where / "isaac-sim.json"
+
+
+def test_with_lock_the_plan_holds_the_host_first_and_plans_nothing_while_another_run_does(host, lock, capsys):
+    """playbooks/deploy.yml's one call for both: the lock as isaac_sim_lock takes it, then the plan."""
+    args, _commands, _dirs = host
+    alone = run_module(isaac_sim_plan.main, args, capsys)
+    assert "lock" not in alone and not lock.exists()
+    taken = run_module(isaac_sim_plan.main, dict(args, lock={"holder": ALICE}), capsys)
+    assert taken["lock"]["acquired"] is True and json.loads(lock.read_text())["id"] == ALICE["id"]
+    assert taken["plan"] == alone["plan"]
+    refused = run_module(isaac_sim_plan.main, dict(args, lock={"holder": BOB, "wait": 60}), capsys)
+    assert refused["lock"]["acquired"] is False and refused["lock"]["holder"]["id"] == ALICE["id"]
+    assert "plan" not in refused and "failed" not in refused
+    # a dry run plans against the held host all the same, and writes nothing
+    looked = run_module(isaac_sim_plan.main, dict(args, lock={"holder": BOB}, _ansible_check_mode=True), capsys)
+    assert looked["lock"]["acquired"] is False and looked["plan"] == alone["plan"]
+    assert json.loads(lock.read_text())["id"] == ALICE["id"]
+    # a plan refused after the lock was taken says so too: the run holds the host until it ends
+    bad = run_module(isaac_sim_plan.main, dict(args, release="7.x", lock={"holder": ALICE}), capsys)
+    assert bad["failed"] and bad["lock"]["acquired"] is True and bad["errors"]
+
+
+def test_a_lock_without_a_holder_is_refused_in_words(host, lock, capsys):
+    args, _commands, _dirs = host
+    result = run_module(isaac_sim_plan.main, dict(args, lock={"wait": 0}), capsys)
+    assert result["failed"] and "holder: needs an id" in result["msg"] and "plan" not in result
+
+
+def test_gather_facts_returns_setup_s_min_facts_with_a_plan_and_none_while_waiting(host, lock, capsys):
+    args, _commands, _dirs = host
+    assert "ansible_facts" not in run_module(isaac_sim_plan.main, args, capsys)
+    planned = run_module(isaac_sim_plan.main, dict(args, gather_facts=True, lock={"holder": ALICE}), capsys)
+    assert planned["plan"] and planned["ansible_facts"]["ansible_os_family"]
+    # another run holds the host: no plan, and no facts gathered for it
+    waiting = run_module(isaac_sim_plan.main, dict(args, gather_facts=True, lock={"holder": BOB}), capsys)
+    assert "plan" not in waiting and "ansible_facts" not in waiting
