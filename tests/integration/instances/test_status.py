@@ -229,6 +229,17 @@ def test_each_host_serves_its_status_read_only_to_the_networks_allowed(host, ip)
     assert status_request(url)[0] == 200
     # the endpoint is a host service: its changes restart no instance
     assert {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)} == before
+    # a re-run leaves out the endpoint's module call where the plan found it as wanted (by digests): one
+    # of its files changed by hand, or the unit stopped, is each put back all the same
+    layout = "/usr/local/lib/isaac-sim/status/layout.py"
+    sh(host, f"echo '# changed by hand' >> {layout}")
+    mended = ok(testbed.run_playbook(host))
+    assert testbed.changed_count(mended, host) == 1 and "changed by hand" not in sh(host, f"cat {layout}").stdout
+    sh(host, f"chmod 0600 {layout} && systemctl stop isaac-sim-status")
+    mended = ok(testbed.run_playbook(host))
+    assert testbed.changed_count(mended, host) == 1 and sh(host, f"stat -c %a {layout}").stdout.strip() == "644"
+    assert sh(host, "systemctl is-active isaac-sim-status").stdout.strip() == "active"
+    assert status_request(url)[0] == 200
 
 
 def test_the_dashboard_follows_each_host_live_without_ansible(host, tmp_path):
