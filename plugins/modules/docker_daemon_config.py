@@ -84,7 +84,6 @@ service_state:
 
 import json
 import os
-import tempfile
 
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import daemon_json, docker_engine
@@ -108,31 +107,13 @@ def main():
     found = docker_engine.probe(module.run_command, p["packages"] or [], p["installed_query"] or [], p["service"])
     if found["missing"]:
         module.exit_json(changed=False, config={}, **found, **_marker(p))
-    path = p["path"]
-    text = None
-    if os.path.exists(path):
-        with open(path) as fh:
-            text = fh.read()
     try:
-        if module.params["settings"] or text is not None:
-            changed, before, after = daemon_json.plan(text, module.params["settings"], path)
-        else:  # nothing to merge into no file: no file is written
-            changed, before, after = False, "", "{}"
+        changed, before, after = daemon_json.merge_file(p["path"], p["settings"], module.check_mode, module.atomic_move)
     except daemon_json.DaemonJsonError as exc:
         module.fail_json(msg=str(exc))
-
-    if changed and not module.check_mode:
-        directory = os.path.dirname(path)
-        os.makedirs(directory, mode=0o755, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=".daemon.json.")
-        with os.fdopen(fd, "w") as fh:
-            fh.write(after)
-        os.chmod(tmp, 0o644)
-        module.atomic_move(tmp, path)
-
     result = dict(changed=changed, config=json.loads(after), **found, **_marker(p))
     if module._diff:
-        result["diff"] = dict(before=before, after=after, before_header=path, after_header=path)
+        result["diff"] = dict(before=before, after=after, before_header=p["path"], after_header=p["path"])
     module.exit_json(**result)
 
 

@@ -299,22 +299,22 @@ options:
     type: dict
     suboptions:
       holder:
-        description: This run, filled by the action plugin.
+        description: This run (M(isaacsim.fleet.isaac_sim_lock)'s O(isaacsim.fleet.isaac_sim_lock#module:holder)).
         type: dict
       stale_after:
-        description: Seconds after which a lock its run has not renewed is taken over; 0 never.
+        description: As M(isaacsim.fleet.isaac_sim_lock)'s O(isaacsim.fleet.isaac_sim_lock#module:stale_after).
         type: int
         default: 3600
       break_lock:
-        description: Take the lock from whichever run holds it.
+        description: As M(isaacsim.fleet.isaac_sim_lock)'s O(isaacsim.fleet.isaac_sim_lock#module:break_lock).
         type: bool
         default: false
       dead:
-        description: The id of a holder the controller found ended; filled by the action plugin.
+        description: As M(isaacsim.fleet.isaac_sim_lock)'s O(isaacsim.fleet.isaac_sim_lock#module:dead).
         type: str
         default: ""
       wait:
-        description: Seconds the action plugin waits for another run's lock before it fails.
+        description: As M(isaacsim.fleet.isaac_sim_lock)'s O(isaacsim.fleet.isaac_sim_lock#module:wait).
         type: int
         default: 0
 """

@@ -150,3 +150,18 @@ def plan_config(**over) -> dict:
     }
     base.update(over)
     return base
+
+
+# two runs on two controllers, as the lock's action plugin names them (plugins/action/isaac_sim_lock.py)
+ALICE = {"id": "ctl-1:100:5", "user": "alice", "controller": "ctl-1", "pid": 100, "started": "5", "play": "Deploy"}
+BOB = {"id": "ctl-2:200:7", "user": "bob", "controller": "ctl-2", "pid": 200, "started": "7", "play": "Deploy"}
+
+
+def lock_files(where: Path, monkeypatch) -> Path:
+    """The host's lock files (runlock's LOCK, GUARD and RECORD) moved under `where`; the lock's path."""
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
+
+    monkeypatch.setattr(runlock, "LOCK", str(where / "isaac-sim.json"))
+    monkeypatch.setattr(runlock, "GUARD", str(where / ".isaac-sim.guard"))
+    monkeypatch.setattr(runlock, "RECORD", str(where / "isaac-sim.rollout.json"))
+    return where / "isaac-sim.json"

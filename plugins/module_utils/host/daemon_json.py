@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import copy
 import json
+import os
+import tempfile
 
 
 class DaemonJsonError(Exception):
@@ -48,3 +50,26 @@ def plan(text: str | None, settings: dict, path: str):
     if text is not None and wanted == current:
         return False, text, text
     return True, text or "", render(wanted)
+
+
+def merge_file(path: str, settings: dict, check: bool, move) -> tuple:
+    """The file at `path` with `settings` merged in: (changed, before, after), written unless `check`.
+    Written whole to a temporary file beside it, then move(tmp, path) (the module's atomic_move, which
+    keeps the file's SELinux context), so Docker never reads half a file. No settings and no file:
+    nothing is written."""
+    text = None
+    if os.path.exists(path):
+        with open(path) as fh:
+            text = fh.read()
+    if not settings and text is None:
+        return False, "", "{}"
+    changed, before, after = plan(text, settings, path)
+    if changed and not check:
+        directory = os.path.dirname(path)
+        os.makedirs(directory, mode=0o755, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=directory, prefix=".daemon.json.")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(after)
+        os.chmod(tmp, 0o644)
+        move(tmp, path)
+    return changed, before, after

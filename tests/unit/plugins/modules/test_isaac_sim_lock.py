@@ -6,21 +6,13 @@ from __future__ import annotations
 import json
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_lock
-from ansible_collections.isaacsim.fleet.tests.unit.helpers import run_module
-
-ALICE = {"id": "ctl-1:100:5", "user": "alice", "controller": "ctl-1", "pid": 100, "started": "5", "play": "Deploy"}
-BOB = {"id": "ctl-2:200:7", "user": "bob", "controller": "ctl-2", "pid": 200, "started": "7", "play": "Deploy"}
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import ALICE, BOB, lock_files, run_module
 
 
 @pytest.fixture()
 def lock(tmp_path, monkeypatch):
-    where = tmp_path / "run" / "lock"
-    monkeypatch.setattr(runlock, "LOCK", str(where / "isaac-sim.json"))
-    monkeypatch.setattr(runlock, "GUARD", str(where / ".isaac-sim.guard"))
-    monkeypatch.setattr(runlock, "RECORD", str(where / "isaac-sim.rollout.json"))
-    return where / "isaac-sim.json"
+    return lock_files(tmp_path / "run" / "lock", monkeypatch)
 
 
 def test_a_free_host_is_taken_and_another_run_is_refused_with_who_holds_it(lock, capsys):

@@ -11,9 +11,9 @@ import pytest
 from ansible.module_utils import basic
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts, runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_plan
-from ansible_collections.isaacsim.fleet.tests.unit.helpers import recorded, run_module
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import ALICE, BOB, lock_files, recorded, run_module
 
 IMAGE = "nvcr.io/nvidia/isaac-sim:6.0.1"
 IMAGE_ID = "sha256:9c15" + "0" * 60
@@ -242,17 +242,9 @@ def test_macvlan_reads_the_lan_and_a_docker_that_does_not_answer_is_an_error(hos
     assert "ip -j -4 addr show" in commands and "ip -j -4 route show default" in commands
 
 
-ALICE = {"id": "ctl-1:100:5", "user": "alice", "controller": "ctl-1", "pid": 100, "started": "5", "play": "Deploy"}
-BOB = {"id": "ctl-2:200:7", "user": "bob", "controller": "ctl-2", "pid": 200, "started": "7", "play": "Deploy"}
-
-
 @pytest.fixture()
 def lock(tmp_path, monkeypatch):
-    where = tmp_path / "run" / "lock"
-    monkeypatch.setattr(runlock, "LOCK", str(where / "isaac-sim.json"))
-    monkeypatch.setattr(runlock, "GUARD", str(where / ".isaac-sim.guard"))
-    monkeypatch.setattr(runlock, "RECORD", str(where / "isaac-sim.rollout.json"))
-    return where / "isaac-sim.json"
+    return lock_files(tmp_path / "run" / "lock", monkeypatch)
 
 
 def test_with_lock_the_plan_holds_the_host_first_and_plans_nothing_while_another_run_does(host, lock, capsys):

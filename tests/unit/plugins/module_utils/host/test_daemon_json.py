@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import daemon_json
@@ -42,3 +43,23 @@ def test_lists_are_replaced_not_appended():
 def test_refuses_a_file_it_cannot_read(text):
     with pytest.raises(daemon_json.DaemonJsonError, match="left as it is"):
         daemon_json.plan(text, RUNTIME, "/etc/docker/daemon.json")
+
+
+def test_merge_file_writes_through_the_move_given_and_never_in_check_mode(tmp_path):
+    path = str(tmp_path / "docker" / "daemon.json")
+    moved = []
+
+    def move(tmp, dest):
+        moved.append(dest)
+        os.replace(tmp, dest)
+
+    # nothing to merge into no file: no file
+    assert daemon_json.merge_file(path, {}, False, move) == (False, "", "{}") and not os.path.exists(path)
+    changed, _before, after = daemon_json.merge_file(path, {"log-driver": "journald"}, True, move)
+    assert changed and json.loads(after) == {"log-driver": "journald"} and not os.path.exists(path)
+    assert daemon_json.merge_file(path, {"log-driver": "journald"}, False, move)[0] and moved == [path]
+    with open(path) as fh:
+        assert json.load(fh) == {"log-driver": "journald"} and oct(os.stat(path).st_mode)[-3:] == "644"
+    # as wanted already: not written again; no temporary file left beside it
+    assert daemon_json.merge_file(path, {"log-driver": "journald"}, False, move)[0] is False and moved == [path]
+    assert os.listdir(tmp_path / "docker") == ["daemon.json"]
