@@ -14,7 +14,8 @@ class ActionModule(ActionBase):
     def run(self, tmp=None, task_vars=None):
         result = super().run(tmp, task_vars)
         args = dict(self._task.args)
-        if not args.get("lock"):
+        # lock given at all (even empty, its options' defaults): this run is named to it
+        if args.get("lock") is None:
             result.update(self._execute_module(module_args=args, task_vars=task_vars))
             return result
         lock = dict(args["lock"], holder=this_run(task_vars.get("ansible_play_name", "")))

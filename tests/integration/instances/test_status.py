@@ -240,6 +240,9 @@ def test_each_host_serves_its_status_read_only_to_the_networks_allowed(host, ip)
     assert testbed.changed_count(mended, host) == 1 and sh(host, f"stat -c %a {layout}").stdout.strip() == "644"
     assert sh(host, "systemctl is-active isaac-sim-status").stdout.strip() == "active"
     assert status_request(url)[0] == 200
+    # and as wanted, the next run makes no call for it (the plan read every file the module would write)
+    again = ok(testbed.run_playbook(host)).stdout
+    assert re.search(r"Serve this host's status read-only[^\n]*\*+\nskipping: ", again), again[-3000:]
 
 
 def test_the_dashboard_follows_each_host_live_without_ansible(host, tmp_path):

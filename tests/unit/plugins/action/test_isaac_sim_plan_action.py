@@ -5,12 +5,13 @@ ended, as the lock's own action does. The host's side is a stand-in of the modul
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from unittest import mock
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_lock
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_plan as plugin
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts, runlock
 
 PLAY = "Validate"
 PLAN = {"ids": [0, 1], "image": "nvcr.io/nvidia/isaac-sim:6.0.1"}
@@ -35,11 +36,10 @@ class Host:
                 return {"changed": False, "plan": PLAN}
             if self.released_at is not None and self.now >= self.released_at:
                 runlock.release(BOB, self.files["path"], self.files["guard"])
-            lock = dict({"stale_after": 3600, "break_lock": False, "dead": ""}, **module_args["lock"])
-            held = runlock.request(dict(lock, state="present"), self.now, check_mode, **self.files)
-            if not held["acquired"] and not check_mode:
-                return {"changed": False, "lock": held}
-            return {"changed": False, "lock": held, "plan": PLAN}
+            # the module's own call (its argument spec's defaults filled in), the plan itself a stand-in
+            lock = dict({"stale_after": 3600, "break_lock": False, "dead": "", "wait": 0}, **module_args["lock"])
+            probe = SimpleNamespace(check_mode=check_mode, min_facts=dict)
+            return dict(host_facts.plan_held(probe, dict(module_args, lock=lock), self.now), changed=False)
 
         return answer
 
@@ -47,6 +47,11 @@ class Host:
 @pytest.fixture
 def run(monkeypatch):
     def go(host, args, check_mode=False):
+        monkeypatch.setattr(runlock, "LOCK", host.files["path"])
+        monkeypatch.setattr(runlock, "GUARD", host.files["guard"])
+        monkeypatch.setattr(runlock, "RECORD", "")
+        planned = {"plan": PLAN, "stale_ids": [], "host": {}, "warnings": []}
+        monkeypatch.setattr(host_facts, "plan_host", lambda probe, p: dict(planned))
         clock = mock.MagicMock()
         clock.monotonic = lambda: host.now
         clock.time = lambda: host.now
@@ -112,3 +117,9 @@ def test_a_dry_run_plans_against_a_held_host_and_does_not_fail(run, tmp_path):
     result = run(host, {"release": "6.x", "lock": {"wait": 60}}, check_mode=True)
     assert result["plan"] == PLAN and not result["failed"] and len(host.calls) == 1
     assert runlock.read(host.files["path"])["id"] == BOB["id"]
+
+
+def test_an_empty_lock_is_a_lock_with_its_defaults_and_this_run_named(run, tmp_path):
+    host = Host(tmp_path)
+    result = run(host, {"release": "6.x", "lock": {}})
+    assert host.calls[0]["lock"]["holder"] == isaac_sim_lock.this_run(PLAY) and result["lock"]["acquired"]

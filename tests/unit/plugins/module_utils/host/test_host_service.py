@@ -145,6 +145,9 @@ def _service(tmp_path):
         ("mode", False),
         ("missing", False),
         ("inactive", False),
+        # starting or reloading: the module leaves it be, as it leaves a running one
+        ("activating", True),
+        ("reloading", True),
         ("disabled", False),
         ("directory mode", False),
         ("directory missing", False),
@@ -166,6 +169,8 @@ def test_in_place_is_the_module_s_own_decision_on_what_the_plan_read(tmp_path, c
         script.unlink()
     elif change == "inactive":
         show["ActiveState"] = "failed"
+    elif change in ("activating", "reloading"):
+        show["ActiveState"] = change
     elif change == "disabled":
         show["UnitFileState"] = "disabled"
     elif change == "directory mode":
