@@ -125,9 +125,8 @@ def parse_companion_units(text: str) -> dict:
 def parse_systemctl_show(text: str) -> dict:
     """{instance id: {property: value}} from `systemctl show` (blank-line separated blocks)."""
     units = {}
-    for block in re.split(r"\n\s*\n", text.strip()):
-        props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-        match = _UNIT_ID.match(props.get("Id", ""))
+    for unit, props in layout.parse_shown(text).items():
+        match = _UNIT_ID.match(unit)
         if match:
             units[int(match.group(1))] = props
     return units

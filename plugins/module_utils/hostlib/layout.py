@@ -269,6 +269,17 @@ def quote(value) -> str:
     return f'"{text}"'
 
 
+def parse_shown(text: str) -> dict:
+    """{unit: {property: value}} from one `systemctl show -p Id,... UNIT...` (a block of lines per unit,
+    blank lines between them); a block without an Id is left out."""
+    shown = {}
+    for block in re.split(r"\n\s*\n", (text or "").strip()):
+        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+        if fields.get("Id"):
+            shown[fields["Id"]] = fields
+    return shown
+
+
 def parse(text: str) -> dict:
     """KEY=VALUE pairs as systemd reads them: the inverse of ``quote`` (and of plain values).
 

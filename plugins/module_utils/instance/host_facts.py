@@ -239,10 +239,7 @@ def _host_services(probe: Probe, p: dict, host: dict) -> None:
     shows = {}
     if wanted and systemctl:
         rc, out, _err = probe.run([systemctl, "show", "-p", "Id", "-p", "ActiveState", "-p", "UnitFileState", *wanted])
-        # a block of lines per unit, each with its Id
-        for block in out.strip().split("\n\n") if rc == 0 else []:
-            fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-            shows[fields.get("Id", "")] = fields
+        shows = layout.parse_shown(out) if rc == 0 else {}
     host["host_services"] = {
         name: host_service.seen(list(spec.get("files") or []), list(spec.get("directories") or []), shows.get(name, {}))
         for name, spec in wanted.items()
@@ -357,10 +354,14 @@ def plan_held(probe: Probe, p: dict, now: float) -> dict:
     under "lock", as isaac_sim_lock returns it), and where p["gather_facts"] the facts setup's gather_subset
     [min] would return (as ansible_facts). Held by another run: only the lock's result, nothing planned,
     but in check mode, where the lock is only looked at and the dry run plans all the same."""
-    if p.get("gather_facts"):
-        out = plan_held(probe, dict(p, gather_facts=False), now)
-        # only with a plan: a call that waits for another run's lock gathers nothing
-        return dict(out, ansible_facts=probe.min_facts()) if "plan" in out else out
+    out = _locked_plan(probe, p, now)
+    # only with a plan: a call that waits for another run's lock gathers nothing
+    if p.get("gather_facts") and "plan" in out:
+        out["ansible_facts"] = probe.min_facts()
+    return out
+
+
+def _locked_plan(probe: Probe, p: dict, now: float) -> dict:
     if not p.get("lock"):
         return plan_host(probe, p)
     try:

@@ -129,11 +129,7 @@ def show(host: Host, units, props: str = PROPS) -> dict:
     if not units:
         return {}
     _rc, out, _err = host.run(["systemctl", "show", "-p", props] + units)
-    found = {}
-    for block in re.split(r"\n\s*\n", out.strip()):
-        fields = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-        if fields.get("Id"):
-            found[fields["Id"]] = fields
+    found = layout.parse_shown(out)
     return {u: found.get(u, {}) for u in units}
 
 

@@ -81,3 +81,13 @@ def test_a_killed_warm_run_s_leftovers_are_its_dot_directories_and_partial_archi
         n for n in ("k1.tar", ".k1.abc", "k1.tar.partial", ".keep", ".linked") if layout.warm_scratch(str(tmp_path), n)
     )
     assert left == [".k1.abc", "k1.tar.partial"]
+
+
+def test_parse_shown_reads_systemctl_show_by_unit():
+    """The one reader of `systemctl show` for many units (the lifecycle, the status code, the plan)."""
+    text = "Id=a.service\nActiveState=active\n\n\nId=b.timer\nActiveState=inactive\nX=1=2\n\nActiveState=active\n"
+    assert layout.parse_shown(text) == {
+        "a.service": {"Id": "a.service", "ActiveState": "active"},
+        "b.timer": {"Id": "b.timer", "ActiveState": "inactive", "X": "1=2"},
+    }
+    assert layout.parse_shown("") == {} and layout.parse_shown(None) == {}
