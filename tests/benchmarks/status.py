@@ -8,7 +8,9 @@ Prints, for each N:
     one `systemctl show` of the units and one `docker inspect` of the containers;
 and at N = 4 the time of a playbook with the module against a naive one that
 runs ansible.builtin.systemd_service and community.docker.docker_container_info
-once per instance. Then where the module's own time goes, per N: the imports it
+once per instance, beside the floor of any such play (the same play with
+ansible.builtin.ping, and a play with no task), the plays taken in turn, medians
+of --play-runs. Then where the module's own time goes, per N: the imports it
 pays beyond the ping module's (python -X importtime, the collection's own
 module_utils apart), and each part of the status read as the module reports it
 (timings_ms: env files, Docker, GPU, systemd, building records, the journal's
@@ -17,7 +19,7 @@ events, log tails), medians over the runs.
 A script, not a test: timings on shared machines are noisy. Needs strace and
 nsenter on the machine that runs it. Run after ./tools/bootstrap:
 
-    .venv/bin/python tests/benchmarks/status.py [--runs 10]
+    .venv/bin/python tests/benchmarks/status.py [--runs 10] [--play-runs 5]
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+import time
 
 from benchhost import ENV, ROOT, bench_host, run, timed_play
 
@@ -55,6 +58,13 @@ NAIVE_PLAY = """- name: Status the naive way (two module calls per instance)
       community.docker.docker_container_info:
         name: "isaac-sim-{{ item }}"
       loop: "{{ range(N) | list }}"
+"""
+
+PING_PLAY = MODULE_PLAY.replace("isaacsim.fleet.isaac_sim_info:", "ansible.builtin.ping:")
+EMPTY_PLAY = """- name: Nothing (ansible-playbook's own start)
+  hosts: isaac_sim_hosts
+  gather_facts: false
+  tasks: []
 """
 
 # runs inside the host: median wall time of each command over `runs` runs
@@ -167,9 +177,36 @@ def spawns_by_strace():
     return binaries[2:]
 
 
+def empty_play(inv, path):
+    """Seconds of a play with no task (its recap names no host, so timed_play cannot read it)."""
+    start = time.monotonic()
+    run(["ansible-playbook", "-i", str(inv), str(path)], check=True)
+    return time.monotonic() - start
+
+
+def compare_plays(inv, tmp, runs):
+    """Median seconds of each play, the plays taken in turn so a slow spell of the machine falls on all.
+
+    Besides the module's play and the naive one: the same play with ansible.builtin.ping (the floor
+    of any one-module play: ansible-playbook's start, interpreter discovery, one call) and a play
+    with no task (ansible-playbook's start alone)."""
+    books = {"module": MODULE_PLAY, "naive": NAIVE_PLAY.replace("range(N)", "range(4)"), "ping": PING_PLAY}
+    books["empty"] = EMPTY_PLAY
+    paths = {}
+    for name, text in books.items():
+        paths[name] = tmp / f"{name}.yml"
+        paths[name].write_text(text)
+    times = {name: [] for name in books}
+    for _n in range(runs):
+        for name, path in paths.items():
+            times[name].append(timed_play(inv, path, HOST)[0] if name != "empty" else empty_play(inv, path))
+    return {name: statistics.median(each) for name, each in times.items()}
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=10, help="runs to take the median of")
+    parser.add_argument("--play-runs", type=int, default=5, help="runs of each play (N = 4) to take the median of")
     args = parser.parse_args()
     for tool in ("strace", "nsenter"):
         if not shutil.which(tool):
@@ -199,13 +236,7 @@ def main():
             )
             rows.append((n, spawned, result["cost"], times, breakdown(args.runs)))
             if n == 4:
-                module_play, naive_play = tmp / "module.yml", tmp / "naive.yml"
-                module_play.write_text(MODULE_PLAY)
-                naive_play.write_text(NAIVE_PLAY.replace("range(N)", "range(4)"))
-                plays = {
-                    "module": statistics.median(timed_play(inv, module_play, HOST)[0] for _n in range(3)),
-                    "naive": statistics.median(timed_play(inv, naive_play, HOST)[0] for _n in range(3)),
-                }
+                plays = compare_plays(inv, tmp, args.play_runs)
 
     print("status benchmark: isaac_sim_info on one host, stand-in instances, no GPU")
     print("times on the host, median of each; ping = Ansible's own ping module, the floor any module pays")
@@ -237,8 +268,13 @@ def main():
     grows = len({len(s) for _n, s, _c, _t, _p in rows}) > 1
     print(f"spawns grow with N: {'YES' if grows else 'no'}")
     print(
-        f"N=4 playbook, median of 3: module {plays['module']:.1f} s, naive per-instance {plays['naive']:.1f} s, "
-        f"module / naive = {plays['module'] / plays['naive']:.2f}x"
+        f"N=4 playbook, median of {args.play_runs}, taken in turn: module {plays['module']:.2f} s, "
+        f"naive per-instance {plays['naive']:.2f} s, module / naive = {plays['module'] / plays['naive']:.2f}x"
+    )
+    print(
+        f"  the floor: the same play with ansible.builtin.ping {plays['ping']:.2f} s "
+        f"({plays['ping'] / plays['naive']:.2f}x of naive), a play with no task {plays['empty']:.2f} s; "
+        f"the module's play costs {plays['module'] - plays['ping']:.2f} s more than ping's"
     )
     return 1 if grows else 0
 
