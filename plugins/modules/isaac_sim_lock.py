@@ -81,11 +81,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import run
 
 ARGUMENT_SPEC = dict(
     state=dict(type="str", choices=["present", "absent", "renewed"], default="present"),
-    holder=dict(type="dict", required=True),
-    stale_after=dict(type="int", default=3600),
-    break_lock=dict(type="bool", default=False),
-    dead=dict(type="str", default=""),
-    wait=dict(type="int", default=0),
+    **runlock.request_options(holder_required=True),
 )
 
 

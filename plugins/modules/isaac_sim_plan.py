@@ -373,7 +373,7 @@ host:
 import time
 
 from ansible.module_utils.basic import AnsibleModule
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts, runlock
 
 ARGUMENT_SPEC = dict(
     release=dict(type="str", required=True),
@@ -433,16 +433,7 @@ ARGUMENT_SPEC = dict(
     systemd_dir=dict(type="path", default="/etc/systemd/system"),
     host_services=dict(type="dict", default={}),
     gather_facts=dict(type="bool", default=False),
-    lock=dict(
-        type="dict",
-        options=dict(
-            holder=dict(type="dict"),
-            stale_after=dict(type="int", default=3600),
-            break_lock=dict(type="bool", default=False),
-            dead=dict(type="str", default=""),
-            wait=dict(type="int", default=0),
-        ),
-    ),
+    lock=dict(type="dict", options=runlock.request_options(holder_required=False)),
 )
 
 

@@ -30,6 +30,17 @@ HEARTBEAT_LIMIT_S = 30
 HOLDER_KEYS = ("id", "user", "controller", "pid", "started", "play")
 
 
+def request_options(holder_required: bool) -> dict:
+    """The argument spec of a lock request: isaac_sim_lock's, and isaac_sim_plan's lock option."""
+    return dict(
+        holder=dict(type="dict", required=holder_required),
+        stale_after=dict(type="int", default=3600),
+        break_lock=dict(type="bool", default=False),
+        dead=dict(type="str", default=""),
+        wait=dict(type="int", default=0),
+    )
+
+
 def holder_text(holder: dict, now: float) -> str:
     """Who holds the lock and since when, in a person's words."""
     since = float(holder.get("since") or 0)
