@@ -9,19 +9,24 @@ from pathlib import Path
 FILES = Path(__file__).resolve().parents[4] / "roles" / "isaac_sim" / "files"
 
 
-def gate(tmp_path, pattern):
+# a container that runs and never prints its ready line
+NEVER_READY = '#!/bin/sh\n[ "$1" = inspect ] && echo running\nexit 0\n'
+
+
+def gate(tmp_path, pattern, timeout="1", **tools):
+    """The gate run against stand-in tools in PATH: docker (NEVER_READY unless given), and any other
+    named here (name=script text)."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir(exist_ok=True)
-    # a container that runs and never prints its ready line
-    docker = bin_dir / "docker"
-    docker.write_text('#!/bin/sh\n[ "$1" = inspect ] && echo running\nexit 0\n')
-    docker.chmod(0o755)
+    for tool, text in {"docker": NEVER_READY, **tools}.items():
+        (bin_dir / tool).write_text(text)
+        (bin_dir / tool).chmod(0o755)
     env = dict(
         os.environ,
         PATH=f"{bin_dir}:{os.environ['PATH']}",
         ISAAC_SIM_CONTAINER="isaac-sim-1",
         ISAAC_SIM_READY_MARKER=str(tmp_path / "instance-1.ready"),
-        ISAAC_SIM_READY_TIMEOUT="1",
+        ISAAC_SIM_READY_TIMEOUT=timeout,
         ISAAC_SIM_READY_PATTERN=pattern,
     )
     return subprocess.run(
@@ -39,30 +44,20 @@ def test_the_deadline_names_what_it_waited_for_once(tmp_path):
 
 
 def test_a_start_ready_within_a_second_is_seen_at_the_next_quarter_second(tmp_path):
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
     looks = tmp_path / "looks"
-    # a container that prints its ready line from the third look at its logs on
-    (bin_dir / "docker").write_text(
-        "#!/bin/sh\n"
-        '[ "$1" = inspect ] && { echo running; exit 0; }\n'
-        f'echo x >> {looks}; [ "$(wc -l < {looks})" -ge 3 ] && echo "Isaac Sim Full App is loaded."\n'
-        "exit 0\n"
-    )
-    # the gate's waits, written down (and taken for real)
-    (bin_dir / "sleep").write_text(f'#!/bin/sh\necho "$1" >> {tmp_path / "sleeps"}\nexec /bin/sleep "$1"\n')
-    for tool in ("docker", "sleep"):
-        (bin_dir / tool).chmod(0o755)
-    env = dict(
-        os.environ,
-        PATH=f"{bin_dir}:{os.environ['PATH']}",
-        ISAAC_SIM_CONTAINER="isaac-sim-1",
-        ISAAC_SIM_READY_MARKER=str(tmp_path / "instance-1.ready"),
-        ISAAC_SIM_READY_TIMEOUT="60",
-        ISAAC_SIM_READY_PATTERN=r"App is loaded\.",
-    )
-    done = subprocess.run(
-        ["bash", str(FILES / "isaac-sim-ready")], capture_output=True, text=True, env=env, timeout=30, check=False
+    done = gate(
+        tmp_path,
+        r"App is loaded\.",
+        timeout="60",
+        # a container that prints its ready line from the third look at its logs on
+        docker=(
+            "#!/bin/sh\n"
+            '[ "$1" = inspect ] && { echo running; exit 0; }\n'
+            f'echo x >> {looks}; [ "$(wc -l < {looks})" -ge 3 ] && echo "Isaac Sim Full App is loaded."\n'
+            "exit 0\n"
+        ),
+        # the gate's waits, written down (and taken for real)
+        sleep=f'#!/bin/sh\necho "$1" >> {tmp_path / "sleeps"}\nexec /bin/sleep "$1"\n',
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout == "isaac-sim-1 is ready\n"
