@@ -190,8 +190,12 @@ def compare_plays(inv, tmp, runs):
     Besides the module's play and the naive one: the same play with ansible.builtin.ping (the floor
     of any one-module play: ansible-playbook's start, interpreter discovery, one call) and a play
     with no task (ansible-playbook's start alone)."""
-    books = {"module": MODULE_PLAY, "naive": NAIVE_PLAY.replace("range(N)", "range(4)"), "ping": PING_PLAY}
-    books["empty"] = EMPTY_PLAY
+    books = {
+        "module": MODULE_PLAY,
+        "naive": NAIVE_PLAY.replace("range(N)", "range(4)"),
+        "ping": PING_PLAY,
+        "empty": EMPTY_PLAY,
+    }
     paths = {}
     for name, text in books.items():
         paths[name] = tmp / f"{name}.yml"
