@@ -110,18 +110,30 @@ options:
   docker_args:
     description:
       - Extra C(docker run) arguments, one per item.
-      - Arguments that take a container out of its confinement (C(--privileged), C(--cap-add), the host's PID,
-        IPC, UTS, user or cgroup namespace, a confinement turned off with C(--security-opt), a host device,
-        Docker's socket mounted) are refused here and in each companion's C(docker_args) unless
-        O(allowed_docker_args) names them.
+      - Read as Docker's own client reads them (short flags run together, C(=) forms, C(--mount)'s CSV,
+        Go's booleans, the last of a repeated option), then judged by the container policy
+        (plugins/module_utils/hostlib/container_policy.py) here and in each companion's C(docker_args),
+        C(volumes) and C(user). Refused unless O(allowed_docker_args) names them - privileged, an added
+        capability, the host's PID, IPC, UTS, user or cgroup namespace, a confinement turned off or replaced
+        with C(--security-opt), a host device or GPU, a bind mount from outside O(data_root) and
+        O(allowed_bind_roots) (a local volume that binds a host path too), another container's volumes,
+        root where the release runs as a user.
     type: list
     elements: str
     default: []
   allowed_docker_args:
-    description: Arguments of O(docker_args) and of the companions' C(docker_args) that loosen a container's
-      confinement and are allowed all the same, each named exactly (C(--cap-add=SYS_PTRACE)).
+    description: Arguments of O(docker_args) and of the companions' C(docker_args) that the container policy
+      refuses and that are allowed all the same, each matched on what Docker makes of it
+      (C(--cap-add=SYS_PTRACE), C(--volume=/var/run/docker.sock:/s) allows that one socket however written).
     type: list
     elements: str
+    default: []
+  allowed_bind_roots:
+    description: Host directories the instances and companions may bind mount from, besides O(data_root)
+      (and the Hub cache's directory); a root that is or holds what hands over the host (C(/), C(/etc),
+      C(/var/lib/docker), Docker's socket) is refused.
+    type: list
+    elements: path
     default: []
   app_args:
     description: Extra arguments for the Isaac Sim launch script, one per item.
@@ -400,6 +412,7 @@ ARGUMENT_SPEC = dict(
     secret_env_names=dict(type="list", elements="str", default=[], no_log=False),
     docker_args=dict(type="list", elements="str", default=[]),
     allowed_docker_args=dict(type="list", elements="str", default=[]),
+    allowed_bind_roots=dict(type="list", elements="path", default=[]),
     app_args=dict(type="list", elements="str", default=[]),
     ready_timeout=dict(type="raw", default=300),
     stop_timeout=dict(type="raw", default=60),

@@ -4,7 +4,7 @@
 
 A unit that runs a container (an instance, a companion, the Hub cache, a test run's service)
 sandboxes the host side only: the docker client, the scripts around it and their checks. The
-container itself is Docker's, confined by common/hardening.py. Each profile is what its unit
+container itself is Docker's, confined by hostlib/container_policy.py. Each profile is what its unit
 needs and no more; `systemd-analyze security` rates them (README, "Hardening").
 """
 

@@ -20,8 +20,12 @@ import socket
 import stat
 from concurrent.futures import ThreadPoolExecutor
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
+    container_policy,
+    docker_cli,
+    fleet_status,
+    layout,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import firewall
 
@@ -32,37 +36,50 @@ SKIP = ("/var/lib/docker/overlay2", "/var/lib/docker/image", "/var/lib/docker/vo
 MAX_FILE = 16 * 1024 * 1024
 # knocks at once: each a socket and a thread that mostly waits
 PROBES = 64
-_NAMESPACE_MODES = {"PidMode": "--pid", "IpcMode": "--ipc", "UTSMode": "--uts", "UsernsMode": "--userns"}
 
 
 def finding(check: str, what: str, why: str) -> dict:
     return {"check": check, "what": what, "why": why}
 
 
-def container_args(inspected: dict) -> list:
-    """docker run arguments that would give a container what Docker says it has."""
-    hc = inspected.get("HostConfig") or {}
-    args = ["--privileged"] if hc.get("Privileged") else []
-    args += [f"--cap-add={cap}" for cap in hc.get("CapAdd") or []]
-    args += [f"{opt}={hc[key]}" for key, opt in _NAMESPACE_MODES.items() if hc.get(key) == "host"]
-    args += [f"--security-opt={opt}" for opt in hc.get("SecurityOpt") or []]
-    args += [f"--device={d.get('PathOnHost', '')}" for d in hc.get("Devices") or []]
-    args += [f"--volume={b}" for b in hc.get("Binds") or []]
-    args += [
-        f"--mount=type={m.get('Type', 'bind')},source={m.get('Source', '')},target={m.get('Target', '')}"
-        for m in hc.get("Mounts") or []
-    ]
-    return args
+def planned_rules(env: dict) -> tuple:
+    """(rules, keys the plan allowed) for a container of ours, from its env file: its binds' sources are
+    its only bind roots, its GPU its only GPU, its release's user its user; what the plan itself gave it
+    (allowed there by isaac_sim_allowed_docker_args) is no finding."""
+    try:
+        planned = docker_cli.config(layout.split_args(env.get(layout.K_DOCKER_ARGS, "")))
+    except docker_cli.DockerArgError:
+        planned = {"HostConfig": {}, "Config": {}}
+    roots = [m["Source"] for m in container_policy.mounts(planned["HostConfig"]) if m["Type"] == "bind"]
+    gpu = env.get(layout.K_GPU, "")
+    user = planned["Config"].get("User", "")
+    rules = {"bind_roots": roots, "gpus": [gpu] if gpu else [], "root_ok": container_policy.is_root(user)}
+    return rules, {key for key, _text, _why in container_policy.judge(planned, rules)}
 
 
-def container_findings(containers: list) -> list:
-    """A finding per argument that takes a container out of its confinement (common/hardening.py's
-    list, the one the plan refuses), for every container of the host, ours or not."""
+def container_findings(containers: list, envs: dict | None = None, volumes: dict | None = None) -> list:
+    """A finding per thing the container policy refuses (hostlib/container_policy.py, the plan's own),
+    judged on what Docker says each container of the host has. A container named as one of ours (an
+    env file's container) is held to its plan: nothing beyond what the plan gave it. Any other
+    container is held to what would hand it the host (privileged, capabilities, namespaces, a
+    confinement off, devices, a bind of the host's own paths). volumes: {name: local-driver options}."""
+    planned = {}
+    for text in (envs or {}).values():
+        env = layout.parse(text or "")
+        if env.get(layout.K_CONTAINER):
+            planned[env[layout.K_CONTAINER]] = planned_rules(env)
     out = []
     for inspected in containers:
         name = str(inspected.get("Name", "")).lstrip("/")
-        for text, why in hardening.refused(container_args(inspected)):
-            out.append(finding("container", name, f"{text}: {why}"))
+        rules, given = planned.get(name, ({"bind_roots": None, "gpus": None, "root_ok": True}, set()))
+        try:
+            judged = container_policy.judge(inspected, dict(rules, volumes=volumes or {}))
+        except docker_cli.DockerArgError as exc:
+            out.append(finding("container", name, f"Docker reports settings the policy cannot read: {exc}"))
+            continue
+        for key, text, why in judged:
+            if key not in given:
+                out.append(finding("container", name, f"{text}: {why}"))
     return out
 
 
@@ -276,17 +293,21 @@ def _state(text: str | None) -> dict | None:
 def host_report(io: HostIO, key: str, secret_names) -> dict:
     """{"findings", "ports", "address"} of this host; ports carry the networks allowed for each."""
     findings = []
+    ours = _ours(io)
+    envs = {p: t for p, (_m, t) in ours.items() if p.endswith(".env") and os.path.basename(p) != layout.STATUS_ENV}
     try:
         listed = io.docker.get("/containers/json?all=1")
         containers = [io.docker.get(f"/containers/{c['Id']}/json") for c in listed]
-        findings += container_findings(containers)
+        # a named volume's options decide what it mounts (a local volume may bind a host path)
+        volumes = {
+            v.get("Name"): v.get("Options") or {} for v in (io.docker.get("/volumes") or {}).get("Volumes") or []
+        }
+        findings += container_findings(containers, envs, volumes)
     except (DockerError, OSError) as exc:
         findings.append(finding("container", "docker", f"could not ask Docker: {exc}"))
     _rc, journal, _err = io.run(["journalctl", "-o", "cat", "--no-pager"]) if key else (0, "", "")
     findings += key_findings(key, io.key_files(key), journal)
-    ours = _ours(io)
     findings += mode_findings(ours, secret_names)
-    envs = {p: t for p, (_m, t) in ours.items() if p.endswith(".env") and os.path.basename(p) != layout.STATUS_ENV}
     status_env = ours.get(f"{layout.CONFIG_DIR}/{layout.STATUS_ENV}", (0, None))[1]
     hub = f"{layout.UNIT_DIR}/{layout.HUB_UNIT}" in ours
     ports = opened_ports(envs, status_env, hub)

@@ -13,7 +13,6 @@ import ipaddress
 import os
 import re
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import (
     as_int,
     docker_size,
@@ -22,7 +21,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import
     parse_size,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, status_server
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import container_policy, layout, status_server
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
     companions,
     firewall,
@@ -212,27 +211,49 @@ def _namespace_conflicts(specs) -> list:
     return errors
 
 
-def _confinement(cfg, comp_specs, count) -> list:
-    """Errors for docker run arguments of the instances and of the companions that take a container
-    out of its confinement (common/hardening.py), unless isaac_sim_allowed_docker_args names them."""
+def _confinement(cfg, profile, comp_specs, count) -> list:
+    """Errors for docker run arguments of the instances and of the companions that the container policy
+    refuses (hostlib/container_policy.py), judged on Docker's own reading of them, unless
+    isaac_sim_allowed_docker_args names them; and for bind roots that would hand over the host."""
     allowed = cfg.get("allowed_docker_args") or []
+    errors = container_policy.roots_errors(cfg.get("allowed_bind_roots"))
+    try:
+        container_policy.allowed_keys(allowed)
+    except container_policy.DockerArgError as exc:
+        return errors + [
+            f"{container_policy.ALLOW_VAR}: {exc}. Fix: name each allowed argument as docker run takes it "
+            "(--cap-add=SYS_PTRACE), one word per item."
+        ]
     ids = list(range(max(count, 0)))
+    # the collection's own data paths, then the site's; every bind of an instance comes from one of them
+    roots = [cfg.get("data_root") or layout.DATA_ROOT] + [str(r) for r in cfg.get("allowed_bind_roots") or []]
+    hub = cfg.get("hub_cache") or {}
+    if hub.get("enabled") and hub.get("dir"):
+        roots.append(str(hub["dir"]))
+    # no GPU is given through the arguments: the plan gives each its own (isaac_sim_gpu_map)
+    rules = {"bind_roots": roots, "gpus": [], "root_ok": profile["uid"] == 0}
 
     def names(chosen):
         return ", ".join(layout.container(i) for i in chosen) or "every instance this host will run"
 
-    errors = hardening.errors("isaac_sim_extra_docker_args", f"on {names(ids)}", cfg.get("docker_args"), allowed)
+    errors += container_policy.errors(
+        "isaac_sim_extra_docker_args", f"on {names(ids)}", cfg.get("docker_args"), allowed, rules
+    )
+    # a companion's own image decides its user; one asked for as root is judged as an instance's would be
+    rules = dict(rules, root_ok=False)
     for spec in comp_specs:
         if not isinstance(spec, dict):
             continue
         beside = f"the companion of {names([i for i in ids if companions.wanted_on(spec, i)])}"
         for key, args in (
             ("docker_args", spec.get("docker_args")),
-            # a host path in volumes is a bind mount: Docker's socket there is as much a way out
-            ("volumes", [f"--volume={v}" for v in spec.get("volumes") or [] if isinstance(v, str)]),
+            # a host path in volumes is a bind mount, judged as one
+            ("volumes", [f"--volume={v}" for v in spec.get("volumes") or [] if str(v).startswith("/")]),
+            ("user", [f"--user={spec['user']}"] if spec.get("user") not in (None, "") else []),
         ):
             if isinstance(args, list):
-                errors += hardening.errors(f"{companions.VAR}[{spec.get('name')}].{key}", beside, args, allowed)
+                errors += container_policy.errors(f"{companions.VAR}[{spec.get('name')}].{key}", beside, args,
+                                                  allowed, rules)  # fmt: skip
     return errors
 
 
@@ -654,7 +675,7 @@ def build(cfg: dict, host: dict) -> dict:
     )
     if not shared:
         errors += _namespace_conflicts(comp_specs)
-    errors += _confinement(cfg, comp_specs, count)
+    errors += _confinement(cfg, profile, comp_specs, count)
     if not errors:
         errors += _check_companion_ports(comp_specs, blocks, stride, held, shared)
     gpus, gpu_warnings = {}, []

@@ -122,7 +122,7 @@ def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout, pre=
         ("RestartSec", restart_sec),
         ("TimeoutStartSec", ready_timeout + 30),
         ("TimeoutStopSec", stop_timeout + 30),
-        "# The docker client and the scripts around it; the container is Docker's (hardening.py).",
+        "# The docker client and the scripts around it; the container is Docker's (container_policy.py).",
         *sandbox.docker_client(),
     ]
 

@@ -14,7 +14,8 @@ from __future__ import annotations
 import re
 import shlex
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.common import hardening, parse
+from ansible_collections.isaacsim.fleet.plugins.module_utils.common import parse
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import container_policy, docker_cli
 
 ORCHESTRATOR_LABELS = ("isaacsim.fleet/test-orchestrator", "resim.ai/isTestOrchestrator")
 # a service with this image is the simulator: the run borrows an Isaac Sim instance of the fleet
@@ -78,7 +79,7 @@ TOP_LEVEL = {"services", "volumes", "name", "version", "networks", "x-"}
 # the variables that allow a confinement-loosening argument: a single run's, a suite's
 ALLOW_VAR = "experience_allowed_docker_args"
 SUITE_ALLOW_VAR = "test_suite_allowed_docker_args"
-# keys that take a container out of its confinement: refused (common/hardening.py's list, as the plan
+# keys that take a container out of its confinement: refused (hostlib/container_policy.py, as the plan
 # refuses them for instances) unless the allow variable names the exact argument; then honoured
 CONFINEMENT = ("privileged", "cap_add", "security_opt", "pid", "ipc", "userns_mode", "devices")
 _SHARED = {"pid": "--pid", "ipc": "--ipc", "userns_mode": "--userns"}
@@ -86,6 +87,10 @@ _SHARED = {"pid": "--pid", "ipc": "--ipc", "userns_mode": "--userns"}
 
 def _listed(value) -> list:
     return [str(v) for v in (value if isinstance(value, list) else [value] if value is not None else [])]
+
+
+# a test run's service: no host path (the file's volumes are named ones), no GPU through its arguments
+_RULES = {"bind_roots": [], "gpus": [], "root_ok": True}
 
 
 def _confinement(spec: dict, where: str, allowed, allow_var: str, errors: list, warnings: list) -> list:
@@ -106,15 +111,25 @@ def _confinement(spec: dict, where: str, allowed, allow_var: str, errors: list, 
             continue
         args.append(f"{opt}=host")
     args += [f"--device={d}" for d in _listed(spec.get("devices"))]
-    loosening = dict(hardening.refused(args))
-    allow = hardening.canonical(allowed)
+    try:
+        allow = container_policy.allowed_keys(allowed)
+    except container_policy.DockerArgError as exc:
+        errors.append(f"{allow_var}: {exc}. Fix: name each argument as docker run takes it (--cap-add=NET_ADMIN).")
+        return []
+    # each key is one argument of its own: judged alone, as Docker would read it
     honoured = []
-    for text in sorted(hardening.canonical(args)):
-        if text not in loosening:
-            warnings.append(f"{where}: {text} is ignored; test runs run with no-new-privileges and Docker's defaults.")
-        elif text in allow:
+    for text in sorted(set(args)):
+        where_text = f"{where}: {text}"
+        try:
+            keys = {key for key, _t, _w in container_policy.judge(docker_cli.config([text]), _RULES)}
+        except container_policy.DockerArgError as exc:
+            errors.append(f"{where_text}: {exc}. Fix: write it as Docker takes it.")
+            continue
+        if not keys:
+            warnings.append(f"{where_text} is ignored; test runs run with no-new-privileges and Docker's defaults.")
+        elif keys <= allow:
             honoured.append(text)
-    errors += hardening.errors(where, "a test run's service", args, allowed, allow_var)
+    errors += container_policy.errors(where, "a test run's service", args, allowed, _RULES, allow_var)
     return sorted(honoured)
 
 

@@ -7,9 +7,9 @@ real UDP exchange with the stand-in) and web viewer answer; from the third, and 
 none does. The site's own nftables table and Docker's rules stay byte for byte; a Docker restart, a
 reboot and a restart of the site's nftables.service keep the rules. playbooks/audit.yml finds the
 first host clean, probed from this machine and from the third, and names each finding planted on it
-(a container with an added capability and Docker's socket, a file with the registry key, a port
-opened by hand). The third host (no web viewer there) scales 4 -> 2 and exactly the rules of
-instances 2 and 3 go.
+(a container with an added capability and Docker's socket, one started by hand under an instance's
+name as root with no-new-privileges off, a file with the registry key, a port opened by hand). The
+third host (no web viewer there) scales 4 -> 2 and exactly the rules of instances 2 and 3 go.
 """
 
 from __future__ import annotations
@@ -128,8 +128,12 @@ def test_the_audit_finds_the_host_clean_and_each_planted_finding(fleet, tmp_path
 
     key = (ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key").read_text().strip()
     image = sh(first, "docker inspect -f '{{.Config.Image}}' isaac-sim-0").strip()
+    # a container started by hand under instance 3's own name, as root with no-new-privileges turned off
+    # in Go's spelling: judged against what instance 3's plan gives it
     sh(
         first,
+        f"systemctl stop isaac-sim@3 && docker run -d --name isaac-sim-3 --user 0 --security-opt no-new-privileges=f "
+        f"--entrypoint sleep {image} 600 && "
         f"docker run -d --name planted --cap-add NET_ADMIN -v /var/run/docker.sock:/var/run/docker.sock "
         f"--entrypoint sleep {image} 600 && printf %s '{key}' > /root/leak.txt && "
         "nft insert rule inet isaac_sim isaac-sim-0 tcp dport 49100 accept",
@@ -140,13 +144,16 @@ def test_the_audit_finds_the_host_clean_and_each_planted_finding(fleet, tmp_path
         handle = sh(first, "nft -a list chain inet isaac_sim isaac-sim-0 | awk '/accept # handle/ {print $NF}'")
         sh(
             first,
-            f"docker rm -f planted; rm -f /root/leak.txt; nft delete rule inet isaac_sim isaac-sim-0 handle {handle}",
+            f"docker rm -f planted isaac-sim-3; rm -f /root/leak.txt; "
+            f"nft delete rule inet isaac_sim isaac-sim-0 handle {handle}; systemctl start isaac-sim@3",
         )
-    assert run.returncode != 0 and "5 finding(s) on " + first in squash(run.stdout + run.stderr)
+    assert run.returncode != 0 and "7 finding(s) on " + first in squash(run.stdout + run.stderr)
     found = {(f["check"], f["what"], f["why"].split(":", 1)[0]) for f in report["hosts"][0]["findings"]}
     assert found == {
         ("container", "planted", "--cap-add=NET_ADMIN"),
         ("container", "planted", "--volume=/var/run/docker.sock"),
+        ("container", "isaac-sim-3", "--user=0"),
+        ("container", "isaac-sim-3", "--security-opt=no-new-privileges=false"),
         ("registry key", "/root/leak.txt", "holds the registry key (isaac_sim_registry_password)"),
         ("firewall", "isaac_sim", "the loaded rules differ from those the last deploy loaded"),
         (

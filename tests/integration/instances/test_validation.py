@@ -48,8 +48,9 @@ def assert_rejected(host, extra_vars, *needles):
             {"isaac_sim_image": "nvcr.io/nvidia/isaac-sim:6.0.1", "isaac_sim_registry_password": ""},
             ["isaac_sim_registry_password: empty, but nvcr.io/nvidia/isaac-sim:6.0.1 is on NGC"],
         ),
-        # every way out of the container at once, each named with the containers it would reach;
-        # the one allowed by name passes
+        # every way out of the container at once, each named with the containers it would reach, judged on
+        # what Docker makes of the words (a short-flag cluster, a CSV-quoted field, Go's "0" for false); the
+        # one allowed by name, spelled otherwise, passes
         (
             {
                 "isaac_sim_extra_docker_args": [
@@ -57,12 +58,17 @@ def assert_rejected(host, extra_vars, *needles):
                     "--cap-add",
                     "SYS_ADMIN",
                     "--pid=host",
-                    "-v",
+                    "-Pv",
                     "/var/run/docker.sock:/var/run/docker.sock",
+                    "--mount",
+                    'type=bind,"source=/run/containerd/containerd.sock",target=/c',
+                    "--security-opt",
+                    "no-new-privileges=0",
+                    "--user=0",
                     "--device=/dev/fuse",
-                    "--cap-add=SYS_PTRACE",
+                    "--cap-add=sys_ptrace",
                 ],
-                "isaac_sim_allowed_docker_args": ["--cap-add=SYS_PTRACE"],
+                "isaac_sim_allowed_docker_args": ["--cap-add=CAP_SYS_PTRACE"],
                 "isaac_sim_companions": [
                     {
                         "name": "bridge",
@@ -79,9 +85,15 @@ def assert_rejected(host, extra_vars, *needles):
                 "isaac_sim_extra_docker_args: --cap-add=SYS_ADMIN adds the capability SYS_ADMIN",
                 "add '--cap-add=SYS_ADMIN' to isaac_sim_allowed_docker_args",
                 "isaac_sim_extra_docker_args: --pid=host shares the host's PID namespace",
-                "isaac_sim_extra_docker_args: --volume=/var/run/docker.sock:/var/run/docker.sock mounts Docker's",
+                "isaac_sim_extra_docker_args: --volume=/var/run/docker.sock:/var/run/docker.sock binds host path "
+                "/run/docker.sock into it: Docker's socket",
+                "isaac_sim_extra_docker_args: --mount=type=bind,source=/run/containerd/containerd.sock,target=/c "
+                "binds host path /run/containerd/containerd.sock into it: containerd's socket",
+                "isaac_sim_extra_docker_args: --security-opt=no-new-privileges=false lets the container's processes "
+                "gain privileges",
+                "isaac_sim_extra_docker_args: --user=0 runs the container as root",
                 "isaac_sim_extra_docker_args: --device=/dev/fuse gives the container a host device",
-                "isaac_sim_companions[bridge].volumes: --volume=/run:/host-run mounts Docker's",
+                "isaac_sim_companions[bridge].volumes: --volume=/run:/host-run binds host path /run into it",
                 "isaac_sim_companions[bridge].docker_args: --security-opt=seccomp=unconfined turns off the seccomp "
                 "filter (the companion of isaac-sim-2)",
             ],
@@ -109,7 +121,8 @@ def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
     assert "Traceback" not in out and "invalid literal" not in out and "[Errno" not in out
     # a wrong type is refused before Ansible's own role argument validation, which prints the spec
     assert "argument_spec" not in out and "_AnsibleTagged" not in out
-    # an argument allowed by name is not refused (the confinement case allows --cap-add=SYS_PTRACE)
+    # an argument allowed by name is not refused (the confinement case allows --cap-add=sys_ptrace, spelled
+    # --cap-add=CAP_SYS_PTRACE in the allowance: the same capability to Docker)
     assert "--cap-add=SYS_PTRACE adds" not in out
 
 

@@ -48,6 +48,53 @@ def test_containers_out_of_their_confinement_are_named_with_the_argument_and_why
     assert sum("socket" in w for w in whys) == 2  # the bind and the mount of /run, which holds it
 
 
+def test_a_container_under_an_instance_s_name_is_held_to_what_its_plan_gave_it():
+    """Started by hand as isaac-sim-0: everything beyond the instance's env file is a finding; what the
+    plan itself gave it (its caches, its GPU, its user, a capability the site allowed) is none."""
+    data = "/var/lib/isaac-sim/instance-0"
+    planned = [
+        "--network=host", "--user=1234:1234", "--security-opt=no-new-privileges", "--cap-add=SYS_PTRACE",
+        f"--volume={data}/cache:/isaac-sim/.cache:rw", "--runtime=nvidia", "--gpus=device=0",
+    ]  # fmt: skip
+    env_text = "\n".join([
+        f"{layout.K_CONTAINER}=isaac-sim-0", f"{layout.K_GPU}=0",
+        f"{layout.K_DOCKER_ARGS}={layout.quote(layout.join_args(planned))}",
+    ])  # fmt: skip
+    as_planned = {
+        "Name": "/isaac-sim-0",
+        "Config": {"User": "1234:1234"},
+        "HostConfig": {
+            "SecurityOpt": ["no-new-privileges"], "CapAdd": ["CAP_SYS_PTRACE"],
+            "Binds": [f"{data}/cache:/isaac-sim/.cache:rw"],
+            "DeviceRequests": [{"Driver": "", "Count": 0, "DeviceIDs": ["0"], "Capabilities": [["gpu"]]}],
+        },
+    }  # fmt: skip
+    envs = {f"{layout.CONFIG_DIR}/instance-0.env": env_text}
+    assert audit.container_findings([as_planned], envs) == []
+    by_hand = {
+        "Name": "/isaac-sim-0",
+        "Config": {"User": "0"},
+        "HostConfig": {
+            "SecurityOpt": ["no-new-privileges", "no-new-privileges=f"],
+            "Binds": [f"{data}/cache:/isaac-sim/.cache:rw", "/srv/other:/o", "rootvol:/h"],
+            "DeviceRequests": [{"Driver": "", "Count": -1, "DeviceIDs": None, "Capabilities": [["gpu"]]}],
+        },
+    }
+    volumes = {"rootvol": {"type": "none", "o": "bind", "device": "/"}}
+    found = [f["why"].split(":")[0] for f in audit.container_findings([by_hand], envs, volumes)]
+    assert found == [
+        "--security-opt=no-new-privileges=false",
+        "--gpus=all",
+        "--volume=/srv/other",
+        "--volume=rootvol",
+        "--user=0",
+    ]
+    # the same container under a name that is not ours: only what hands it the host
+    foreign = dict(by_hand, Name="/planted")
+    found = [f["why"].split(":")[0] for f in audit.container_findings([foreign], envs, volumes)]
+    assert found == ["--security-opt=no-new-privileges=false", "--volume=rootvol"]
+
+
 def test_the_key_is_found_in_files_and_the_journal_and_never_returned(tmp_path):
     (tmp_path / "etc").mkdir()
     (tmp_path / "etc" / "leak.json").write_text(f'{{"auth": "{KEY}"}}')
@@ -168,6 +215,8 @@ class FakeIO(audit.HostIO):
             def get(self, endpoint):
                 if endpoint.startswith("/containers/json"):
                     return [{"Id": c["Name"]} for c in containers]
+                if endpoint == "/volumes":
+                    return {"Volumes": [{"Name": "rootvol", "Options": {"type": "none", "o": "bind", "device": "/"}}]}
                 return next(c for c in containers if endpoint == f"/containers/{c['Name']}/json")
 
         def run(argv):

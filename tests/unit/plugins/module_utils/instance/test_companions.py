@@ -26,6 +26,8 @@ HOST = {"memory_bytes": 64 * 1024**3, "image_present": True}
 
 
 def build(companions, **over):
+    # BRIDGE binds /srv/maps: a directory the site declares (the container policy's bind roots)
+    over.setdefault("allowed_bind_roots", ["/srv/maps"])
     return plan.build(plan_config(companions=companions, **over), HOST)
 
 
@@ -110,7 +112,7 @@ def test_companion_ports_may_not_land_on_another_port_or_one_held_by_another_pro
     )
     with pytest.raises(plan.PlanError) as exc:
         plan.build(
-            plan_config(companions=[BRIDGE]),
+            plan_config(companions=[BRIDGE], allowed_bind_roots=["/srv/maps"]),
             dict(HOST, ports_held=[{"proto": "tcp", "port": 9101, "process": "nginx (pid 9)"}]),
         )
     assert any(

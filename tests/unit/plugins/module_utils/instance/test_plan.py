@@ -547,15 +547,33 @@ def test_a_way_out_of_the_container_is_refused_for_instances_and_companions_unle
     assert [e.split(" (")[0] for e in errors if "isaac_sim_allowed_docker_args" in e] == [
         "isaac_sim_extra_docker_args: --privileged gives the container every capability and device",
         "isaac_sim_companions[bridge].docker_args: --cap-add=NET_ADMIN adds the capability NET_ADMIN to the container",
-        "isaac_sim_companions[bridge].volumes: --volume=/var/run/docker.sock:/var/run/docker.sock mounts Docker's "
-        "or containerd's socket into it, and that socket controls every container and the host",
+        "isaac_sim_companions[bridge].volumes: --volume=/var/run/docker.sock:/var/run/docker.sock binds host path "
+        "/run/docker.sock into it: Docker's socket, which controls every container and the host",
     ]
     assert any("(on isaac-sim-0, isaac-sim-1)" in e for e in errors)
     assert any("(the companion of isaac-sim-1)" in e for e in errors)
-    # allowed, each by its exact argument: the plan takes them, as given
-    allow = ["--privileged", "--cap-add", "NET_ADMIN", "--volume=/var/run/docker.sock:/var/run/docker.sock"]
+    # allowed, each by what Docker makes of it: the plan takes them, as given
+    allow = ["--privileged=1", "--cap-add", "net_admin", "-v/run/docker.sock:/elsewhere"]
     allowed = plan.build(dict(c, allowed_docker_args=allow), HOST)
     assert "--privileged" in allowed["instances"][0]["docker_args"]
+
+
+def test_binds_come_from_the_data_root_and_the_declared_roots_and_root_is_refused_where_the_release_has_a_user():
+    c = cfg(docker_args=["-v", "/srv/maps:/maps:ro", "-u0"], companions=[{"name": "rec", "image": "r:1", "user": "0"}])
+    errors = [e.split(" (on ")[0].split(" (the companion")[0] for e in errors_of(c)]
+    assert errors == [
+        "isaac_sim_extra_docker_args: --volume=/srv/maps:/maps:ro binds host path /srv/maps into it, outside the paths "
+        "this host allows bind mounts from (/var/lib/isaac-sim; more with isaac_sim_allowed_bind_roots)",
+        "isaac_sim_extra_docker_args: --user=0 runs the container as root, where its release runs as a user",
+        "isaac_sim_companions[rec].user: --user=0 runs the container as root, where its release runs as a user",
+    ]
+    ok = plan.build(cfg(docker_args=["-v", "/srv/maps:/maps:ro"], allowed_bind_roots=["/srv/maps"]), HOST)
+    assert "/srv/maps:/maps:ro" in ok["instances"][0]["docker_args"]
+    # 4.x's container runs as root itself: --user=0 takes nothing away there
+    assert plan.build(cfg(release="4.x", image="nvcr.io/nvidia/isaac-sim:4.5.0", docker_args=["--user=0"]), HOST)
+    errors = errors_of(cfg(allowed_bind_roots=["/var"], allowed_docker_args=["--bogus"]))
+    assert errors[0].startswith("isaac_sim_allowed_bind_roots: '/var' holds or is Docker's own state")
+    assert errors[1].startswith("isaac_sim_allowed_docker_args: unknown flag: --bogus. Fix:")
 
 
 L4 = {"name": "NVIDIA L4", "brand": "NVIDIA", "memory_total_mib": 23034, "memory_reserved_mib": 522, "encoder": True}

@@ -82,7 +82,9 @@ def test_the_warm_run_is_the_instance_s_own_start_on_scratch_with_no_secret_and_
         "8080:80",
         "--mount=type=bind,src=/m,dst=/m",
     ]
-    p = _plan(tmp_path, gpu_enabled=True, gpu_map={0: 1, 1: 0}, docker_args=user)
+    p = _plan(
+        tmp_path, gpu_enabled=True, gpu_map={0: 1, 1: 0}, docker_args=user, allowed_bind_roots=["/datasets", "/m"]
+    )
     inst = p["instances"][0]
     argv, subdirs = warm_cache.run_argv(p, inst, "sha256:aa", "/scratch", "warm-isaac-sim-k", "k")
     joined = " ".join(argv)
