@@ -93,9 +93,12 @@ def test_a_clean_exit_before_ready_stays_counted(run):
     ],
 )
 def test_docker_going_away_is_no_crash_and_its_restart_is_not_counted(run, state, job):
-    rc, out, calls = run(1, ready=True, docker_state=state, docker_job=job)
+    rc, out, calls = run(125, ready=True, docker_state=state, docker_job=job)
     assert "isaac-sim-2: Docker went away under it" in out and "not counted as a crash" in out
     assert "reset-failed isaac-sim@2.service" in calls
+    # one event for the exit: status counted five crashes for instances that never crashed
+    assert out.count("[isaac-sim-events] event=") == 1 and "event=docker_away" in out
+    assert "crashed" not in out and rc == 125
 
 
 def test_a_crash_while_docker_runs_is_a_crash(run):
