@@ -361,8 +361,13 @@ def handler(door: Door, form_action: str = ""):
             if not length.isdigit() or int(length) > 8192:
                 self._send(413 if length.isdigit() else 400)
                 return
-            # a form another site's page sends (login CSRF) is refused; browsers say where it came from
-            if self.headers.get("Sec-Fetch-Site") in ("cross-site", "same-site"):
+            # a form another site's page sends (login CSRF) is refused; browsers say where it came from,
+            # in Sec-Fetch-Site or (older ones, and every POST of a page) in Origin, which must be the
+            # front door's own as nginx saw the browser reach it (X-Fleet-Origin); no Origin: no browser
+            origin, own = self.headers.get("Origin"), self.headers.get("X-Fleet-Origin")
+            if self.headers.get("Sec-Fetch-Site") in ("cross-site", "same-site") or (
+                origin is not None and (not own or origin.rstrip("/").lower() != own.rstrip("/").lower())
+            ):
                 door.log(f"login refused from={self._client()} (a form of another site)")
                 self._send(403)
                 return

@@ -388,6 +388,8 @@ def nginx_conf(p: dict, managed: str) -> str:
         "      limit_req zone=fleet_login burst=5 nodelay;",
         f"      proxy_pass {auth};",
         "      proxy_set_header X-Real-IP $remote_addr;",
+        # the origin a browser reached the door at: the login form's POST must come from it
+        "      proxy_set_header X-Fleet-Origin https://$http_host;",
         "    }",
         f"    location = /logout {{ proxy_pass {auth}; }}",
         # who is logged in (the dashboard shows direct addresses to operators): the service reads the session

@@ -170,6 +170,15 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     form = {"user": "olga", "password": "s3cret"}
     response, _body = call(port, "POST", "/login", form, {"Sec-Fetch-Site": "cross-site"})
     assert response.status == 403 and lines[-1] == "login refused from=127.0.0.1 (a form of another site)"
+    # no Sec-Fetch-Site (an older browser): the Origin decides, against the door's own as nginx saw it
+    own = {"X-Fleet-Origin": "https://fleet.lab:8443"}
+    for origin in ("https://evil.example", "null", "https://fleet.lab"):
+        response, _body = call(port, "POST", "/login", form, dict(own, Origin=origin))
+        assert response.status == 403, origin
+    # an Origin where the door's own is not known is refused too (fails closed)
+    assert call(port, "POST", "/login", form, {"Origin": "https://fleet.lab:8443"})[0].status == 403
+    response, _body = call(port, "POST", "/login", form, dict(own, Origin="https://FLEET.lab:8443"))
+    assert response.status == 303
     response, _body = call(port, "POST", "/login", dict(form, next="/\u0100"))
     assert response.status == 303 and response.getheader("Location") == "/"
     assert call(port, "GET", "/login")[0].status == 200
