@@ -67,8 +67,10 @@ options:
     type: dict
     default: {}
   scripts:
-    description: Content of the host-side scripts (C(isaac-sim-run), C(isaac-sim-ready), C(isaac-sim-ports)),
-      installed in the layout's libexec directory.
+    description: Content of the host-side scripts (C(isaac-sim-run), C(isaac-sim-ready), C(isaac-sim-ports),
+      C(isaac-sim-cache-state), C(isaac-sim-policy)) and of the container policy's code that C(isaac-sim-policy)
+      reads beside them (C(docker_cli.py), C(container_policy.py) from the host library), installed in the
+      layout's libexec directory.
     type: dict
     default: {}
   managed:

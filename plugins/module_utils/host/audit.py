@@ -20,12 +20,7 @@ import socket
 import stat
 from concurrent.futures import ThreadPoolExecutor
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
-    container_policy,
-    docker_cli,
-    fleet_status,
-    layout,
-)
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import container_policy, fleet_status, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import firewall
 
@@ -42,21 +37,6 @@ def finding(check: str, what: str, why: str) -> dict:
     return {"check": check, "what": what, "why": why}
 
 
-def planned_rules(env: dict) -> tuple:
-    """(rules, keys the plan allowed) for a container of ours, from its env file: its binds' sources are
-    its only bind roots, its GPU its only GPU, its release's user its user; what the plan itself gave it
-    (allowed there by isaac_sim_allowed_docker_args) is no finding."""
-    try:
-        planned = docker_cli.config(layout.split_args(env.get(layout.K_DOCKER_ARGS, "")))
-    except docker_cli.DockerArgError:
-        planned = {"HostConfig": {}, "Config": {}}
-    roots = [m["Source"] for m in container_policy.mounts(planned["HostConfig"]) if m["Type"] == "bind"]
-    gpu = env.get(layout.K_GPU, "")
-    user = planned["Config"].get("User", "")
-    rules = {"bind_roots": roots, "gpus": [gpu] if gpu else [], "root_ok": container_policy.is_root(user)}
-    return rules, {key for key, _text, _why in container_policy.judge(planned, rules)}
-
-
 def container_findings(containers: list, envs: dict | None = None, volumes: dict | None = None) -> list:
     """A finding per thing the container policy refuses (hostlib/container_policy.py, the plan's own),
     judged on what Docker says each container of the host has. A container named as one of ours (an
@@ -67,19 +47,22 @@ def container_findings(containers: list, envs: dict | None = None, volumes: dict
     for text in (envs or {}).values():
         env = layout.parse(text or "")
         if env.get(layout.K_CONTAINER):
-            planned[env[layout.K_CONTAINER]] = planned_rules(env)
+            planned[env[layout.K_CONTAINER]] = env
+    foreign = {"bind_roots": None, "gpus": None, "root_ok": True, "volumes": volumes or {}, "inspected": True}
     out = []
     for inspected in containers:
         name = str(inspected.get("Name", "")).lstrip("/")
-        rules, given = planned.get(name, ({"bind_roots": None, "gpus": None, "root_ok": True}, set()))
+        env = planned.get(name)
         try:
-            judged = container_policy.judge(inspected, dict(rules, volumes=volumes or {}))
-        except docker_cli.DockerArgError as exc:
+            if env is None:
+                judged = container_policy.judge(inspected, foreign)
+            else:
+                args = layout.split_args(env.get(layout.K_DOCKER_ARGS, ""))
+                judged = container_policy.beyond_plan(inspected, args, env.get(layout.K_GPU, ""), volumes)
+        except container_policy.DockerArgError as exc:
             out.append(finding("container", name, f"Docker reports settings the policy cannot read: {exc}"))
             continue
-        for key, text, why in judged:
-            if key not in given:
-                out.append(finding("container", name, f"{text}: {why}"))
+        out += [finding("container", name, f"{text}: {why}") for _key, text, why in judged]
     return out
 
 

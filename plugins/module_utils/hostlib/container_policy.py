@@ -15,8 +15,9 @@ never loosened. One exception is a named argument of isaac_sim_allowed_docker_ar
 what Docker makes of it, so `-Pv /var/run/docker.sock:/s` is allowed by
 `--volume=/var/run/docker.sock:/x` and refused by nothing else.
 
-The same code serves the plan (before any change: instances, companions, test runs) and the audit
-(on `docker inspect`). It is in the host library so that a check on the host itself can read it.
+The same code serves the plan (before any change: instances, companions, test runs), the unit's
+check of the container Docker created, before it starts (isaac-sim-policy, which reads this file
+copied beside it), and the audit (on `docker inspect`).
 """
 
 from __future__ import annotations
@@ -98,9 +99,11 @@ def _local_volume_source(options: dict) -> tuple:
     return ("device", device) if device.startswith("/") else (None, "")
 
 
-def _bind(source: str, text: str, roots, how: str = "binds") -> list:
+def _bind(source: str, text: str, roots, how: str = "binds", resolve=None) -> list:
     if not source.startswith("/"):
         return []
+    if resolve:  # on the host: a symbolic link is judged by where it leads, the roots too
+        source, roots = resolve(source), None if roots is None else [resolve(r) for r in roots]
     risk = host_path_risk(source)
     if roots is not None and any(under(source, root) for root in roots) and not risk:
         return []
@@ -114,7 +117,7 @@ def _bind(source: str, text: str, roots, how: str = "binds") -> list:
     return [(("bind", normal(source)), text, why)]
 
 
-def _mount_findings(host: dict, roots, volumes: dict) -> list:
+def _mount_findings(host: dict, roots, volumes: dict, resolve=None) -> list:
     out = []
     specs = list(host.get("Binds") or [])
     for index, mount in enumerate(mounts(host)):
@@ -123,7 +126,7 @@ def _mount_findings(host: dict, roots, volumes: dict) -> list:
         else:
             text = f"--mount=type={mount['Type']},source={mount['Source']},target={mount['Target']}"
         if mount["Type"] == "bind":
-            out += _bind(mount["Source"], text, roots)
+            out += _bind(mount["Source"], text, roots, resolve=resolve)
             continue
         if mount["Type"] != "volume":
             continue
@@ -131,7 +134,7 @@ def _mount_findings(host: dict, roots, volumes: dict) -> list:
         options = mount["Options"] or (volumes or {}).get(mount["Source"], {})
         kind, path = _local_volume_source(options)
         if kind == "bind":
-            out += _bind(path, text, roots, "binds (a local volume with o=bind)")
+            out += _bind(path, text, roots, "binds (a local volume with o=bind)", resolve)
         elif kind == "device":
             out.append((("device", normal(path)), text, f"mounts the host's device {path} into it (a local volume)"))
     return out
@@ -194,6 +197,8 @@ def judge(inspected: dict, rules: dict | None = None) -> list:
       gpus: the GPU ids the plan gives (--gpus=device=ID); None: GPU requests are not judged
       root_ok: the release itself runs as root (2023.1, 4.x), so a root user takes nothing away
       volumes: {name: local-driver options} of named volumes as Docker has them
+      resolve: on the host, os.path.realpath: bind sources and roots judged where their links lead
+      inspected: what Docker shows (docker inspect), not arguments: its daemon defaults are not judged
     The key names the effect, so an allowance matches however either was spelled."""
     rules = rules or {}
     host = inspected.get("HostConfig") or {}
@@ -205,6 +210,10 @@ def judge(inspected: dict, rules: dict | None = None) -> list:
         name = name[4:] if name.startswith("CAP_") else name
         out.append((("cap-add", name), f"--cap-add={name}", f"adds the capability {name} to the container"))
     for key, flag, what in _NAMESPACES:
+        # docker inspect shows the daemon's default cgroup namespace (host on cgroup v1): only the
+        # arguments tell one asked for
+        if key == "CgroupnsMode" and rules.get("inspected"):
+            continue
         if host.get(key) == "host":
             out.append(((flag, "host"), f"--{flag}=host", f"shares the host's {what} namespace with the container"))
     out += _security(host)
@@ -221,7 +230,7 @@ def judge(inspected: dict, rules: dict | None = None) -> list:
         if gpus is not None and not (request.get("Count", 0) == 0 and ids and set(ids) <= {str(g) for g in gpus}):
             text = _gpus(request)
             out.append((("gpus", text), text, "gives the container GPUs beyond the one the plan gives it"))
-    out += _mount_findings(host, rules.get("bind_roots"), rules.get("volumes"))
+    out += _mount_findings(host, rules.get("bind_roots"), rules.get("volumes"), rules.get("resolve"))
     for source in host.get("VolumesFrom") or []:
         out.append((("volumes-from", source), f"--volumes-from={source}",
                     "mounts every volume of another container, which the policy cannot judge"))  # fmt: skip
@@ -229,6 +238,25 @@ def judge(inspected: dict, rules: dict | None = None) -> list:
     if is_root(user) and not rules.get("root_ok"):
         out.append((("user", "root"), f"--user={user}", "runs the container as root, where its release runs as a user"))
     return out
+
+
+def beyond_plan(inspected: dict, planned_args, gpu="", volumes=None, resolve=None) -> list:
+    """judge() of a container of ours against its own plan (the docker run arguments of its env file):
+    its binds' sources are its only bind roots, its GPU its only GPU, its release's user its user, and
+    what the plan itself gave it (allowed there by isaac_sim_allowed_docker_args) is not refused. What
+    remains is what Docker made that the plan did not give: a reading of the arguments other than ours,
+    a named volume that binds a host path, a container made by hand under the instance's name."""
+    try:
+        planned = docker_cli.config(planned_args)
+    except DockerArgError:
+        planned = {"HostConfig": {}, "Config": {}}
+    roots = [m["Source"] for m in mounts(planned["HostConfig"]) if m["Type"] == "bind"]
+    user = planned["Config"].get("User", "")
+    rules = {"bind_roots": roots, "gpus": [str(gpu)] if str(gpu) else [], "root_ok": is_root(user)}
+    # what the plan gave, as the plan saw it: not where a link leads, nor what a named volume's options bind
+    given = {key for key, _text, _why in judge(planned, rules)}
+    found = judge(inspected, dict(rules, volumes=volumes or {}, resolve=resolve, inspected=True))
+    return [item for item in found if item[0] not in given]
 
 
 def allowed_keys(allowed) -> set:

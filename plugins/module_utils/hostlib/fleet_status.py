@@ -315,6 +315,11 @@ def down_reason(unit: dict | None, name: str) -> str | None:
             f"a port of its block is held by another process, so it is not restarted. Fix: read "
             f"journalctl -u {name} for the port, free it, then systemctl reset-failed {name} and start it"
         )
+    if active == "failed" and _int(unit.get("ExecMainStatus")) == layout.POLICY_REFUSED_STATUS:
+        return (
+            f"the container policy refused the container Docker made for it, so it is not started. Fix: read "
+            f"journalctl -u {name} for what Docker made, change the instance's settings, then deploy again"
+        )
     # Restart=always: a failed unit is one systemd stopped restarting. A refused manual start reads
     # start-limit-hit; a refused automatic restart keeps the last run's result (systemd 247-255).
     if active == "failed" and (result == "start-limit-hit" or _int(unit.get("NRestarts")) > 0):

@@ -38,7 +38,12 @@ PORTS_SCRIPT = "isaac-sim-ports"
 CACHE_STATE_SCRIPT = "isaac-sim-cache-state"
 # isaac-sim-run's exit status when a port of the block is held by another process
 PORTS_HELD_STATUS = 76
-SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT, CACHE_STATE_SCRIPT)
+# isaac-sim-run's check of the container Docker created, before it starts (the container policy), its
+# exit status when the policy refuses it, and the host library files it reads, beside it in LIBEXEC_DIR
+POLICY_SCRIPT = "isaac-sim-policy"
+POLICY_REFUSED_STATUS = 77
+POLICY_LIB = ("docker_cli.py", "container_policy.py")
+SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT, CACHE_STATE_SCRIPT, POLICY_SCRIPT)
 # the host's read-only status endpoint (a host service, not an instance)
 STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"

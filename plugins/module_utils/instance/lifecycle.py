@@ -176,7 +176,10 @@ def _gate_reason(host: Host, unit: str, since: float) -> str:
             quoted = [q[1:].strip() for q in lines[n + 1 :] if q.startswith("|") and not _GATE_WORDS.search(q)]
             return lines[n] + (f" (last lines: {' / '.join(quoted[-3:])})" if quoted else "")
     state = show(host, [unit])[unit]
-    return f"the unit did not start (ActiveState={state.get('ActiveState')}, Result={state.get('Result')})"
+    said = f"the unit did not start (ActiveState={state.get('ActiveState')}, Result={state.get('Result')})"
+    # the start's own last words (isaac-sim-run's: a port held, the container policy's refusal)
+    last = [line for line in lines if line and not line.startswith(("event=", "|"))][-2:]
+    return said + (f" (last lines: {' / '.join(last)})" if last else "")
 
 
 def companions_up(host: Host, companions: dict) -> dict:

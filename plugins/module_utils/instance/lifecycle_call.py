@@ -55,6 +55,12 @@ def _want(host: Host, p: dict, found: dict) -> dict:
             raise LifecycleError(f"scripts: {name} is missing. Fix: pass the role's files/{name}.")
         text = p["scripts"][name]
         files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o755)
+    # the container policy's code, read by isaac-sim-policy beside it (not run by itself)
+    for name in layout.POLICY_LIB:
+        if name not in p["scripts"]:
+            raise LifecycleError(f"scripts: {name} is missing. Fix: pass plugins/module_utils/hostlib/{name}.")
+        text = p["scripts"][name]
+        files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o644)
     for unit in plan.get("companion_units", []):
         files[os.path.join(layout.UNIT_DIR, layout.companion_template(unit["name"]))] = (
             unit_files.render_companion_unit(unit, plan["settings"], p["managed"]),

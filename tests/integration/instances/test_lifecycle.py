@@ -1,5 +1,6 @@
 """The one lifecycle on a real systemd host: a deploy that breaks an instance goes back
-and stops; an app that quits by itself comes back; values typed on the command line
+and stops, as does one whose container Docker makes other than the plan read it (the
+container policy's check before the start); an app that quits by itself comes back; values typed on the command line
 reach systemd as numbers; a size with a space reaches Docker as one word.
 
 Runs in molecule's verify step on molecule/default; each test leaves every instance ready.
@@ -41,6 +42,32 @@ def test_a_deploy_that_breaks_an_instance_stops_there_and_puts_it_back(host):
     assert after[0] != before[0], "isaac-sim-0 was not restarted on its previous settings"
     assert {i: after[i] for i in (1, 2, 3)} == {i: before[i] for i in (1, 2, 3)}
     assert {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)} == envs
+
+
+def test_a_container_docker_makes_other_than_the_plan_read_it_never_starts(host):
+    """A named volume made by hand with bind options: the plan sees a volume's name, Docker makes a bind
+    of the host's /etc of it. The unit's check of the created container (isaac-sim-policy) refuses it
+    before it starts; the rollout stops on instance 0, names why, and puts it back."""
+    before, envs = ids(host), {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)}
+    sh(host, "docker volume create --opt type=none --opt o=bind --opt device=/etc hostetc")
+    try:
+        run = testbed.run_playbook(host, {"isaac_sim_extra_docker_args": ["-v", "hostetc:/h:ro"]})
+        out = " ".join((run.stdout + run.stderr).split())
+        assert run.returncode != 0, out[-3000:]
+        assert f"Rollout stopped on {testbed.name(host)}: isaac-sim-0: " in out, out[-3000:]
+        assert (
+            "isaac-sim-0 was not started: the container policy refuses what Docker made of its arguments: "
+            "--volume=hostetc:/h:ro binds (a local volume with o=bind) host path /etc into it"
+        ) in out, out[-3000:]
+        assert "it went back to" in out and "not reached: isaac-sim-1, isaac-sim-2, isaac-sim-3" in out
+        testbed.all_ready(host)
+        after = ids(host)
+        assert {i: after[i] for i in (1, 2, 3)} == {i: before[i] for i in (1, 2, 3)}
+        assert {i: sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout for i in range(INSTANCES)} == envs
+        # the refused container never ran: nothing of it is left
+        assert "hostetc" not in sh(host, "docker ps -a --format '{{.Mounts}}'").stdout
+    finally:
+        sh(host, "docker volume rm hostetc", check=False)
 
 
 def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_blocks(host):

@@ -33,7 +33,7 @@ def lifecycle_result(h: ScriptedHost, tmp_path, **args) -> dict:
         "plan": None,
         "image_id": "unknown",
         "secret_env": {},
-        "scripts": {name: "#!/bin/sh\n" for name in layout.SCRIPTS},
+        "scripts": {name: "#!/bin/sh\n" for name in (*layout.SCRIPTS, *layout.POLICY_LIB)},
         "managed": "managed",
         "soak_seconds": 10,
         "defer_running": False,

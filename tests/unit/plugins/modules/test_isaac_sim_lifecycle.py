@@ -18,7 +18,7 @@ from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance
     ScriptedHost,
 )
 
-SCRIPTS = {name: f"#!/bin/sh\n# {name}\n" for name in layout.SCRIPTS}
+SCRIPTS = {name: f"#!/bin/sh\n# {name}\n" for name in (*layout.SCRIPTS, *layout.POLICY_LIB)}
 UNIT_TEMPLATE = os.path.join(layout.UNIT_DIR, layout.UNIT_TEMPLATE)
 
 

@@ -157,9 +157,11 @@ def test_docker_inspect_is_judged_as_the_arguments_are():
             "MaskedPaths": [],
             "DeviceRequests": [{"Driver": "", "Count": 0, "DeviceIDs": ["0"], "Capabilities": [["gpu"]]}],
             "PidMode": "host",
+            # Docker's default on cgroup v1: shown for every container, asked for or not
+            "CgroupnsMode": "host",
         },
     }
-    judged = container_policy.judge(inspected, dict(RULES, gpus=["0"], volumes=BOUND))
+    judged = container_policy.judge(inspected, dict(RULES, gpus=["0"], volumes=BOUND, inspected=True))
     assert sorted(key for key, _t, _w in judged) == sorted(
         [
             ("bind", "/run/docker.sock"),

@@ -190,6 +190,8 @@ def test_state_words(active, sub, expected):
         ("failed", "exit-code", "0", "1", "failed (exit-code): read journalctl -u isaac-sim@2.service"),
         # isaac-sim-ports: never restarted, whatever the count
         ("failed", "exit-code", "1", "76", "a port of its block is held"),
+        # isaac-sim-policy: a container the container policy refused, never started nor restarted
+        ("failed", "exit-code", "0", "77", "the container policy refused the container Docker made"),
         ("inactive", "success", "0", "0", "stopped: "),
     ],
 )

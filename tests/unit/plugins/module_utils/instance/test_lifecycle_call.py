@@ -44,7 +44,7 @@ def params(tmp_path, **over) -> dict:
         "plan": built,
         "image_id": "unknown",
         "secret_env": {},
-        "scripts": {name: "#!/bin/sh\n" for name in layout.SCRIPTS},
+        "scripts": {name: "#!/bin/sh\n" for name in (*layout.SCRIPTS, *layout.POLICY_LIB)},
         "managed": "managed",
         "soak_seconds": 0,
         "defer_running": False,

@@ -53,7 +53,7 @@ def test_unit_numbers_are_numbers_whatever_was_given():
     assert "StartLimitBurst=3\n" in unit
     assert "StartLimitIntervalSec=156\n" in unit  # 3 * (2 + 20 + 30)
     assert "RestartSec=2\n" in unit and "TimeoutStartSec=50\n" in unit and "TimeoutStopSec=35\n" in unit
-    assert "Restart=always\n" in unit and "RestartPreventExitStatus=76\n" in unit
+    assert "Restart=always\n" in unit and "RestartPreventExitStatus=76 77\n" in unit
     # session ends restart for ever while crash loops stop: every exit restarts, the start limit
     # is on (isaac-sim-run flushes it on a clean exit after ready), and no exit status is a
     # success that would end the unit instead of restarting it
