@@ -29,7 +29,12 @@ import tarfile
 import tempfile
 import time
 
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
+    container_policy,
+    docker_cli,
+    fleet_status,
+    layout,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import WARM_CACHES
 
 KEY_MEMBER = "key.json"
@@ -122,37 +127,17 @@ def _rel(inst: dict, source: str) -> str:
     return source[len(root) :] if source.startswith(root) else "shared/" + os.path.basename(source.rstrip("/"))
 
 
-# docker run's options that take a value, which a user may give as the next word (--label a=b)
-_VALUED = frozenset({
-    "--label", "-l", "--network", "--net", "--ip", "--ip6", "--publish", "-p", "--expose", "--env", "-e",
-    "--env-file", "--volume", "-v", "--mount", "--tmpfs", "--health-cmd", "--health-interval", "--health-timeout",
-    "--health-retries", "--health-start-period", "--health-start-interval", "--memory", "-m", "--memory-swap",
-    "--memory-reservation", "--shm-size", "--cpus", "--cpuset-cpus", "--cpu-shares", "-c", "--user", "-u",
-    "--group-add", "--entrypoint", "--workdir", "-w", "--hostname", "-h", "--domainname", "--add-host", "--dns",
-    "--dns-search", "--dns-option", "--security-opt", "--gpus", "--runtime", "--cap-add", "--cap-drop", "--device",
-    "--device-cgroup-rule", "--ulimit", "--sysctl", "--pid", "--ipc", "--uts", "--userns", "--cgroupns",
-    "--log-driver", "--log-opt", "--restart", "--stop-signal", "--stop-timeout", "--pull", "--platform", "--name",
-    "--mac-address", "--storage-opt", "--cgroup-parent", "--oom-score-adj", "--pids-limit",
-})  # fmt: skip
-
-
 def words(args) -> list:
-    """(argument as one word, option, value) of docker run arguments; a value given as the next word joins
-    its option (--label a=b: ("--label=a=b", "--label", "a=b")); a flag has value None."""
-    out, items, i = [], [str(a) for a in args or []], 0
-    while i < len(items):
-        word = items[i]
-        if word.startswith("--") and "=" in word:
-            opt, value = word.split("=", 1)
-        elif word in _VALUED and i + 1 < len(items):
-            opt, value, i = word, items[i + 1], i + 1
-        elif len(word) > 2 and word[0] == "-" and word[1] != "-" and word[:2] in _VALUED:
-            opt, value = word[:2], word[2:]
+    """(argument as one word, option, value) of docker run arguments, read as Docker's client reads them
+    (hostlib/docker_cli.py: -Pv SRC:DST is two options, --label a=b one): each option by its long name,
+    its value joined (--label a=b: ("--label=a=b", "--label", "a=b")); a boolean flag has value None."""
+    out = []
+    for name, value in docker_cli.parse(args):
+        opt = f"--{name}"
+        if name in docker_cli.BOOLS:
+            out.append((opt if value == "true" else f"{opt}={value}", opt, None))
         else:
-            opt, value = word, None
-        opt = {"-v": "--volume", "-e": "--env", "-l": "--label", "-p": "--publish"}.get(opt, opt)
-        out.append((opt if value is None else f"{opt}={value}", opt, value))
-        i += 1
+            out.append((f"{opt}={value}", opt, value))
     return out
 
 
@@ -178,7 +163,7 @@ def run_argv(plan: dict, inst: dict, image_id: str, scratch: str, name: str, kid
     secret = set(inst.get("secret_env_names") or [])
     argv = ["docker", "run", "--detach", f"--name={name}", f"--label={layout.LABEL_WARM}={kid}", "--network=bridge"]
     subdirs = []
-    dropped = ("--network", "--net", "--ip", "--ip6", "--label", "--publish", "--publish-all", "-P", "--name")
+    dropped = ("--network", "--ip", "--ip6", "--label", "--publish", "--publish-all", "--name")
     for arg, opt, value in words(inst["docker_args"]):
         if opt in dropped or opt.startswith("--health-") or opt == "--no-healthcheck":
             continue
@@ -353,10 +338,20 @@ class Warmer:
             for sub in subdirs:
                 _dirs_to(os.path.join(scratch, sub), scratch, plan["uid"], plan["gid"])
             started = self.clock()
-            rc, _out, err = self.run(argv)
-            if rc != 0:
-                raise WarmError(f"the warm run of instance {inst['id']} did not start: {err.strip()[-400:]}")
             try:
+                # made, judged by the container policy as an instance's unit judges its own, then started
+                rc, _out, err = self.run(["docker", "create", *argv[3:]])
+                if rc != 0:
+                    raise WarmError(f"the warm run of instance {inst['id']} did not start: {err.strip()[-400:]}")
+                options = argv[3 : len(argv) - len(inst["app_args"]) - 1]
+                for _key, text, why in self._judged(name, options, inst.get("gpu")):
+                    raise WarmError(
+                        f"the warm run of instance {inst['id']} was not started: the container policy refuses what "
+                        f"Docker made of its arguments: {text} {why}"
+                    )
+                rc, _out, err = self.run(["docker", "start", name])
+                if rc != 0:
+                    raise WarmError(f"the warm run of instance {inst['id']} did not start: {err.strip()[-400:]}")
                 after = self._ready(name, plan["ready_pattern"], settings["ready_timeout"], started)
             finally:
                 self.run(["docker", "stop", "-t", str(settings["stop_timeout"]), name])
@@ -365,6 +360,24 @@ class Warmer:
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
         return {"ready_after_s": round(after, 1), "bytes": size}
+
+    def _judged(self, name: str, options: list, gpu) -> list:
+        """What the container policy refuses of the created warm run beyond its own arguments; Docker not
+        answering is a refusal (fails closed)."""
+        rc, out, err = self.run(["docker", "container", "inspect", name])
+        try:
+            [inspected] = json.loads(out) if rc == 0 else [None]
+            names = sorted({m["Name"] for m in inspected.get("Mounts") or [] if m.get("Type") == "volume"})
+            volumes = {}
+            if names:
+                rc, out, err = self.run(["docker", "volume", "inspect", *names])
+                volumes = {v["Name"]: v.get("Options") or {} for v in json.loads(out)} if rc == 0 else None
+            if volumes is None or inspected is None:
+                raise ValueError(err.strip()[-200:])
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            return [(None, "(unknown)", f"could not be judged: Docker did not show it ({exc})")]
+        gpu = "" if gpu is None else str(gpu)
+        return container_policy.beyond_plan(inspected, options, gpu, volumes, os.path.realpath)
 
     def _ready(self, name: str, pattern: str, timeout: int, started: float) -> float:
         ready = re.compile(pattern)

@@ -9,7 +9,7 @@ import os
 import tarfile
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import docker_cli, layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import plan, warm_cache
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 
@@ -105,18 +105,34 @@ def test_the_warm_run_is_the_instance_s_own_start_on_scratch_with_no_secret_and_
 
 
 class FakeDocker:
-    """docker as the warm run sees it: run writes into the mounted scratch caches (a file, a link, a fifo);
-    the ready line comes on the third look at the logs, or never."""
+    """docker as the warm run sees it: create keeps what Docker makes of the arguments (docker inspect shows
+    it, as docker_cli reads them, or `made` instead), start writes into the mounted scratch caches (a file, a
+    link, a fifo); the ready line comes on the third look at the logs, or never. volumes: docker volume
+    inspect's options of named volumes."""
 
-    def __init__(self, ready_after=3, exits=False):
+    def __init__(self, ready_after=3, exits=False, made=None, volumes=None):
         self.calls = []
         self.looks = 0
         self.ready_after = ready_after
         self.exits = exits
+        self.made = made
+        self.volumes = volumes or {}
+        self.created = []
 
     def __call__(self, argv):
         self.calls.append(argv)
-        if argv[:2] == ["docker", "run"]:
+        if argv[:2] == ["docker", "create"]:
+            self.created = argv[2:]
+            return 0, "cid\n", ""
+        if argv[:3] == ["docker", "container", "inspect"]:
+            options = [a for a in self.created if a.startswith("--")]
+            inspected = dict(self.made or docker_cli.config(options))
+            inspected["Mounts"] = [{"Type": "volume", "Name": n} for n in self.volumes]
+            return 0, json.dumps([inspected]), ""
+        if argv[:3] == ["docker", "volume", "inspect"]:
+            return 0, json.dumps([{"Name": n, "Options": self.volumes[n]} for n in argv[3:]]), ""
+        if argv[:2] == ["docker", "start"]:
+            argv = self.created
             mounts = [a.split("=", 1)[1].split(":")[0] for a in argv if a.startswith("--volume=")]
             main = next(m for m in mounts if m.endswith("/cache/main"))
             os.makedirs(os.path.join(main, "ov", "shaders"))
@@ -174,6 +190,27 @@ def test_a_warm_run_that_fails_says_why_and_keeps_no_archive(tmp_path, docker, n
         )
     assert os.listdir(store) == []
     assert docker.calls[-1][:3] == ["docker", "rm", "-f"]
+
+
+@pytest.mark.parametrize(
+    "docker, needle",
+    [
+        # a named volume the user gave that Docker makes a bind of the host's /etc of
+        (FakeDocker(volumes={"maps": {"type": "none", "o": "bind", "device": "/etc"}}), "host path /etc"),
+        # Docker's reading other than the plan's: the release's user became root
+        (FakeDocker(made={"HostConfig": {}, "Config": {"User": "0"}}), "--user=0 runs the container as root"),
+    ],
+)
+def test_a_warm_run_the_container_policy_refuses_never_starts(tmp_path, docker, needle):
+    p = _plan(tmp_path, docker_args=["-v", "maps:/maps"])
+    store = layout.warm_dir(p["layout"]["data_root"])
+    with pytest.raises(warm_cache.WarmError, match="was not started: the container policy refuses") as raised:
+        warm_cache.Warmer(docker, sleep=lambda s: None, clock=lambda: 0).warm(
+            p, p["instances"][0], "sha256:aa", store, "0123456789abcdef", {}
+        )
+    assert needle in str(raised.value)
+    assert not [c for c in docker.calls if c[:2] == ["docker", "start"]]
+    assert docker.calls[-1][:3] == ["docker", "rm", "-f"] and os.listdir(store) == []
 
 
 def _archive(path, k, members):
