@@ -41,6 +41,11 @@ options:
     description: For O(action=probe) - host name to the result of O(action=host) on it (empty - it did not answer).
     type: dict
     default: {}
+  probe_host:
+    description: For O(action=probe), the inventory name of the host the probe runs on, where it is one of
+      O(reports)' hosts - its own ports are not knocked on (from itself every one answers) and the table says so.
+    type: str
+    default: ""
   timeout:
     description: Seconds to wait for each port's answer.
     type: float
@@ -87,14 +92,16 @@ def main():
             key=dict(type="str", default="", no_log=True),
             secret_env_names=dict(type="list", elements="str", default=[], no_log=False),
             reports=dict(type="dict", default={}),
+            probe_host=dict(type="str", default=""),
             timeout=dict(type="float", default=3.0),
         ),
         supports_check_mode=True,
     )
     p = module.params
     if p["action"] == "probe":
-        probed = audit.probe(audit.targets(p["reports"]), p["timeout"])
-        module.exit_json(changed=False, findings=[], ports=[], address="", report=audit.fleet(p["reports"], probed))
+        probed = audit.probe(audit.targets(p["reports"], p["probe_host"]), p["timeout"])
+        report = audit.fleet(p["reports"], probed, p["probe_host"])
+        module.exit_json(changed=False, findings=[], ports=[], address="", report=report)
     report = audit.host_report(audit.bind(module), p["key"], p["secret_env_names"])
     module.exit_json(changed=False, report={}, **report)
 

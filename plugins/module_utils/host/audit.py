@@ -306,10 +306,14 @@ def host_report(io: HostIO, key: str, secret_names) -> dict:
     return {"findings": findings, "ports": ports, "address": io.default_ipv4()}
 
 
-def targets(reports: dict) -> list:
-    """The probe's targets from the hosts' reports ({host: host_report(), or {} when unreachable})."""
+def targets(reports: dict, probe_host: str = "") -> list:
+    """The probe's targets from the hosts' reports ({host: host_report(), or {} when unreachable}). The
+    probe host's own ports are left out: knocked on from itself, every one answers (its own traffic
+    never crosses its firewall's input from another host), which says nothing of the allowed networks."""
     out = []
     for host in sorted(reports):
+        if host == probe_host:
+            continue
         report = reports[host] or {}
         for p in report.get("ports") or []:
             address = p.get("address") or report.get("address") or ""
@@ -318,7 +322,7 @@ def targets(reports: dict) -> list:
     return out
 
 
-def fleet(reports: dict, probed: list) -> dict:
+def fleet(reports: dict, probed: list, probe_host: str = "") -> dict:
     """{"hosts": [{"host", "reachable", "findings"}], "findings": n, "clean": bool, "table": [lines]}."""
     rows = []
     by_host = {}
@@ -338,6 +342,11 @@ def fleet(reports: dict, probed: list) -> dict:
             table.append(f"{r['host']:<24} {f['check']:<13} {f['what']}: {f['why']}")
         if r["reachable"] and not r["findings"]:
             table.append(f"{r['host']:<24} {'-':<13} clean")
+    if probe_host in reports and (reports[probe_host] or {}).get("ports"):
+        table.append(
+            f"(not knocked on: {len(reports[probe_host]['ports'])} port(s) of {probe_host}, the probe host itself; "
+            "audit it from another audit_probe_host)"
+        )
     if unknown:
         table.append(
             f"(not checked: {len(unknown)} port(s) answered the probe from inside their allowed networks; "

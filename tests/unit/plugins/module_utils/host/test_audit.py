@@ -257,5 +257,14 @@ def test_a_host_report_lists_its_ports_with_their_networks_and_its_findings():
         (49100, "signal", ["10.20.0.0/16"]),
     ]
     assert audit.targets({"h1": report, "h2": {}})[0] == dict(report["ports"][0], host="h1", address="10.0.0.5")
+    # a probe host that is itself audited knocks on the others only, and the table says so: from itself every
+    # port of its own answers (six false findings were reported that way)
+    assert audit.targets({"h1": report, "h2": report}, probe_host="h1") == [
+        dict(p, host="h2", address="10.0.0.5") for p in report["ports"]
+    ]
+    table = audit.fleet({"h1": report, "h2": report}, [], probe_host="h1")["table"]
+    assert table[-1] == (
+        "(not knocked on: 2 port(s) of h1, the probe host itself; audit it from another audit_probe_host)"
+    )
     flushed = audit.host_report(FakeIO(files, [], journal=f"login {KEY}"), KEY, [])
     assert [f["check"] for f in flushed["findings"]] == ["registry key", "firewall"]
