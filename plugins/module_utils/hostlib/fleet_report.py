@@ -273,6 +273,10 @@ def table(report: dict) -> list:
                     f"{i['entrance']} (direct: {i['primary_url']})" if i.get("entrance") else i["primary_url"],
                 )
             )
+            # why a configured instance is down (a crash loop, a port held, the container policy, a stop),
+            # in status.yml's table and status.txt as in status.json and the dashboard
+            if i.get("down_reason"):
+                rows.append((h["host"], str(i["id"]), "", "", "", "", "", f"why: {i['down_reason']}"))
             # each companion on a line of its own under its instance: 2/ros-bridge
             for c in i.get("companions") or []:
                 rows.append(

@@ -23,10 +23,12 @@ def test_table_has_one_aligned_line_per_instance():
     lines = fleet_report.table(fleet_report.build({"gpu-node-1": host_result()}, ["gpu-node-1"]))
     assert lines[0].split() == ["HOST", "INSTANCE", "STATE", "READY", "UPTIME", "RESTARTS", "GPU", "URL"]
     rows = [line.split() for line in lines[1:-1]]
-    assert [r[1] for r in rows] == ["0", "1", "2", "3", "9"]
+    assert [r[1] for r in rows] == ["0", "1", "2", "3", "3", "9"]
     assert rows[0][2:4] == ["ready", "yes"] and rows[0][-1] == "172.17.0.2:49100"
     assert rows[3][2:4] == ["stopped", "no"]
-    assert rows[4][2:4] == ["stray-container", "(stray)"]
+    # a down instance says why on the line under it, as status.json and the dashboard do
+    assert " ".join(rows[4][2:]) == "why: stopped: systemctl stop, isaac-sim.target stopped, or Docker stopped under it"
+    assert rows[5][2:4] == ["stray-container", "(stray)"]
     # columns line up: URL starts at the same offset on every line
     assert len({line.index("172.17.0.2") for line in lines[1:4]}) == 1
     assert lines[-1].startswith("1 hosts (1 answered), 5 instances: 4 running, 3 ready")
@@ -77,7 +79,7 @@ def test_table_lists_each_companion_under_its_instance():
     ]
     lines = fleet_report.table(fleet_report.build({"gpu-node-1": result}, ["gpu-node-1"]))
     rows = [line.split() for line in lines[1:-1]]
-    assert [r[1] for r in rows] == ["0", "1", "1/viewer", "2", "3", "9"]
+    assert [r[1] for r in rows] == ["0", "1", "1/viewer", "2", "3", "3", "9"]
     assert rows[2] == ["gpu-node-1", "1/viewer", "ready", "yes", "1m05s", "1", "-", "8211/tcp"]
 
 
