@@ -20,8 +20,9 @@ from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import thi
 # soon at first: most calls (an idempotent deploy, a stop) end within a second
 POLL_S = (0.25, 0.25, 0.5, 1, 1, 2, 2, 3)
 POLL_MAX_S = 5
-# the lock renewed once this many seconds of waiting have passed since the last renewal: well
-# inside runlock.HEARTBEAT_LIMIT_S (30 s), with room for a slow connection and the polls' own time
+# the lock renewed before a poll once this many seconds have passed since the last renewal, by
+# the clock (a poll under load takes seconds of its own): well inside runlock.HEARTBEAT_LIMIT_S
+# (30 s), with room for a slow connection
 RENEW_S = 5
 # the background job's own limit; the lifecycle's steps have their own deadlines
 JOB_LIMIT_S = 24 * 3600
@@ -63,13 +64,13 @@ class ActionModule(ActionBase):
             return result
         jid = started["ansible_job_id"]
         async_dir = self._remote_expand_user(self.get_shell_option("async_dir", default="~/.ansible_async"))
-        polls, waited = 0, 0.0
+        polls, renewed = 0, time.monotonic()
         while True:
             wait = POLL_S[polls] if polls < len(POLL_S) else POLL_MAX_S
             time.sleep(wait)
-            polls, waited = polls + 1, waited + wait
-            if waited >= RENEW_S:
-                waited = 0.0
+            polls += 1
+            if time.monotonic() - renewed >= RENEW_S:
+                renewed = time.monotonic()
                 self._execute_module(
                     module_name="isaacsim.fleet.isaac_sim_lock",
                     module_args={"holder": me, "state": "renewed"},

@@ -31,11 +31,13 @@ ASYNC_DIR = "/home/ops/.ansible_async"
 class Host:
     """The host's side of _execute_module: the lifecycle job, the lock module and async_status."""
 
-    def __init__(self, tmp_path, job_s=120.0, outcome=None, start=None, status=None, look=None):
+    def __init__(self, tmp_path, job_s=120.0, outcome=None, start=None, status=None, look=None, poll_s=0.0):
         """job_s: how long the job runs; outcome: the module's result; start: the answer to starting
         the job instead of a job id; status: async_status's answer instead of the job's; look: the
-        module's answer in check mode (an apply's first look), the outcome when None."""
+        module's answer in check mode (an apply's first look), the outcome when None; poll_s: how long
+        each ask for the job takes (a loaded host or connection)."""
         self.now = 1000.0
+        self.poll_s = poll_s
         self.lock = str(tmp_path / "isaac-sim.json")
         self.guard = str(tmp_path / ".isaac-sim.guard")
         self.job_s, self.start, self.status, self.look = job_s, start, status, look
@@ -65,6 +67,7 @@ class Host:
                 self.interrupted = self.interrupted or runlock.gone(self.job["run"], self.now, path=self.lock)
                 return dict(runlock.request(module_args, self.now, path=self.lock, guard=self.guard), changed=False)
             assert module_name == "ansible.legacy.async_status"
+            self.now += self.poll_s
             if self.status is not None:
                 return dict(self.status)
             if module_args.get("mode") == "cleanup":
@@ -90,6 +93,8 @@ def run(monkeypatch):
     def go(host, args, check_mode=False, async_val=0):
         sleeps = []
         monkeypatch.setattr(plugin.time, "sleep", lambda s: (sleeps.append(s), host.sleep(s)))
+        # the plugin's clock is the host's: the waits and the calls' own time
+        monkeypatch.setattr(plugin.time, "monotonic", lambda: host.now)
         task = mock.MagicMock(async_val=async_val, check_mode=check_mode)
         task.args = dict(args)
         connection = mock.MagicMock(has_native_async=False)
@@ -149,6 +154,17 @@ def test_the_module_runs_as_a_job_while_the_lock_is_renewed_every_few_seconds(ru
     assert statuses[-1][1] == {"jid": "j4711", "mode": "cleanup", "_async_dir": ASYNC_DIR}
     # the module's result, without the job's bookkeeping
     assert result == DONE and removed == ["/tmp/x"]
+
+
+def test_polls_that_take_seconds_of_their_own_still_renew_the_lock_by_the_clock(run, tmp_path):
+    # each ask for the job takes 8 s (a loaded host): counting only its own waits, the plugin renewed
+    # every six polls and the host took a live rollout for gone ("stopped renewing ... 33 s ago")
+    host = Host(tmp_path, job_s=300, poll_s=8.0)
+    result, _task, _removed, _sleeps = run(host, RESTART)
+    assert host.interrupted == "" and result == DONE
+    names = [c[0] for c in host.calls[1:-1]]
+    # a renewal before every ask once the first 5 s have passed
+    assert all(a != b for a, b in zip(names[3:], names[4:])), names
 
 
 def test_a_controller_silent_past_the_heartbeat_limit_is_what_interrupts_the_job(run, tmp_path, monkeypatch):
