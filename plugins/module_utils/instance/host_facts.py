@@ -373,5 +373,11 @@ def _locked_plan(probe: Probe, p: dict, now: float) -> dict:
     try:
         return dict(plan_host(probe, p), **held)
     except PlanRefusedError as exc:
+        # the run stops here: the host it took is given back at once, not left held by a run that ended
+        if held["lock"]["acquired"] and not probe.check_mode:
+            try:
+                held["lock"] = runlock.request(dict(p["lock"], state="absent"), now)
+            except (runlock.LockError, OSError):
+                pass  # the refusal is what the user must read; the next run takes over an ended run's lock
         exc.fields.update(held)
         raise

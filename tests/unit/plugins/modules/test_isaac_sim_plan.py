@@ -262,9 +262,17 @@ def test_with_lock_the_plan_holds_the_host_first_and_plans_nothing_while_another
     looked = run_module(isaac_sim_plan.main, dict(args, lock={"holder": BOB}, _ansible_check_mode=True), capsys)
     assert looked["lock"]["acquired"] is False and looked["plan"] == alone["plan"]
     assert json.loads(lock.read_text())["id"] == ALICE["id"]
-    # a plan refused after the lock was taken says so too: the run holds the host until it ends
+    # a plan refused after the lock was taken gives the host back at once: the run ends there
     bad = run_module(isaac_sim_plan.main, dict(args, release="7.x", lock={"holder": ALICE}), capsys)
-    assert bad["failed"] and bad["lock"]["acquired"] is True and bad["errors"]
+    assert bad["failed"] and bad["errors"] and bad["lock"] == {
+        "acquired": False,
+        "released": True,
+        "holder": None,
+        "note": "",
+    }
+    assert not lock.exists() or json.loads(lock.read_text() or "{}").get("id") != ALICE["id"]
+    # another run takes the host at once, with nobody to wait for
+    assert run_module(isaac_sim_plan.main, dict(args, lock={"holder": BOB}), capsys)["lock"]["acquired"] is True
 
 
 def test_a_lock_without_a_holder_is_refused_in_words(host, lock, capsys):
