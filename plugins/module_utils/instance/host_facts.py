@@ -375,9 +375,8 @@ def _locked_plan(probe: Probe, p: dict, now: float) -> dict:
     except PlanRefusedError as exc:
         # the run stops here: the host it took is given back at once, not left held by a run that ended
         if held["lock"]["acquired"] and not probe.check_mode:
-            try:
+            # the refusal is what the user must read; the next run takes over an ended run's lock
+            with contextlib.suppress(runlock.LockError, OSError):
                 held["lock"] = runlock.request(dict(p["lock"], state="absent"), now)
-            except (runlock.LockError, OSError):
-                pass  # the refusal is what the user must read; the next run takes over an ended run's lock
         exc.fields.update(held)
         raise

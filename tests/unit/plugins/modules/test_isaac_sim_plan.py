@@ -264,12 +264,17 @@ def test_with_lock_the_plan_holds_the_host_first_and_plans_nothing_while_another
     assert json.loads(lock.read_text())["id"] == ALICE["id"]
     # a plan refused after the lock was taken gives the host back at once: the run ends there
     bad = run_module(isaac_sim_plan.main, dict(args, release="7.x", lock={"holder": ALICE}), capsys)
-    assert bad["failed"] and bad["errors"] and bad["lock"] == {
-        "acquired": False,
-        "released": True,
-        "holder": None,
-        "note": "",
-    }
+    assert (
+        bad["failed"]
+        and bad["errors"]
+        and bad["lock"]
+        == {
+            "acquired": False,
+            "released": True,
+            "holder": None,
+            "note": "",
+        }
+    )
     assert not lock.exists() or json.loads(lock.read_text() or "{}").get("id") != ALICE["id"]
     # another run takes the host at once, with nobody to wait for
     assert run_module(isaac_sim_plan.main, dict(args, lock={"holder": BOB}), capsys)["lock"]["acquired"] is True

@@ -71,7 +71,9 @@ def test_a_container_that_ended_leaves_the_unit_s_result_to_the_run_script(tmp_p
     """The gate gives up only after the run script (the unit's main process) has said how the app
     ended and exited with its status: systemd then takes the script's status for the start's result."""
     # the "script": a process of its own that ends 1.5 s from now (reaped by init, as systemd reaps it)
-    pid = subprocess.run(["sh", "-c", "sleep 1.5 >/dev/null 2>&1 & echo $!"], capture_output=True, text=True).stdout
+    pid = subprocess.run(
+        ["sh", "-c", "sleep 1.5 >/dev/null 2>&1 & echo $!"], capture_output=True, text=True, check=True
+    ).stdout
     started = time.monotonic()
     done = gate(tmp_path, "x", timeout="60", mainpid=int(pid), docker='#!/bin/sh\n[ "$1" = inspect ] && echo exited\n')
     took = time.monotonic() - started

@@ -34,7 +34,12 @@ def run(tmp_path):
     )
     # the script as installed, with Docker at the stand-in's path
     script = tmp_path / "isaac-sim-run"
-    script.write_text((FILES / "isaac-sim-run").read_text().replace("/usr/bin/docker", str(bin_dir / "docker")))
+    script.write_text(
+        (FILES / "isaac-sim-run")
+        .read_text()
+        .replace("/usr/bin/docker", str(bin_dir / "docker"))
+        .replace("/usr/bin/python3 ", "")
+    )
     (tmp_path / "isaac-sim-ports").write_text("#!/bin/sh\nexit 0\n")
     # the container policy's check: its answer is the test's
     (tmp_path / "isaac-sim-policy").write_text(
