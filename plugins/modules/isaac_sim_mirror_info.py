@@ -15,7 +15,12 @@ description:
     the bytes they take and what is left on the disk under them.
   - Only reads; the same in check mode.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
-options: {}
+options:
+  min_free_gb:
+    description: Free space on the storage's disk, in GiB, below which the mirror is marked low on space (it still
+      serves; the next image may not fit).
+    type: float
+    default: 20
 """
 
 EXAMPLES = r"""
@@ -58,6 +63,13 @@ mirror:
       description: What is wrong, each with its fix where there is one.
       type: list
       elements: str
+    low_space:
+      description: Less than O(min_free_gb) is free on the storage's disk.
+      type: bool
+    warnings:
+      description: What is not wrong yet but will be (low on space), each with its fix.
+      type: list
+      elements: str
 """
 
 from ansible.module_utils.basic import AnsibleModule
@@ -65,8 +77,9 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_
 
 
 def main():
-    module = AnsibleModule(argument_spec={}, supports_check_mode=True)
-    module.exit_json(changed=False, mirror=mirror_info.collect(module.run_command))
+    module = AnsibleModule(argument_spec=dict(min_free_gb=dict(type="float", default=20)), supports_check_mode=True)
+    mirror = mirror_info.collect(module.run_command, min_free_gb=module.params["min_free_gb"])
+    module.exit_json(changed=False, mirror=mirror)
 
 
 if __name__ == "__main__":

@@ -56,7 +56,17 @@ def answer(port: int, timeout: float = 5.0) -> tuple:
         conn.close()
 
 
-def collect(run, data: str = registry_mirror.DATA, config: str = f"{registry_mirror.CONFIG_DIR}/config.yml") -> dict:
+# the free space below which the mirror is marked: one Isaac Sim image takes many GB, and a copy cut
+# short by a full disk fails the deploy that needs it (registry_mirror_min_free_gb)
+MIN_FREE_GB = 20
+
+
+def collect(
+    run,
+    data: str = registry_mirror.DATA,
+    config: str = f"{registry_mirror.CONFIG_DIR}/config.yml",
+    min_free_gb: float = MIN_FREE_GB,
+) -> dict:
     """The mirror's state. run(argv) -> (rc, out, err)."""
     _rc, out, _err = run(["systemctl", "is-active", registry_mirror.UNIT])
     state = {"unit": registry_mirror.UNIT, "active": out.strip() or "unknown", "errors": []}
@@ -82,4 +92,13 @@ def collect(run, data: str = registry_mirror.DATA, config: str = f"{registry_mir
     except OSError as exc:
         state["errors"].append(f"{data}: {exc}")
     state["healthy"] = not state["errors"]
+    # it still serves what it holds: a mark, not a fault
+    floor = int(float(min_free_gb) * 1024**3)
+    state["low_space"] = state.get("free_bytes") is not None and state["free_bytes"] < floor
+    if state["low_space"]:
+        state["warnings"] = [
+            f"LOW ON SPACE: {state['free_bytes'] / 1024**3:.1f} GiB free, below {min_free_gb:g} GiB "
+            "(registry_mirror_min_free_gb): the next image may not fit. Fix: run playbooks/registry_mirror_gc.yml "
+            "or give the mirror a larger disk"
+        ]
     return state

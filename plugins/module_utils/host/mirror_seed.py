@@ -42,6 +42,47 @@ class SeedError(Exception):
     pass
 
 
+# what skopeo says, and what it means (the first that matches)
+_CAUSES = (
+    (re.compile(r"no space left on device", re.I), "disk"),
+    (re.compile(r"unauthorized|authentication required|denied|\b401\b|\b403\b", re.I), "login"),
+    (re.compile(r"manifest unknown|not found|\b404\b|name unknown", re.I), "missing"),
+    (re.compile(r"connection refused|no such host|i/o timeout|timed out|network is unreachable|tls:|x509", re.I),
+     "unreachable"),
+)  # fmt: skip
+
+
+def failure(where: str, name: str, digest: str, url: str, said: str, free_bytes=None) -> str:
+    """The seed's error for a copy skopeo could not make: where (the mirror host and its unit), what
+    was copied, the real cause as skopeo's words show it, and the fix for that cause."""
+    cause = next((kind for pattern, kind in _CAUSES if pattern.search(said)), "")
+    head = f"{where}: copying {name}@{digest} from {url} into the mirror failed"
+    quoted = said.strip()[-600:]
+    if cause == "disk":
+        free = f" ({free_bytes / 1024**3:.1f} GiB free now)" if free_bytes is not None else ""
+        return (
+            f"{head}: the mirror's disk is full{free}; its partial upload was removed ({quoted}). Fix: free space "
+            f"on the mirror's disk (playbooks/registry_mirror_gc.yml drops the images the fleet no longer runs) or "
+            "give it a larger one, then deploy again."
+        )
+    if cause == "login":
+        return (
+            f"{head}: {url} refused the mirror's login ({quoted}). Fix: check registry_mirror_username and "
+            "registry_mirror_password (for NGC, $oauthtoken and a current API key), then run the registry_mirror role."
+        )
+    if cause == "missing":
+        return (
+            f"{head}: {url} does not have it ({quoted}). Fix: check that the image and its tag still exist "
+            "upstream (a withdrawn tag cannot be seeded)."
+        )
+    if cause == "unreachable":
+        return (
+            f"{head}: the mirror host does not reach {url} ({quoted}). Fix: check the mirror host's network, "
+            "DNS and proxy towards the upstream."
+        )
+    return f"{head}: {quoted}. Fix: read skopeo's words above; the mirror host must reach {url} with its login."
+
+
 def wanted(references: list, mirror: str) -> list:
     """[(repository, digest)] of the references a host pulls through the mirror (MIRROR/NAME@DIGEST),
     each once, in order."""
@@ -175,11 +216,12 @@ def read_under(store: str, path: str):
 class Seeder:
     """The I/O of a seed on the mirror host. run(argv) -> (rc, out, err), as AnsibleModule.run_command."""
 
-    def __init__(self, run, store=STORE, config=f"{registry_mirror.CONFIG_DIR}/config.yml", scratch="/run"):
+    def __init__(self, run, store=STORE, config=f"{registry_mirror.CONFIG_DIR}/config.yml", scratch="/run", host=None):
         self.run = run
         self.store = store
         self.config = config
         self.scratch = scratch  # a tmpfs: the key's file never reaches a disk
+        self.where = f"the registry mirror on {host or socket.gethostname()} ({registry_mirror.UNIT})"
 
     def read(self, path: str):
         return read_under(self.store, path)
@@ -226,17 +268,39 @@ class Seeder:
                 raise SeedError(f"the loopback registry did not start: {(out + err).strip()[-400:]}")
             self._wait(port, ready_timeout)
             for name, digest in images:
+                began = time.time()
                 rc, out, err = self.run(copy_argv(upstream, name, digest, port, authfile))
                 if rc != 0:
                     said = (out + err).replace(upstream["password"], "********") if upstream["password"] else out + err
-                    raise SeedError(
-                        f"copying {name}@{digest} from {upstream['url']} into the mirror failed: "
-                        f"{said.strip()[-600:]}. Fix: check registry_mirror_username and registry_mirror_password, "
-                        "and that the mirror host reaches the upstream."
-                    )
+                    # a copy cut short (a full disk) leaves its upload behind, taking the space it took
+                    self.drop_uploads(name, began)
+                    raise SeedError(failure(self.where, name, digest, upstream["url"], said, self.free()))
         finally:
             self.run(["systemctl", "stop", UNIT])
             shutil.rmtree(scratch, ignore_errors=True)
+
+    def drop_uploads(self, name: str, since: float) -> list:
+        """Remove the uploads of repository `name` begun since `since` (this copy's): the registry keeps
+        an upload cut short in its storage (repositories/NAME/_uploads/ID) until its own purge, days
+        later. An older upload (another writer's) is left."""
+        uploads = os.path.join(self.store, "repositories", name, "_uploads")
+        removed = []
+        for entry in os.listdir(uploads) if os.path.isdir(uploads) else []:
+            path = os.path.join(uploads, entry)
+            try:
+                if os.path.isdir(path) and not os.path.islink(path) and os.stat(path).st_mtime >= since - 1:
+                    shutil.rmtree(path, ignore_errors=True)
+                    removed.append(entry)
+            except OSError:
+                continue
+        return removed
+
+    def free(self):
+        try:
+            disk = os.statvfs(self.store if os.path.isdir(self.store) else registry_mirror.DATA)
+        except OSError:
+            return None
+        return disk.f_bavail * disk.f_frsize
 
     def _wait(self, port: int, timeout: float) -> None:
         deadline = time.monotonic() + timeout

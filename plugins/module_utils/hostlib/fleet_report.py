@@ -212,6 +212,8 @@ def mirror_view(host: str, res: dict) -> dict:
     view["text"] = ("serving" if state.get("healthy") else "DOWN") + f" ({answered}), {holds}"
     if state.get("errors"):
         view["text"] += ": " + "; ".join(state["errors"])
+    if state.get("warnings"):
+        view["text"] += "; " + "; ".join(state["warnings"])
     return view
 
 

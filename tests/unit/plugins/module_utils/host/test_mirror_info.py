@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import socket
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_info
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_report
 
 
 def storage(tmp_path):
@@ -51,3 +53,20 @@ def test_a_host_without_the_mirror_s_config_says_which_role_to_run(tmp_path):
     state = mirror_info.collect(lambda argv: (3, "inactive\n", ""), data=str(tmp_path), config=str(tmp_path / "no"))
     assert state["healthy"] is False and "Fix: run the registry_mirror role." in state["errors"][1]
     assert state["repositories"] == {} and state["images"] == 0
+
+
+def test_a_mirror_below_its_free_space_floor_is_marked_and_still_serves(tmp_path):
+    storage(tmp_path)
+    free = os.statvfs(tmp_path).f_bavail * os.statvfs(tmp_path).f_frsize
+    # a floor above what this disk has free: marked; below it: not
+    state = mirror_info.collect(lambda argv: (0, "active\n", ""), data=str(tmp_path), config=str(tmp_path / "c"),
+                                min_free_gb=free / 1024**3 + 1)  # fmt: skip
+    assert state["low_space"] is True and state["warnings"][0].startswith("LOW ON SPACE: ")
+    assert "registry_mirror_gc.yml" in state["warnings"][0]
+    state = mirror_info.collect(lambda argv: (0, "active\n", ""), data=str(tmp_path), config=str(tmp_path / "c"),
+                                min_free_gb=0)  # fmt: skip
+    assert state["low_space"] is False and "warnings" not in state
+    # status's line says it after what the storage holds
+    view = fleet_report.mirror_view("m1", {"mirror": dict(state, healthy=True, http_status=200,
+                                                          warnings=["LOW ON SPACE: 0.3 GiB free"])})  # fmt: skip
+    assert view["text"].startswith("serving (HTTP 200), ") and view["text"].endswith("; LOW ON SPACE: 0.3 GiB free")

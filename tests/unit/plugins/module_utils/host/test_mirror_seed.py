@@ -160,3 +160,53 @@ def test_a_mirror_host_without_the_mirror_says_which_role_to_run(tmp_path):
     seeder = mirror_seed.Seeder(lambda argv: (0, "", ""), config=str(tmp_path / "none.yml"), scratch=str(tmp_path))
     with pytest.raises(mirror_seed.SeedError, match="this host runs no mirror. Fix: run the registry_mirror role"):
         seeder.copy([("n/x", "sha256:" + "ab" * 32)], 0, 0)
+
+
+@pytest.mark.parametrize(
+    "said, cause, fix",
+    [
+        ("writing blob: write /var/lib/docker-registry/...: no space left on device", "the mirror's disk is full",
+         "registry_mirror_gc.yml"),
+        ("reading manifest: unauthorized: authentication required", "refused the mirror's login",
+         "registry_mirror_password"),
+        ("reading manifest sha256:ab in nvcr.io/x: manifest unknown", "does not have it", "withdrawn tag"),
+        ("dial tcp 10.0.0.9:443: connect: connection refused", "does not reach https://nvcr.io", "DNS and proxy"),
+        ("something else entirely", "failed: something else entirely", "read skopeo's words"),
+    ],
+)  # fmt: skip
+def test_a_failed_copy_says_where_the_real_cause_and_its_fix(said, cause, fix):
+    text = mirror_seed.failure("the registry mirror on m1 (isaac-sim-mirror.service)", "n/x", "sha256:ab",
+                               "https://nvcr.io", said, free_bytes=0)  # fmt: skip
+    assert text.startswith("the registry mirror on m1 (isaac-sim-mirror.service): copying n/x@sha256:ab from ")
+    assert cause in text and fix in text
+    # a full disk never reads as a login problem, as it did
+    assert ("registry_mirror_password" in text) == (fix == "registry_mirror_password")
+
+
+def test_a_copy_the_full_disk_cut_short_removes_its_partial_upload_and_says_so(tmp_path, monkeypatch):
+    config = tmp_path / "config.yml"
+    config.write_text(json.dumps({"proxy": {"remoteurl": "https://nvcr.io", "username": "u", "password": "k-1"}}))
+    scratch = tmp_path / "run"
+    scratch.mkdir()
+    store = tmp_path / "v2"
+    uploads = store / "repositories" / "n" / "x" / "_uploads"
+    older = uploads / "older-writer"
+    older.mkdir(parents=True)
+    os.utime(older, (1, 1))  # another writer's, from long before
+    monkeypatch.setattr(mirror_seed.Seeder, "_wait", lambda self, port, timeout: None)
+
+    def run(argv):
+        if argv[0] == "/usr/bin/skopeo":
+            partial = uploads / "0b9d-this-copy"
+            partial.mkdir()
+            (partial / "data").write_bytes(b"x" * 4096)
+            return 1, "", "writing blob: copying: write .../data: no space left on device"
+        return 0, "", ""
+
+    seeder = mirror_seed.Seeder(run, store=str(store), config=str(config), scratch=str(scratch), host="m1")
+    with pytest.raises(mirror_seed.SeedError) as failed:
+        seeder.copy([("n/x", "sha256:" + "ab" * 32)], os.getuid(), os.getgid())
+    said = str(failed.value)
+    assert said.startswith("the registry mirror on m1 (isaac-sim-mirror.service): copying n/x@")
+    assert "the mirror's disk is full" in said and "GiB free now" in said and "partial upload was removed" in said
+    assert sorted(os.listdir(uploads)) == ["older-writer"]
