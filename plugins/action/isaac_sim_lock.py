@@ -15,15 +15,11 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import run
 
 display = Display()
 POLL_S = 5
-
-
-def _start_time(pid: int) -> str:
-    """The process's start time in clock ticks since boot (/proc), so a reused pid is another run."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return ""
+# the longest an ended run's lifecycle job is waited for: it stops before its next instance within
+# runlock.HEARTBEAT_LIMIT_S of its controller's silence, once the instance in hand is ready (its ready
+# timeout, 300 s by default) and soaked, or back
+JOB_WAIT_S = 900
+_start_time = runlock.start_time
 
 
 def _alive(pid, started: str) -> bool:
@@ -57,7 +53,7 @@ def hold(execute, lock: dict, host: str, check_mode: bool) -> dict:
     part of the module's result, the whole result): the lock module's, or the plan's, which takes the lock
     in its own call. A holder of this controller that has ended is taken over at once."""
     me, wait = lock["holder"], int(lock.get("wait") or 0)
-    begun, told = time.monotonic(), False
+    begun, told, job_begun = time.monotonic(), False, None
     while True:
         looked, whole = execute(lock)
         if whole.get("failed") or looked.get("acquired") or lock.get("state") in ("absent", "renewed"):
@@ -65,7 +61,25 @@ def hold(execute, lock: dict, host: str, check_mode: bool) -> dict:
                 display.warning(f"{host}: {looked['note']}")
             return whole
         holder = looked.get("holder") or {}
-        if holder.get("controller") == me["controller"] and not _alive(holder.get("pid"), holder.get("started")):
+        # the holder has ended but its lifecycle job on the host still finishes the instance in hand: waited
+        # for whatever isaac_sim_lock_wait says (it ends by itself), so two lifecycles never run side by side
+        if looked.get("job_running") and not check_mode:
+            if job_begun is None:
+                job_begun = time.monotonic()
+                display.display(f"{host}: {looked.get('note')}; waiting for it to end (at most {JOB_WAIT_S} s)")
+            if time.monotonic() - job_begun >= JOB_WAIT_S:
+                return dict(
+                    whole,
+                    failed=True,
+                    msg=(
+                        f"{host}: {looked.get('note')}, and it did not end within {JOB_WAIT_S} s. Fix: see what it "
+                        f"does (journalctl -t isaac-sim-lifecycle on {host}) and run again once it has ended."
+                    ),
+                )
+            time.sleep(POLL_S)
+            continue
+        ended = not _alive(holder.get("pid"), holder.get("started"))
+        if holder.get("controller") == me["controller"] and ended and lock.get("dead") != holder.get("id"):
             lock = dict(lock, dead=holder.get("id", ""))
             continue
         who = runlock.holder_text(holder, time.time())

@@ -300,8 +300,19 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
     lock, record = lock or runlock.LOCK, record or runlock.RECORD
     run = p["controller_run"]
     held = run and (runlock.read(lock) or {}).get("id") == run
-    if held and not check:
-        host.interrupted = lambda: runlock.gone(run, host.wall(), path=lock)
+    if not held or check:
+        return _call(host, p, check, diff, run, record)
+    host.interrupted = lambda: runlock.gone(run, host.wall(), path=lock)
+    # recorded in the lock while it runs: a run that takes over after this one's controller ended waits
+    # for it to stop (runlock.decide), never changes the host beside it
+    runlock.mark_job(run, os.getpid(), path=lock)
+    try:
+        return _call(host, p, check, diff, run, record)
+    finally:
+        runlock.clear_job(run, os.getpid(), path=lock)
+
+
+def _call(host: Host, p: dict, check: bool, diff: bool, run: str, record: str) -> dict:
     out = dict(changed=False, done=[], failed_instance=None, failed_instances=[], untouched=[])
     found = hostprobe.existing_companions(layout.CONFIG_DIR, host.find)
 

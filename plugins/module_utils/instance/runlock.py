@@ -64,16 +64,70 @@ def decide(current: dict | None, me: dict, now: float, stale_after: int, break_l
     if current["id"] == me["id"]:
         return "take", ""
     who = holder_text(current, now)
-    if dead and current["id"] == dead:
-        return "take", f"took the lock left by {who}: that run has ended (its process is gone)"
-    if break_lock:
-        return "take", f"took the lock from {who} (isaac_sim_lock_break)"
     renewed = float(current.get("renewed") or current.get("since") or 0)
-    if stale_after and now - renewed >= stale_after:
-        return "take", (
-            f"took the lock from {who}: not renewed for {int(now - renewed)} s (isaac_sim_lock_stale_after)"
+    if dead and current["id"] == dead:
+        verdict = "take", f"took the lock left by {who}: that run has ended (its process is gone)"
+    elif break_lock:
+        verdict = "take", f"took the lock from {who} (isaac_sim_lock_break)"
+    elif stale_after and now - renewed >= stale_after:
+        verdict = (
+            "take",
+            f"took the lock from {who}: not renewed for {int(now - renewed)} s (isaac_sim_lock_stale_after)",
         )
-    return "held", who
+    else:
+        return "held", who
+    # an ended run's lifecycle job may still be restarting an instance here (it stops before its next
+    # one once its controller is silent): the host is taken over only once that job has ended
+    job = job_running(current)
+    if job:
+        return "job", (
+            f"{who} has ended, but its lifecycle job still runs on this host ({job}); it stops before its next "
+            f"instance within {HEARTBEAT_LIMIT_S} s of its controller's last renewal, once the instance in hand is "
+            "ready or back"
+        )
+    return verdict
+
+
+def start_time(pid: int) -> str:
+    """A process's start time (/proc/PID/stat, field 22): with the pid, who it is (a pid is reused)."""
+    try:
+        with open(f"/proc/{int(pid)}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, ValueError, IndexError):
+        return ""
+
+
+def job_running(current) -> str:
+    """'pid N' while the lifecycle job the holder `current` recorded (mark_job) still runs; "" otherwise."""
+    job = (current or {}).get("job") if isinstance(current, dict) else None
+    if not isinstance(job, dict) or not job.get("pid"):
+        return ""
+    started = start_time(job["pid"])
+    if not started or (job.get("started") and started != job["started"]):
+        return ""
+    return f"pid {job['pid']}"
+
+
+def mark_job(run_id: str, pid: int, path: str = LOCK, guard: str = "") -> bool:
+    """The lifecycle job of run `run_id` records itself in the lock while it runs, so no other run
+    takes the host over until it has ended (decide); only while that run holds the lock."""
+    with _held_by({"id": run_id}, path, guard or _guard_of(path)) as current:
+        if current is None:
+            return False
+        current["job"] = {"pid": pid, "started": start_time(pid)}
+        _write(path, current, 0o644)
+        return True
+
+
+def clear_job(run_id: str, pid: int, path: str = LOCK, guard: str = "") -> None:
+    with _held_by({"id": run_id}, path, guard or _guard_of(path)) as current:
+        if current is not None and (current.get("job") or {}).get("pid") == pid:
+            del current["job"]
+            _write(path, current, 0o644)
+
+
+def _guard_of(path: str) -> str:
+    return os.path.join(os.path.dirname(path), os.path.basename(GUARD))
 
 
 def _write(path: str, data: dict, mode=None) -> None:
@@ -110,13 +164,15 @@ def acquire(
         fcntl.flock(fh, fcntl.LOCK_EX)
         current = read(path)
         verdict, said = decide(current, me, now, stale_after, break_lock, dead)
-        if verdict == "held":
+        if verdict in ("held", "job"):
             return False, current, said
         if said and current:
             said += recorded_text(read(record_path), current["id"])
         keep = current if current and current.get("id") == me["id"] else {}
         holder = {k: me.get(k) for k in HOLDER_KEYS}
         holder.update(since=keep.get("since", now), renewed=now)
+        if keep.get("job"):  # this run's own job, running: it stays recorded
+            holder["job"] = keep["job"]
         _write(path, holder, 0o644)
         return True, holder, said
 
@@ -204,10 +260,12 @@ def request(p: dict, now: float, check=False, path: str = "", guard: str = "", r
         if check:
             current = read(path)
             verdict, said = decide(current, me, now, p["stale_after"], p["break_lock"], p["dead"])
-            return {"acquired": verdict == "take", "holder": current, "note": said}
+            return {"acquired": verdict == "take", "holder": current, "note": said, "job_running": verdict == "job"}
         acquired, holder, note = acquire(
             me, now, p["stale_after"], p["break_lock"], p["dead"], path, guard, record_path
         )
     except OSError as exc:
         raise LockError(f"the lock {path}: {exc}") from exc
-    return {"acquired": acquired, "holder": holder, "note": note}
+    # not taken over while the ended holder's lifecycle job runs here: the controller waits for it
+    job = not acquired and decide(holder, me, now, p["stale_after"], p["break_lock"], p["dead"])[0] == "job"
+    return {"acquired": acquired, "holder": holder, "note": note, "job_running": job}

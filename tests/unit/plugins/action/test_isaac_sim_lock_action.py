@@ -23,3 +23,46 @@ def test_a_live_run_is_alive_and_an_ended_or_reused_pid_is_not():
         child.kill()
         child.wait()
     assert not isaac_sim_lock._alive(child.pid, started)
+
+
+def test_an_ended_run_whose_job_still_runs_on_the_host_is_waited_for_then_taken_over(tmp_path, monkeypatch):
+    """The real runlock on a lock file of the test's: a killed run of this controller (its process gone)
+    left its lifecycle job running on the host; the next run waits for the job (told once), whatever
+    isaac_sim_lock_wait says, and takes the host over once it has ended."""
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
+
+    lock, guard = str(tmp_path / "isaac-sim.json"), str(tmp_path / ".isaac-sim.guard")
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # the killed ansible-playbook: a pid of this controller that has ended
+    me = isaac_sim_lock.this_run("Deploy")
+    ended = dict(me, id=f"{me['controller']}:{gone.pid}:1", pid=gone.pid, started="1")
+    runlock.acquire(ended, 1000.0, 3600, path=lock, guard=guard, record_path="")
+    job = subprocess.Popen(["sleep", "30"])
+    runlock.mark_job(ended["id"], job.pid, path=lock, guard=guard)
+    told, sleeps = [], []
+    monkeypatch.setattr(isaac_sim_lock.display, "display", told.append)
+    monkeypatch.setattr(isaac_sim_lock.display, "warning", told.append)
+
+    def sleep(seconds):
+        sleeps.append(seconds)
+        if len(sleeps) == 3:  # the job stops before its next instance
+            job.kill()
+            job.wait()
+
+    monkeypatch.setattr(isaac_sim_lock.time, "sleep", sleep)
+    request = {"holder": me, "state": "present", "stale_after": 3600, "break_lock": False, "dead": "", "wait": 0}
+
+    def execute(asked):
+        answer = runlock.request(asked, 1100.0, path=lock, guard=guard, record_path="")
+        return answer, dict(answer, changed=answer["acquired"])
+
+    try:
+        result = isaac_sim_lock.hold(execute, request, "gpu-1", check_mode=False)
+    finally:
+        job.kill()
+        job.wait()
+    assert result["acquired"] is True and runlock.read(lock)["id"] == me["id"]
+    assert sleeps == [isaac_sim_lock.POLL_S] * 3
+    waiting = [t for t in told if "its lifecycle job still runs on this host" in t]
+    assert len(waiting) == 1 and "waiting for it to end (at most 900 s)" in waiting[0]
+    assert any("took the lock left by" in t for t in told)

@@ -204,3 +204,26 @@ def test_a_day_2_start_names_every_instance_that_did_not_start(tmp_path):
     assert [f["id"] for f in fields["failed_instances"]] == [0, 2] and fields["failed_instance"]["id"] == 0
     assert all(f["left"] == "failed" for f in fields["failed_instances"])
     assert [d["id"] for d in fields["done"]] == [1]
+
+
+def test_a_call_of_a_run_that_holds_the_host_records_its_job_in_the_lock_while_it_works(tmp_path):
+    """The lock says this job runs (its pid) for as long as it does: a run that takes the host over after
+    this run's controller ended waits for it (runlock.decide); after the call the record is gone."""
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
+
+    lock = str(tmp_path / "lock" / "isaac-sim.json")
+    me = {"id": "ctl:1:2", "controller": "ctl", "pid": 1, "started": "2"}
+    runlock.acquire(me, 1000.0, 3600, path=lock, guard=str(tmp_path / "lock" / ".isaac-sim.guard"), record_path="")
+    h = scripted(2, running=False)
+    seen = []
+    run = h.host.run
+
+    def watching(argv):
+        seen.append((runlock.read(lock) or {}).get("job"))
+        return run(argv)
+
+    h.host.run = watching
+    h.host.wall = lambda: 1001.0
+    lifecycle_call.call(h.host, params(tmp_path, controller_run=me["id"]), lock=lock, record=str(tmp_path / "r"))
+    assert seen and all(job and job["pid"] == os.getpid() for job in seen)
+    assert "job" not in runlock.read(lock)

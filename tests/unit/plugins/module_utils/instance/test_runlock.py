@@ -4,6 +4,7 @@ an ended or stale run's lock is taken over and says from whom."""
 import json
 import multiprocessing
 import os
+import subprocess
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 
@@ -134,7 +135,12 @@ def test_the_run_that_takes_over_an_interrupted_runs_lock_is_told_what_it_left(t
 def test_request_is_the_module_s_call_on_the_files_it_is_given(tmp_path):
     where = dict(paths(tmp_path), record_path=recorded(tmp_path))
     params = {"holder": ALICE, "state": "present", "stale_after": 3600, "break_lock": False, "dead": ""}
-    assert runlock.request(params, NOW, check=True, **where) == {"acquired": True, "holder": None, "note": ""}
+    assert runlock.request(params, NOW, check=True, **where) == {
+        "acquired": True,
+        "holder": None,
+        "note": "",
+        "job_running": False,
+    }
     assert not os.path.exists(where["path"])
     taken = runlock.request(params, NOW, **where)
     assert taken["acquired"] and taken["holder"]["since"] == NOW
@@ -147,3 +153,48 @@ def test_request_is_the_module_s_call_on_the_files_it_is_given(tmp_path):
         assert str(exc).startswith("holder: needs an id.")
     else:
         raise AssertionError("a holder without an id was accepted")
+
+
+def test_an_ended_run_is_taken_over_only_once_its_lifecycle_job_here_has_ended(tmp_path):
+    """A killed ansible-playbook's background job may still be restarting an instance on the host: the
+    next run waits for it (job_running) however it would take over (ended, isaac_sim_lock_break, stale)."""
+    where = paths(tmp_path)
+    params = {"holder": ALICE, "state": "present", "stale_after": 3600, "break_lock": False, "dead": ""}
+    assert runlock.request(params, NOW, **where)["acquired"]
+    job = subprocess.Popen(["sleep", "30"])
+    try:
+        assert runlock.mark_job(ALICE["id"], job.pid, path=where["path"])
+        # the controller's renewals and its own re-take keep the job recorded
+        assert runlock.request(dict(params, state="renewed"), NOW + 5, **where)["acquired"]
+        assert runlock.request(params, NOW + 6, **where)["acquired"]
+        assert runlock.read(where["path"])["job"]["pid"] == job.pid
+        bob = dict(params, holder=BOB)
+        for how in ({"dead": ALICE["id"]}, {"break_lock": True}, {"stale_after": 1}):
+            answer = runlock.request(dict(bob, **how), NOW + 60, **where)
+            assert answer["acquired"] is False and answer["job_running"] is True, how
+            assert f"its lifecycle job still runs on this host (pid {job.pid})" in answer["note"]
+            assert runlock.read(where["path"])["id"] == ALICE["id"]
+        # a run that holds it (not ended) is just held, as before
+        held = runlock.request(bob, NOW + 60, **where)
+        assert held["acquired"] is False and held["job_running"] is False
+    finally:
+        job.kill()
+        job.wait()
+    # the job ended (killed, or done): the ended run is taken over
+    answer = runlock.request(dict(params, holder=BOB, dead=ALICE["id"]), NOW + 90, **where)
+    assert answer["acquired"] is True and "took the lock left by" in answer["note"]
+
+
+def test_a_job_record_whose_pid_now_names_another_process_is_no_job(tmp_path):
+    where = paths(tmp_path)
+    params = {"holder": ALICE, "state": "present", "stale_after": 3600, "break_lock": False, "dead": ""}
+    runlock.request(params, NOW, **where)
+    assert runlock.mark_job(ALICE["id"], os.getpid(), path=where["path"])
+    current = runlock.read(where["path"])
+    assert runlock.job_running(current) == f"pid {os.getpid()}"
+    # the same pid, another start time: a process that reused the job's pid
+    assert runlock.job_running(dict(current, job=dict(current["job"], started="1"))) == ""
+    runlock.clear_job(ALICE["id"], os.getpid(), path=where["path"])
+    assert "job" not in runlock.read(where["path"])
+    # only the holder's own job is recorded
+    assert runlock.mark_job(BOB["id"], os.getpid(), path=where["path"]) is False
