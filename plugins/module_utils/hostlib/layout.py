@@ -43,7 +43,10 @@ PORTS_HELD_STATUS = 76
 POLICY_SCRIPT = "isaac-sim-policy"
 POLICY_REFUSED_STATUS = 77
 POLICY_LIB = ("docker_cli.py", "container_policy.py")
-SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT, CACHE_STATE_SCRIPT, POLICY_SCRIPT)
+# before each start (root's rights, never fatal): our containers that containerd runs and Docker lost
+ORPHANS_SCRIPT = "isaac-sim-orphans"
+# every container of the collection carries it in its environment (K_INSTANCE's name), lost or not
+SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT, CACHE_STATE_SCRIPT, POLICY_SCRIPT, ORPHANS_SCRIPT)
 # the host's read-only status endpoint (a host service, not an instance)
 STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"

@@ -80,6 +80,16 @@ def _read(path):
         return ""
 
 
+_CONTAINER_ID = re.compile(r"[0-9a-f]{64}")
+
+
+def lost_container(cgroup: str, environ: str) -> bool:
+    """Whether a process runs in a container (a 64-hex id in its cgroup) that carries the collection's
+    mark in its environment (ISAAC_SIM_INSTANCE, which every container of ours gets)."""
+    marks = environ.split("\0")
+    return bool(_CONTAINER_ID.search(cgroup)) and any(m.startswith(layout.K_INSTANCE + "=") for m in marks)
+
+
 def ports_held(wanted_ports, our_container_ids, proc="/proc", our_units=()):
     """Sockets on the ports we want, each with its process and whether it is ours.
 
@@ -102,7 +112,11 @@ def ports_held(wanted_ports, our_container_ids, proc="/proc", our_units=()):
         cgroup = _read(os.path.join(proc, str(pid), "cgroup")) if pid else ""
         ours = any(cid in cgroup for cid in ids) or any(f"/{unit}" in cgroup for unit in our_units)
         process = f"{comm} (pid {pid})" if pid else "a process in another namespace"
-        held.append({"proto": proto, "port": port, "process": process, "ours": ours})
+        entry = {"proto": proto, "port": port, "process": process, "ours": ours}
+        # a container of ours that containerd runs and a crashed dockerd forgot: its unit's start clears it
+        if not ours and pid and lost_container(cgroup, _read(os.path.join(proc, str(pid), "environ"))):
+            entry.update(ours=True, lost=True)
+        held.append(entry)
     return held
 
 

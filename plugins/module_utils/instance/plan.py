@@ -801,7 +801,9 @@ def _instance(cfg, profile, mode, i, ports, gpu, address=None):
         f"--label={layout.LABEL_INSTANCE}={i}",
     ]
     docker += [f"--security-opt={opt}" for opt in profile.get("security_opts", [])]
-    env_names = ["ACCEPT_EULA"]
+    # ISAAC_SIM_INSTANCE (its value is the env file's own line): the mark that finds the container as ours
+    # where Docker lost it (isaac-sim-orphans, the plan's port check)
+    env_names = [layout.K_INSTANCE, "ACCEPT_EULA"]
     container_env = {"ACCEPT_EULA": "Y"}
     # NVIDIA's convention: PRIVACY_CONSENT=Y opts in; not setting it opts out
     if cfg.get("privacy_consent"):

@@ -105,6 +105,8 @@ def _service(env: str, name: str, restart_sec, ready_timeout, stop_timeout, pre=
         ("SyslogIdentifier", name),
         "# A container left by a crash or an unclean reboot would block the name.",
         ("ExecStartPre", f"-/usr/bin/docker rm -f ${{{layout.K_CONTAINER}}}"),
+        "# Ours that containerd still runs and a crashed dockerd forgot would hold ports: cleared (root's rights).",
+        ("ExecStartPre", f"-+/usr/bin/python3 {layout.LIBEXEC_DIR}/{layout.ORPHANS_SCRIPT}"),
         *pre,
         f"# {layout.RUN_SCRIPT} refuses to start while a port of the block is held (Kit would move to",
         f"# another port) and exits {layout.PORTS_HELD_STATUS}, or a container the container policy refuses",

@@ -1,4 +1,4 @@
-"""The deployed host behaves as an SRE expects: units, ports, restarts, reboots.
+"""The deployed host behaves as an SRE expects: units, ports, restarts, reboots, a container Docker lost.
 
 Runs in molecule's verify step on the hosts of molecule/default, after
 converge and idempotence. Tests run in file order; each leaves every
@@ -148,6 +148,42 @@ def test_instances_come_back_whenever_docker_comes_back(host, ip):
     # no crash of the app: the starts that brought them back are not counted against the start limit
     journal = sh(host, f"journalctl -u isaac-sim@0 --since @{since} --no-pager").stdout
     assert "isaac-sim-0: Docker went away under it" in journal and "Start request repeated too quickly" not in journal
+
+
+def test_a_container_of_ours_that_docker_lost_is_cleared_at_its_unit_s_start(host, ip):
+    """A dockerd killed at the wrong moment can come back without a container whose containerd task goes on
+    (namespace moby): `docker ps -a` no longer lists it and its ports stay held. Made here as such a task
+    directly with ctr (the stand-in image's files as its root, the mark every container of ours carries in
+    its environment, instance 1's signal port): the deploy's plan does not refuse the host for it, and
+    instance 1's start clears it (its journal says so) and serves again."""
+    task, rootfs = "0f" * 32, "/var/tmp/lost-rootfs"
+    since = sh(host, "date +%s").stdout.strip()
+    sh(host, "systemctl stop isaac-sim@1")
+    sh(
+        host,
+        f"rm -rf {rootfs} && mkdir -p {rootfs} && cid=$(docker create $(docker inspect -f '{{{{.Config.Image}}}}' "
+        f"isaac-sim-0)) && docker export $cid | tar -x -C {rootfs} && docker rm $cid >/dev/null && "
+        f"ctr -n moby run -d --net-host --env ISAAC_SIM_INSTANCE=1 --rootfs {rootfs} {task} "
+        f"python3 -m http.server {SIGNAL_BASE + 1} >/dev/null",
+    )
+    try:
+        wait_for(
+            lambda: f":{SIGNAL_BASE + 1} " in sh(host, f"ss -Hltn 'sport = :{SIGNAL_BASE + 1}'").stdout,
+            timeout=30,
+            what="the lost container to hold instance 1's signal port",
+        )
+        assert task not in sh(host, "docker ps -aq --no-trunc").stdout
+        run = testbed.run_playbook(host)
+        assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+        all_ready(host)
+        assert tcp_answers(ip, SIGNAL_BASE + 1)
+        assert task not in sh(host, "ctr -n moby tasks ls -q; ctr -n moby containers ls -q").stdout
+        journal = sh(host, f"journalctl -u isaac-sim@1 --since @{since} --no-pager").stdout
+        assert "a container of this collection that containerd still ran and Docker no longer knew" in journal
+    finally:
+        sh(host, f"ctr -n moby tasks kill -s SIGKILL {task}; sleep 1; ctr -n moby tasks delete {task}; "
+                 f"ctr -n moby containers delete {task}; rm -rf {rootfs}", check=False)  # fmt: skip
+        sh(host, "systemctl reset-failed isaac-sim@1; systemctl start isaac-sim@1", check=False)
 
 
 RESERVED = "/proc/sys/net/ipv4/ip_local_reserved_ports"

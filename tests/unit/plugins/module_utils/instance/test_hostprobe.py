@@ -67,6 +67,23 @@ def test_a_port_held_by_one_of_our_host_services_is_ours(tmp_path):
     assert not hostprobe.ports_held({("tcp", 49101)}, lambda: [], proc, our_units=["x-nginx.service"])[0]["ours"]
 
 
+def test_a_container_of_ours_docker_lost_is_ours_and_marked_lost(tmp_path):
+    """A process in a container Docker no longer knows (not among our ids) that carries the collection's
+    mark, ISAAC_SIM_INSTANCE, in its environment: left by a crashed dockerd, cleared at its unit's start;
+    the plan does not refuse the deploy for it. Without the mark it stays foreign."""
+    proc = fake_proc(tmp_path)
+    (tmp_path / "proc" / "100" / "environ").write_text("PATH=/usr/bin\0ISAAC_SIM_INSTANCE=1\0HOME=/\0")
+    [held] = hostprobe.ports_held({("tcp", 49100)}, lambda: [], proc)
+    assert held["ours"] is True and held["lost"] is True
+    (tmp_path / "proc" / "100" / "environ").write_text("PATH=/usr/bin\0MY_ISAAC_SIM_INSTANCE=1\0")
+    [held] = hostprobe.ports_held({("tcp", 49100)}, lambda: [], proc)
+    assert held["ours"] is False and "lost" not in held
+    # the mark in a process outside any container (nginx's service) is no container of ours
+    (tmp_path / "proc" / "200" / "environ").write_text("ISAAC_SIM_INSTANCE=1\0")
+    [held] = hostprobe.ports_held({("tcp", 49101)}, lambda: [], proc)
+    assert held["ours"] is False
+
+
 def test_docker_is_not_asked_when_no_wanted_port_is_taken(tmp_path):
     def ids():
         raise AssertionError("docker asked for nothing")
