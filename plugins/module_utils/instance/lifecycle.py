@@ -554,6 +554,13 @@ def apply(host: Host, want: dict, check=False) -> dict:
         "cleared": cleared,
         "order": [f"{kind} {' '.join(map(str, what)) if isinstance(what, list) else what}" for kind, what in steps],
         "notes": notes,
+        # why each serving instance would restart, for a person reading a dry run (--check)
+        "restart_why": {
+            i: "its settings changed"
+            if i in changed_ids
+            else f"the files every instance runs with changed ({', '.join(os.path.basename(p) for p in restarting)})"
+            for i in to_roll
+        },
     }
     result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
     ports = want.get("reserve")

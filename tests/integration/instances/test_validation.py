@@ -8,7 +8,7 @@ import subprocess
 import pytest
 import testbed
 import testinfra
-from testbed import ROOT, sh
+from testbed import INSTANCES, ROOT, sh
 
 NVIDIA_SMI = ROOT / "tests" / "fixtures" / "nvidia-driver" / "nvidia-smi"
 
@@ -270,4 +270,11 @@ def test_check_mode_on_the_deployed_host_runs_and_changes_nothing(host):
     result = testbed.run_playbook(host, check=True)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr
     assert testbed.changed_count(result, host) == 0
+    assert testbed.snapshot(host) == before
+    # a dry run of a change to every instance says which would restart and why, and changes nothing
+    result = testbed.run_playbook(host, {"isaac_sim_env": {"DRY_RUN_PROBE": "1"}}, check=True)
+    out = " ".join((result.stdout + result.stderr).split())
+    assert result.returncode == 0, out[-3000:]
+    for i in range(INSTANCES):
+        assert f"isaac-sim-{i} would restart, one at a time: its settings changed" in out, out[-3000:]
     assert testbed.snapshot(host) == before
