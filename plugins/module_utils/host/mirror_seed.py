@@ -45,7 +45,8 @@ class SeedError(Exception):
 # what skopeo says, and what it means (the first that matches)
 _CAUSES = (
     (re.compile(r"no space left on device", re.I), "disk"),
-    (re.compile(r"unauthorized|authentication required|denied|\b401\b|\b403\b", re.I), "login"),
+    (re.compile(r"unauthorized|authentication required|requested access to the resource is denied|\b40[13]\b", re.I),
+     "login"),
     (re.compile(r"manifest unknown|not found|\b404\b|name unknown", re.I), "missing"),
     (re.compile(r"connection refused|no such host|i/o timeout|timed out|network is unreachable|tls:|x509", re.I),
      "unreachable"),

@@ -23,6 +23,7 @@ copied beside it), and the audit (on `docker inspect`).
 from __future__ import annotations
 
 import posixpath
+import re
 
 try:
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import docker_cli
@@ -47,6 +48,8 @@ HOST_PATHS = {
     "/sys": "the host's kernel settings",
     "/dev": "the host's devices",
 }
+# the SELinux types the restricted Pod Security Standard allows
+_CONTAINER_TYPES = ("container_t", "container_init_t", "container_kvm_t", "container_engine_t")
 _NAMESPACES = (("PidMode", "pid", "PID"), ("IpcMode", "ipc", "IPC"), ("UTSMode", "uts", "UTS"),
                ("UsernsMode", "userns", "user"), ("CgroupnsMode", "cgroupns", "cgroup"))  # fmt: skip
 
@@ -86,17 +89,32 @@ def mounts(host: dict) -> list:
     return out
 
 
-def _local_volume_source(options: dict) -> tuple:
-    """(kind, host path) a local volume's driver options reach: ("bind", PATH) with o=bind,
-    ("device", PATH) for a device; (None, "") for none or a network file system (nfs, cifs)."""
+# a local volume's file systems that reach no path of the host: a network share, memory
+_NETWORK_FS = ("nfs", "nfs4", "cifs", "smb3", "tmpfs")
+# mount options that name host directories (an overlay's layers)
+_PATH_OPTIONS = ("lowerdir", "upperdir", "workdir")
+
+
+def _local_volume_sources(options: dict) -> list:
+    """[(kind, host path)] a local volume's driver options reach, as moby's local driver mounts them
+    (mount(2) run by dockerd, whose working directory is /: a relative path is read from /):
+    ("bind", PATH) with o=bind and for each directory an overlay's options name, ("device", PATH)
+    for any other device; [] for none, a network file system or tmpfs."""
     device = str(options.get("device") or "")
-    if not device:
-        return None, ""
-    if "bind" in str(options.get("o") or "").split(","):
-        return "bind", device
-    if str(options.get("type") or "") in ("nfs", "nfs4", "cifs", "smb3", "tmpfs"):
-        return None, ""
-    return ("device", device) if device.startswith("/") else (None, "")
+    fs = str(options.get("type") or "")
+    mount_options = [o for o in str(options.get("o") or "").split(",") if o]
+    found = []
+    for option in mount_options:
+        key, eq, value = option.partition("=")
+        if eq and key in _PATH_OPTIONS:
+            found += [("bind", posixpath.join("/", p)) for p in value.split(":") if p]
+    if not device or fs in _NETWORK_FS and not found:
+        return found
+    if "bind" in mount_options or "rbind" in mount_options:
+        return found + [("bind", posixpath.join("/", device))]
+    if fs == "overlay" and found:
+        return found
+    return found + [("device", posixpath.join("/", device))]
 
 
 def _bind(source: str, text: str, roots, how: str = "binds", resolve=None) -> list:
@@ -109,7 +127,9 @@ def _bind(source: str, text: str, roots, how: str = "binds", resolve=None) -> li
         return []
     if roots is None and not risk:
         return []
-    why = f"{how} host path {normal(source)} into it"
+    why = (
+        f"{how} {normal(source)} into it" if how.endswith("host path") else f"{how} host path {normal(source)} into it"
+    )
     if risk:
         why += f": {risk}"
     else:
@@ -132,11 +152,11 @@ def _mount_findings(host: dict, roots, volumes: dict, resolve=None) -> list:
             continue
         # a named volume made before (docker volume create --opt): its options as Docker has them
         options = mount["Options"] or (volumes or {}).get(mount["Source"], {})
-        kind, path = _local_volume_source(options)
-        if kind == "bind":
-            out += _bind(path, text, roots, "binds (a local volume with o=bind)", resolve)
-        elif kind == "device":
-            out.append((("device", normal(path)), text, f"mounts the host's device {path} into it (a local volume)"))
+        for kind, path in _local_volume_sources(options):
+            if kind == "bind":
+                out += _bind(path, text, roots, "binds (a local volume's options) host path", resolve)
+            else:
+                out.append((("device", normal(path)), text, f"mounts the host's {path} into it (a local volume)"))
     return out
 
 
@@ -164,10 +184,14 @@ def _security(host: dict) -> list:
             )
         elif key == "label" and value == "disable":
             out.append((("label", "disable"), "--security-opt=label=disable", "turns off SELinux labels"))
-        elif key == "label" and value in ("type:spc_t", "type:unconfined_t"):
-            out.append(
-                (("label", value), f"--security-opt=label={value}", "runs the container as an unconfined SELinux type")
-            )
+        elif (
+            key == "label"
+            and value.split(":", 1)[0] in ("user", "role")
+            or (key == "label" and value.startswith("type:") and value[5:] not in _CONTAINER_TYPES)
+        ):
+            # the restricted profile: a container type only, no SELinux user or role of its own
+            why = "gives the container an SELinux label other than a container type"
+            out.append((("label", value), f"--security-opt=label={value}", why))
     if nnp is False:
         out.append((("no-new-privileges", "false"), "--security-opt=no-new-privileges=false",
                     "lets the container's processes gain privileges (setuid binaries)"))  # fmt: skip
@@ -186,8 +210,9 @@ def _gpus(request: dict) -> str:
 
 
 def is_root(user: str) -> bool:
+    """Whether a --user runs as uid 0, as moby reads it (Go's Atoi: 00, +0 and -0 are 0 too)."""
     name = str(user or "").split(":", 1)[0]
-    return name in ("0", "root")
+    return name == "root" or (re.fullmatch(r"[+-]?[0-9]+", name) is not None and int(name) == 0)
 
 
 def judge(inspected: dict, rules: dict | None = None) -> list:
@@ -214,8 +239,13 @@ def judge(inspected: dict, rules: dict | None = None) -> list:
         # arguments tell one asked for
         if key == "CgroupnsMode" and rules.get("inspected"):
             continue
-        if host.get(key) == "host":
+        mode = str(host.get(key) or "")
+        if mode == "host":
             out.append(((flag, "host"), f"--{flag}=host", f"shares the host's {what} namespace with the container"))
+        elif flag in ("pid", "ipc") and mode.startswith("container:"):
+            # another container's namespace is what that container has (the host's, where it was allowed)
+            out.append(((flag, mode), f"--{flag}={mode}",
+                        f"joins the {what} namespace of another container, which the policy cannot judge"))  # fmt: skip
     out += _security(host)
     for device in host.get("Devices") or []:
         path = device.get("PathOnHost", "")
@@ -231,6 +261,10 @@ def judge(inspected: dict, rules: dict | None = None) -> list:
             text = _gpus(request)
             out.append((("gpus", text), text, "gives the container GPUs beyond the one the plan gives it"))
     out += _mount_findings(host, rules.get("bind_roots"), rules.get("volumes"), rules.get("resolve"))
+    for path in host.get("EnvFiles") or []:
+        # the client reads it on the host, as the unit's root, into the container's environment
+        why = "reads a file of the host into the container's environment (another instance's secrets)"
+        out.append((("env-file", path), f"--env-file={path}", why))
     for source in host.get("VolumesFrom") or []:
         out.append((("volumes-from", source), f"--volumes-from={source}",
                     "mounts every volume of another container, which the policy cannot judge"))  # fmt: skip
@@ -275,7 +309,7 @@ def errors(where: str, whose: str, args, allowed=(), rules=None, allow_var: str 
     """The plan's error for each refused argument: the variable, the argument, whose it is, the fix."""
     try:
         found = refused(args, allowed, rules)
-    except DockerArgError as exc:
+    except (DockerArgError, ValueError) as exc:
         return [f"{where}: {exc} ({whose}). Fix: write the arguments as docker run takes them, one word per item."]
     return [
         f"{where}: {text} {why} ({whose}). Fix: remove it; where this host must allow it, add {text!r} to "

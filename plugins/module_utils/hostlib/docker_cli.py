@@ -20,6 +20,7 @@ It imports nothing but the standard library (the host library is copied flat to 
 from __future__ import annotations
 
 import posixpath
+import re
 
 # flags that take no value ("--flag", or "--flag=BOOL"); every other flag takes one
 BOOLS = {
@@ -139,10 +140,11 @@ def csv_record(text: str) -> list:
                     break
                 field.append(text[i])
                 i += 1
-            if i < n and text[i] not in ",\r\n":
+            if i < n and text[i] not in ",\n" and text[i : i + 2] != "\r\n":
                 raise DockerArgError(f'extraneous or missing " in quoted-field: {text}')
         else:
-            while i < n and text[i] not in ",\r\n":
+            # a record ends at a newline (\r\n or \n); a lone \r is data, as Go's reader keeps it
+            while i < n and text[i] != "," and text[i] != "\n" and text[i : i + 2] != "\r\n":
                 if text[i] == '"':
                     raise DockerArgError(f'bare " in non-quoted-field: {text}')
                 field.append(text[i])
@@ -233,7 +235,7 @@ def gpu_request(value: str) -> dict:
             text = val if has_value else key
             if text == "all":
                 request["Count"] = -1
-            elif text.isdigit():
+            elif re.fullmatch(r"[+-]?[0-9]+", text):  # Go's Atoi
                 request["Count"] = int(text)
             else:
                 raise DockerArgError(f"invalid count ({text}): give a number or all")
@@ -302,6 +304,8 @@ def config(args) -> dict:
         "Binds": binds,
         "Mounts": mounts,
         "VolumesFrom": many.get("volumes-from", []),
+        # read by the client on the host: not in docker inspect, judged from the arguments only
+        "EnvFiles": many.get("env-file", []) + many.get("label-file", []),
         "Runtime": last.get("runtime", ""),
     }
     if masked is not None:

@@ -372,11 +372,13 @@ def _locked_plan(probe: Probe, p: dict, now: float) -> dict:
         return held
     try:
         return dict(plan_host(probe, p), **held)
-    except PlanRefusedError as exc:
-        # the run stops here: the host it took is given back at once, not left held by a run that ended
+    except Exception as exc:
+        # the run stops here (refused, or a fault of the plan's): the host it took is given back at once,
+        # not left held by a run that ended
         if held["lock"]["acquired"] and not probe.check_mode:
             # the refusal is what the user must read; the next run takes over an ended run's lock
             with contextlib.suppress(runlock.LockError, OSError):
                 held["lock"] = runlock.request(dict(p["lock"], state="absent"), now)
-        exc.fields.update(held)
+        if isinstance(exc, PlanRefusedError):
+            exc.fields.update(held)
         raise

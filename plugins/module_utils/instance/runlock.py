@@ -77,8 +77,9 @@ def decide(current: dict | None, me: dict, now: float, stale_after: int, break_l
     else:
         return "held", who
     # an ended run's lifecycle job may still be restarting an instance here (it stops before its next
-    # one once its controller is silent): the host is taken over only once that job has ended
-    job = job_running(current)
+    # one once its controller is silent): the host is taken over only once that job has ended, unless the
+    # operator breaks the lock (the escape from a job that hangs)
+    job = "" if break_lock else job_running(current)
     if job:
         return "job", (
             f"{who} has ended, but its lifecycle job still runs on this host ({job}); it stops before its next "

@@ -57,7 +57,7 @@ def test_a_container_docker_makes_other_than_the_plan_read_it_never_starts(host)
         assert f"Rollout stopped on {testbed.name(host)}: isaac-sim-0: " in out, out[-3000:]
         assert (
             "isaac-sim-0 was not started: the container policy refuses what Docker made of its arguments: "
-            "--volume=hostetc:/h:ro binds (a local volume with o=bind) host path /etc into it"
+            "--volume=hostetc:/h:ro binds (a local volume's options) host path /etc into it"
         ) in out, out[-3000:]
         assert "it went back to" in out and "not reached: isaac-sim-1, isaac-sim-2, isaac-sim-3" in out
         testbed.all_ready(host)

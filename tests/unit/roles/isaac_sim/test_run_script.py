@@ -142,6 +142,11 @@ def test_a_container_the_policy_refuses_is_removed_never_started_and_not_retried
     assert "event=" not in out and not calls
 
 
+def test_a_container_the_policy_could_not_judge_is_removed_and_its_start_fails_to_be_retried(run):
+    rc, _out, calls = run(0, ready=True, policy=2)
+    assert rc == 1 and run.docker == ["create", "rm"] and not calls
+
+
 def test_a_container_docker_could_not_create_ends_as_a_failed_docker_run(run):
     rc, out, _calls = run(0, ready=False, create=125)
     assert rc == 125 and run.docker == ["create"]

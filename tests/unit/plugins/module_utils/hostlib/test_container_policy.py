@@ -32,11 +32,11 @@ def refused(args, allowed=(), **rules):
         (["-v", "/var/lib/docker:/d"], "--volume=/var/lib/docker:/d", "Docker's own state"),
         (["-v", "/run/systemd:/s"], "--volume=/run/systemd:/s", "systemd's private socket"),
         (["--volumes-from", "other"], "--volumes-from=other", "every volume of another container"),
-        (["-v", "rootvol:/host"], "--volume=rootvol:/host", "a local volume with o=bind"),
+        (["-v", "rootvol:/host"], "--volume=rootvol:/host", "a local volume's options"),
         (["--mount", "source=v,target=/h,volume-opt=type=none,volume-opt=o=bind,volume-opt=device=/"],
-         "--mount=type=volume,source=v,target=/h", "a local volume with o=bind"),
+         "--mount=type=volume,source=v,target=/h", "a local volume's options"),
         (["--mount", "source=v,target=/h,volume-opt=type=ext4,volume-opt=device=/dev/sda1"],
-         "--mount=type=volume,source=v,target=/h", "the host's device /dev/sda1"),
+         "--mount=type=volume,source=v,target=/h", "the host's /dev/sda1"),
         # and the other spellings Docker accepts
         (["-itv/:/h"], "--volume=/:/h", "Docker's socket"),
         (["-v=/var/run:/r"], "--volume=/var/run:/r", "Docker's socket"),
@@ -58,7 +58,20 @@ def refused(args, allowed=(), **rules):
         (["--security-opt=seccomp=/etc/my.json"], "--security-opt=seccomp=PROFILE", "profile of its own"),
         (["--security-opt", "apparmor:unconfined"], "--security-opt=apparmor=unconfined", "AppArmor"),
         (["--security-opt=label=disable"], "--security-opt=label=disable", "SELinux"),
-        (["--security-opt=label:type:spc_t"], "--security-opt=label=type:spc_t", "unconfined SELinux"),
+        (["--security-opt=label:type:spc_t"], "--security-opt=label=type:spc_t", "other than a container type"),
+        (["--security-opt=label=type:container_runtime_t"], "--security-opt=label=type:container_runtime_t",
+         "other than a container type"),
+        (["--security-opt=label=user:system_u"], "--security-opt=label=user:system_u", "other than a container type"),
+        # the review's: a relative device is read from dockerd's working directory, /
+        (["--mount", "source=hx,target=/h,volume-opt=type=none,volume-opt=o=bind,volume-opt=device=etc"],
+         "--mount=type=volume,source=hx,target=/h", "host path /etc into it"),
+        (["--mount", "source=d,target=/d,volume-opt=type=ext4,volume-opt=device=dev/nvme0n1p1"],
+         "--mount=type=volume,source=d,target=/d", "the host's /dev/nvme0n1p1"),
+        # uid 0 however Go's Atoi reads it
+        (["--user=00"], "--user=00", "as root"),
+        (["--user=+0:0"], "--user=+0:0", "as root"),
+        (["--pid=container:other"], "--pid=container:other", "another container"),
+        (["--env-file=/etc/isaac-sim/instance-1.env"], "--env-file=/etc/isaac-sim/instance-1.env", "secrets"),
         (["--security-opt=systempaths=unconfined"], "--security-opt=systempaths=unconfined", "unmasks"),
         (["--device=/dev/fuse"], "--device=/dev/fuse", "host device"),
         (["--device-cgroup-rule=c 1:* rmw"], "--device-cgroup-rule=c 1:* rmw", "host devices"),
@@ -75,7 +88,8 @@ def test_each_way_out_is_refused_however_docker_is_told(args, text, needle):
 @pytest.mark.parametrize(
     "args",
     [
-        ["--cpus=8", "--label", "team=robots", "--privileged=false", "--pid=container:other", "--network=host"],
+        ["--cpus=8", "--label", "team=robots", "--privileged=false", "--network=host", "--network=container:x"],
+        ["--security-opt=label=type:container_t", "--security-opt=label=level:s0:c1,c2"],
         ["--security-opt=no-new-privileges", "--security-opt", "no-new-privileges:true"],
         # the last no-new-privileges wins, as the daemon reads them in order
         ["--security-opt=no-new-privileges=false", "--security-opt=no-new-privileges"],
@@ -108,6 +122,19 @@ def test_a_bind_under_a_declared_root_passes_and_a_root_that_holds_the_host_is_r
     errors = container_policy.roots_errors(["/srv/data", "/", "/var", "/run/", "/etc/ssl", "data"])
     assert [e.split(":")[1].split()[0] for e in errors] == ["'/'", "'/var'", "'/run/'", "'/etc/ssl'", "'data'"]
     assert "isaac_sim_allowed_bind_roots: 'data' is not an absolute path" in errors[-1]
+
+
+def test_an_overlay_volume_s_layers_are_judged_as_binds():
+    args = ["--mount", 'source=o,target=/o,volume-opt=type=overlay,volume-opt=device=overlay,'
+            '"volume-opt=o=lowerdir=/root:/etc,upperdir=/srv/u,workdir=/srv/w"']  # fmt: skip
+    found = [why for _t, why in refused(args, bind_roots=[DATA, "/srv"])]
+    assert any("/root into it" in w for w in found) and any("/etc into it" in w for w in found)
+    assert len(found) == 2  # the layers under a declared root pass
+
+
+def test_a_mount_s_csv_keeps_a_lone_carriage_return_as_data_as_go_does():
+    [(text, why)] = refused(["--mount", "type=bind,target=/x,source=/data/a\rb,source=/etc"])
+    assert "host path /etc" in why
 
 
 def test_root_is_refused_only_where_the_release_runs_as_a_user():

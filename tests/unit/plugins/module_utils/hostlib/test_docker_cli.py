@@ -157,3 +157,10 @@ def test_the_config_keeps_the_last_of_a_single_valued_option_and_every_list_item
     assert host["Mounts"] == [
         {"Type": "bind", "Source": "/var/run/docker.sock", "Target": "/var/run/docker.sock", "ReadOnly": False}
     ]
+
+
+def test_a_gpu_count_is_read_as_go_s_atoi_reads_it():
+    assert docker_cli.gpu_request("+1")["Count"] == 1 and docker_cli.gpu_request("count=-1")["Count"] == -1
+    # a digit Python takes and Go does not: Docker's refusal, not a crash of the plan
+    with pytest.raises(docker_cli.DockerArgError):
+        docker_cli.gpu_request("²")

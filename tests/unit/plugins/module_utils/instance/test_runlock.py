@@ -169,7 +169,7 @@ def test_an_ended_run_is_taken_over_only_once_its_lifecycle_job_here_has_ended(t
         assert runlock.request(params, NOW + 6, **where)["acquired"]
         assert runlock.read(where["path"])["job"]["pid"] == job.pid
         bob = dict(params, holder=BOB)
-        for how in ({"dead": ALICE["id"]}, {"break_lock": True}, {"stale_after": 1}):
+        for how in ({"dead": ALICE["id"]}, {"stale_after": 1}):
             answer = runlock.request(dict(bob, **how), NOW + 60, **where)
             assert answer["acquired"] is False and answer["job_running"] is True, how
             assert f"its lifecycle job still runs on this host (pid {job.pid})" in answer["note"]
@@ -177,6 +177,11 @@ def test_an_ended_run_is_taken_over_only_once_its_lifecycle_job_here_has_ended(t
         # a run that holds it (not ended) is just held, as before
         held = runlock.request(bob, NOW + 60, **where)
         assert held["acquired"] is False and held["job_running"] is False
+        # the operator's break is the escape from a job that hangs: taken at once
+        broken = runlock.request(dict(bob, break_lock=True), NOW + 60, **where)
+        assert broken["acquired"] is True and "(isaac_sim_lock_break)" in broken["note"]
+        runlock.request(dict(params, break_lock=True), NOW + 61, **where)
+        runlock.mark_job(ALICE["id"], job.pid, path=where["path"])
     finally:
         job.kill()
         job.wait()
