@@ -141,7 +141,7 @@ def test_the_audit_finds_the_host_clean_and_each_planted_finding(fleet, tmp_path
     try:
         run, report = audit(tmp_path, first)
     finally:
-        handle = sh(first, "nft -a list chain inet isaac_sim isaac-sim-0 | awk '/accept # handle/ {print $NF}'")
+        handle = sh(first, "nft -a list chain inet isaac_sim isaac-sim-0 | awk '/accept # handle/ {print $NF}'").strip()
         sh(
             first,
             f"docker rm -f planted isaac-sim-3; rm -f /root/leak.txt; "
