@@ -163,8 +163,9 @@ def test_a_container_of_ours_that_docker_lost_is_cleared_at_its_unit_s_start(hos
         host,
         f"rm -rf {rootfs} && mkdir -p {rootfs} && cid=$(docker create $(docker inspect -f '{{{{.Config.Image}}}}' "
         f"isaac-sim-0)) && docker export $cid | tar -x -C {rootfs} && docker rm $cid >/dev/null && "
+        # (ctr gives the process no PATH of its own: the interpreter by its path)
         f"ctr -n moby run -d --net-host --env ISAAC_SIM_INSTANCE=1 --rootfs {rootfs} {task} "
-        f"python3 -m http.server {SIGNAL_BASE + 1} >/dev/null",
+        f"/usr/bin/python3 -m http.server {SIGNAL_BASE + 1} >/dev/null",
     )
     try:
         wait_for(
