@@ -117,7 +117,7 @@ def _local_volume_sources(options: dict) -> list:
     return found + [("device", posixpath.join("/", device))]
 
 
-def _bind(source: str, text: str, roots, how: str = "binds", resolve=None) -> list:
+def _bind(source: str, text: str, roots, how: str = "binds host path", resolve=None) -> list:
     if not source.startswith("/"):
         return []
     if resolve:  # on the host: a symbolic link is judged by where it leads, the roots too
@@ -127,9 +127,7 @@ def _bind(source: str, text: str, roots, how: str = "binds", resolve=None) -> li
         return []
     if roots is None and not risk:
         return []
-    why = (
-        f"{how} {normal(source)} into it" if how.endswith("host path") else f"{how} host path {normal(source)} into it"
-    )
+    why = f"{how} {normal(source)} into it"
     if risk:
         why += f": {risk}"
     else:
@@ -291,6 +289,16 @@ def beyond_plan(inspected: dict, planned_args, gpu="", volumes=None, resolve=Non
     given = {key for key, _text, _why in judge(planned, rules)}
     found = judge(inspected, dict(rules, volumes=volumes or {}, resolve=resolve, inspected=True))
     return [item for item in found if item[0] not in given]
+
+
+def check_created(name: str, planned_args, gpu, docker_json, resolve=None) -> list:
+    """beyond_plan() of the container `name` Docker created, read from Docker: docker_json(*args) runs
+    `docker ARGS` and returns its JSON (raising when Docker does not answer). Its named volumes' options
+    are asked too. isaac-sim-policy (every unit's start) and the warm-cache runs use it."""
+    [inspected] = docker_json("container", "inspect", name)
+    names = sorted({m["Name"] for m in inspected.get("Mounts") or [] if m.get("Type") == "volume" and m.get("Name")})
+    volumes = {v["Name"]: v.get("Options") or {} for v in docker_json("volume", "inspect", *names)} if names else {}
+    return beyond_plan(inspected, planned_args, "" if gpu is None else str(gpu), volumes, resolve)
 
 
 def allowed_keys(allowed) -> set:

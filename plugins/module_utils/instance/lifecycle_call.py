@@ -50,17 +50,16 @@ def _want(host: Host, p: dict, found: dict) -> dict:
         ),
         os.path.join(layout.UNIT_DIR, layout.TARGET): (unit_files.render_target(p["managed"]), 0o644),
     }
-    for name in layout.SCRIPTS:
-        if name not in p["scripts"]:
-            raise LifecycleError(f"scripts: {name} is missing. Fix: pass the role's files/{name}.")
-        text = p["scripts"][name]
-        files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o755)
-    # the container policy's code, read by isaac-sim-policy beside it (not run by itself)
-    for name in layout.POLICY_LIB:
-        if name not in p["scripts"]:
-            raise LifecycleError(f"scripts: {name} is missing. Fix: pass plugins/module_utils/hostlib/{name}.")
-        text = p["scripts"][name]
-        files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", 0o644)
+    # the scripts, and the container policy's code that isaac-sim-policy reads beside them (not run by itself)
+    for names, source, mode in (
+        (layout.SCRIPTS, "the role's files", 0o755),
+        (layout.POLICY_LIB, "plugins/module_utils/hostlib", 0o644),
+    ):
+        for name in names:
+            if name not in p["scripts"]:
+                raise LifecycleError(f"scripts: {name} is missing. Fix: pass {source}/{name}.")
+            text = p["scripts"][name]
+            files[os.path.join(layout.LIBEXEC_DIR, name)] = (text if text.endswith("\n") else text + "\n", mode)
     for unit in plan.get("companion_units", []):
         files[os.path.join(layout.UNIT_DIR, layout.companion_template(unit["name"]))] = (
             unit_files.render_companion_unit(unit, plan["settings"], p["managed"]),

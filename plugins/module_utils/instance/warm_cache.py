@@ -364,20 +364,17 @@ class Warmer:
     def _judged(self, name: str, options: list, gpu) -> list:
         """What the container policy refuses of the created warm run beyond its own arguments; Docker not
         answering is a refusal (fails closed)."""
-        rc, out, err = self.run(["docker", "container", "inspect", name])
-        try:
-            [inspected] = json.loads(out) if rc == 0 else [None]
-            names = sorted({m["Name"] for m in inspected.get("Mounts") or [] if m.get("Type") == "volume"})
-            volumes = {}
-            if names:
-                rc, out, err = self.run(["docker", "volume", "inspect", *names])
-                volumes = {v["Name"]: v.get("Options") or {} for v in json.loads(out)} if rc == 0 else None
-            if volumes is None or inspected is None:
+
+        def docker_json(*args):
+            rc, out, err = self.run(["docker", *args])
+            if rc != 0:
                 raise ValueError(err.strip()[-200:])
+            return json.loads(out)
+
+        try:
+            return container_policy.check_created(name, options, gpu, docker_json, os.path.realpath)
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             return [(None, "(unknown)", f"could not be judged: Docker did not show it ({exc})")]
-        gpu = "" if gpu is None else str(gpu)
-        return container_policy.beyond_plan(inspected, options, gpu, volumes, os.path.realpath)
 
     def _ready(self, name: str, pattern: str, timeout: int, started: float) -> float:
         ready = re.compile(pattern)
