@@ -191,6 +191,15 @@ options:
       to the networks that may reach ports of that kind, instead of O(allowed_networks).
     type: dict
     default: {}
+  firewall_site_policy:
+    description:
+      - What a site chain that drops by default (a site's nftables table, firewalld, iptables' INPUT with policy
+        DROP) gets - V(add) the collection's accepts in its own terms (rules of ours at the top of a site's nftables
+        chain, a firewalld policy of ours), V(refuse) nothing - the plan stops before any change, naming the chain
+        and giving the exact rules to add, until they are there. iptables' own tables are never written.
+    type: str
+    choices: [add, refuse]
+    default: add
   web_viewer_image:
     description:
       - NVIDIA's web viewer image (built once by P(isaacsim.fleet.web_viewer_image#role)); for 6.x each instance
@@ -435,6 +444,7 @@ ARGUMENT_SPEC = dict(
     firewall=dict(type="bool", default=True),
     allowed_networks=dict(type="list", elements="str", default=[]),
     allowed_networks_by_port=dict(type="dict", default={}),
+    firewall_site_policy=dict(type="str", choices=["add", "refuse"], default="add"),
     web_viewer_image=dict(type="str", default=""),
     network_mode=dict(type="str", default="host"),
     macvlan_parent=dict(type="str", default=""),

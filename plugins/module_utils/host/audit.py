@@ -7,7 +7,8 @@ capabilities, the host's namespaces, a confinement turned off, host devices, Doc
 under /etc, /root, /var/lib and the journal that hold the registry key (never the key itself in
 the answer), env files and units whose mode is wider than they should be, and the firewall's
 tables missing or not as the lifecycle loaded them. The ports each host opens go to a probe
-(probe()), run from the controller or a named probe host outside the allowed networks.
+(probe()), run from the controller or named probe hosts, each outside or inside the allowed
+networks: a port must be silent to the first and answer the second.
 """
 
 from __future__ import annotations
@@ -200,16 +201,26 @@ def _knock(proto: str, address: str, port: int, timeout: float) -> str:
 
 
 def probe_findings(rows: list) -> list:
-    """An open port seen from outside the networks allowed for it is a finding."""
-    return [
-        finding(
-            "port",
-            f"{r['host']} {r['proto']}/{r['address']}:{r['port']} ({r['kind']})",
-            f"answers {r['source']}, which is outside the allowed networks",
-        )
-        for r in rows
-        if r["answer"] == "open" and not r["inside"]
-    ]
+    """Both directions: an open port seen from outside the networks allowed for it, and a TCP port
+    that is silent (dropped on the way) from inside them - a firewall, ours or the site's, that
+    closes what must answer. A UDP port silent from inside is not judged (a port may not answer a
+    stray datagram), nor one that refuses (nothing listens: the instance is down, status says why)."""
+    out = []
+    for r in rows:
+        what = f"{r['host']} {r['proto']}/{r['address']}:{r['port']} ({r['kind']})"
+        by = f"{r['source']} ({r['prober']})" if r.get("prober") else r["source"]
+        if r["answer"] == "open" and not r["inside"]:
+            out.append(finding("port", what, f"answers {by}, which is outside the allowed networks"))
+        elif r["answer"] == "silent" and r["inside"] and r["proto"] == "tcp":
+            out.append(
+                finding(
+                    "port",
+                    what,
+                    f"does not answer {by}, which is inside its allowed networks: a firewall on the way drops it "
+                    "(a site chain that drops by default? isaac_sim_firewall_site_policy)",
+                )
+            )
+    return out
 
 
 class HostIO:
@@ -318,17 +329,21 @@ def targets(reports: dict, probe_host: str = "") -> list:
         for p in report.get("ports") or []:
             address = p.get("address") or report.get("address") or ""
             if address:
-                out.append(dict(p, host=host, address=address))
+                out.append(dict(p, host=host, address=address, prober=probe_host))
     return out
 
 
-def fleet(reports: dict, probed: list, probe_host: str = "") -> dict:
-    """{"hosts": [{"host", "reachable", "findings"}], "findings": n, "clean": bool, "table": [lines]}."""
+def fleet(reports: dict, probed: list, probe_hosts=("",)) -> dict:
+    """{"hosts": [{"host", "reachable", "findings"}], "findings": n, "clean": bool, "table": [lines]}.
+    probed: the rows of every probe host's probe() (probe_hosts: their names, "" or localhost for
+    the controller)."""
+    if isinstance(probe_hosts, str):
+        probe_hosts = [probe_hosts]
     rows = []
     by_host = {}
     for f in probe_findings(probed):
         by_host.setdefault(f["what"].split(" ", 1)[0], []).append(f)
-    unknown = [r for r in probed if r["inside"] and r["answer"] == "open"]
+    unjudged = [r for r in probed if r["inside"] and r["answer"] == "silent" and r["proto"] == "udp"]
     for host in sorted(reports):
         report = reports[host]
         found = list((report or {}).get("findings") or []) + by_host.get(host, [])
@@ -342,15 +357,30 @@ def fleet(reports: dict, probed: list, probe_host: str = "") -> dict:
             table.append(f"{r['host']:<24} {f['check']:<13} {f['what']}: {f['why']}")
         if r["reachable"] and not r["findings"]:
             table.append(f"{r['host']:<24} {'-':<13} clean")
-    if probe_host in reports and (reports[probe_host] or {}).get("ports"):
+    knocked = {r["host"] for r in probed}
+    for host in probe_hosts:
+        if host in reports and (reports[host] or {}).get("ports") and host not in knocked:
+            table.append(
+                f"(not knocked on: {len(reports[host]['ports'])} port(s) of {host}, the probe host itself; "
+                "audit it from another audit_probe_host)"
+            )
+    outside = {(r["host"], r["proto"], r["port"]) for r in probed if not r["inside"]}
+    ports = {(r["host"], r["proto"], r["port"]) for r in probed}
+    if ports - outside:
         table.append(
-            f"(not knocked on: {len(reports[probe_host]['ports'])} port(s) of {probe_host}, the probe host itself; "
-            "audit it from another audit_probe_host)"
+            f"(not knocked on from outside: {len(ports - outside)} port(s), every probe host is inside their "
+            "allowed networks; add a host outside them to audit_probe_hosts)"
         )
-    if unknown:
+    insiders = {(r["host"], r["proto"], r["port"]) for r in probed if r["inside"]}
+    if ports - insiders:
         table.append(
-            f"(not checked: {len(unknown)} port(s) answered the probe from inside their allowed networks; "
-            "give audit_probe_host a host outside them)"
+            f"(not knocked on from inside: {len(ports - insiders)} port(s), no probe host is in their allowed "
+            "networks; add one to audit_probe_hosts to check that they answer there)"
+        )
+    if unjudged:
+        table.append(
+            f"(not judged: {len(unjudged)} UDP port(s) gave no answer from inside their allowed networks; a UDP "
+            "port may not answer a stray datagram)"
         )
     return {
         "hosts": rows,

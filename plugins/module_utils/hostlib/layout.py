@@ -39,14 +39,25 @@ CACHE_STATE_SCRIPT = "isaac-sim-cache-state"
 # isaac-sim-run's exit status when a port of the block is held by another process
 PORTS_HELD_STATUS = 76
 # isaac-sim-run's check of the container Docker created, before it starts (the container policy), its
-# exit status when the policy refuses it, and the host library files it reads, beside it in LIBEXEC_DIR
+# exit status when the policy refuses it; the host library files the scripts read, beside them in
+# LIBEXEC_DIR (isaac-sim-policy's, isaac-sim-firewall-site's)
 POLICY_SCRIPT = "isaac-sim-policy"
 POLICY_REFUSED_STATUS = 77
-POLICY_LIB = ("docker_cli.py", "container_policy.py")
+POLICY_LIB = ("docker_cli.py", "container_policy.py", "site_firewall.py")
 # before each start (root's rights, never fatal): our containers that containerd runs and Docker lost
 ORPHANS_SCRIPT = "isaac-sim-orphans"
 # every container of the collection carries it in its environment (K_INSTANCE's name), lost or not
-SCRIPTS = (RUN_SCRIPT, READY_SCRIPT, PORTS_SCRIPT, CACHE_STATE_SCRIPT, POLICY_SCRIPT, ORPHANS_SCRIPT)
+# the collection's accept rules in the site's own nftables chains, again after the site reloaded them
+FIREWALL_SITE_SCRIPT = "isaac-sim-firewall-site"
+SCRIPTS = (
+    RUN_SCRIPT,
+    READY_SCRIPT,
+    PORTS_SCRIPT,
+    CACHE_STATE_SCRIPT,
+    POLICY_SCRIPT,
+    ORPHANS_SCRIPT,
+    FIREWALL_SITE_SCRIPT,
+)
 # the host's read-only status endpoint (a host service, not an instance)
 STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"
@@ -71,6 +82,8 @@ FIREWALL_UNIT = "isaac-sim-firewall.service"
 FIREWALL_RULES = f"{CONFIG_DIR}/firewall.nft"
 FIREWALL_STATE = f"{CONFIG_DIR}/firewall.json"
 FIREWALL_SITE_DROPIN = f"{UNIT_DIR}/nftables.service.d/isaac-sim.conf"
+# what the site's own chains must accept (site_firewall.py), for isaac-sim-firewall-site
+FIREWALL_SITE_RULES = f"{CONFIG_DIR}/firewall-site.json"
 # the Docker network that gives instances addresses of their own (isaac_sim_network_mode: macvlan)
 NETWORK = "isaac-sim-macvlan"
 LABEL_NETWORK = "org.isaacsim.fleet.network"

@@ -6,11 +6,13 @@ only the networks allowed for its kind (isaac_sim_allowed_networks), with nftabl
 The rules live in tables of the collection's own (inet isaac_sim on the host's input hook;
 netdev isaac_sim on a macvlan parent's ingress hook, where the traffic of instances with
 addresses of their own passes: it never reaches the host's input chain). Nothing else is
-flushed or touched. One file holds both tables and replaces them in one nft transaction; the
-unit isaac-sim-firewall.service loads it at boot, and a drop-in of the site's nftables.service
-loads it again after that flushed the ruleset. The lifecycle (lifecycle.py) loads the union of
-the rules before and after a change while instances change, and only the planned ones once
-every instance runs as planned: no port of a running instance is ever without its rule.
+flushed or touched, but a site chain that drops by default: it is given the same accepts in its
+own terms (hostlib/site_firewall.py, isaac_sim_firewall_site_policy). One file holds both tables
+and replaces them in one nft transaction; the unit isaac-sim-firewall.service loads it at boot,
+and a drop-in of the site's nftables.service loads it again after that flushed the ruleset. The
+lifecycle (lifecycle.py) loads the union of the rules before and after a change while instances
+change, and only the planned ones once every instance runs as planned: no port of a running
+instance is ever without its rule.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import json
 import re
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common import sandbox, units
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, site_firewall
 
 TABLE = "isaac_sim"
 NFT = "/usr/sbin/nft"
@@ -32,6 +34,8 @@ UNIT_PATH = f"{layout.UNIT_DIR}/{UNIT}"
 # the site's nftables.service loads a file that starts with "flush ruleset" (Debian's, RHEL's): a
 # drop-in loads ours again after each of its starts and reloads
 SITE_DROPIN = layout.FIREWALL_SITE_DROPIN
+SITE_RULES = layout.FIREWALL_SITE_RULES
+SITE_SCRIPT = f"/usr/bin/python3 {layout.LIBEXEC_DIR}/{layout.FIREWALL_SITE_SCRIPT}"
 VAR = "isaac_sim_allowed_networks"
 BY_PORT = "isaac_sim_allowed_networks_by_port"
 # the host services' port kinds (the instances' are the release's and the companions' port names)
@@ -115,13 +119,20 @@ def settings(cfg: dict, kinds) -> tuple:
             )
             continue
         by_kind[str(kind)] = _parse(texts, f"{BY_PORT}.{kind}", errors, warnings)
+    site = cfg.get("firewall_site_policy") or "add"
+    if site not in site_firewall.CHOICES:
+        errors.append(
+            f"{site_firewall.VAR}: {site!r} is not one of {', '.join(site_firewall.CHOICES)}. Fix: add (the collection "
+            "keeps its accepts in a site chain that drops by default, or in firewalld) or refuse (the deploy stops "
+            "and gives the rules to add)."
+        )
     if not default and not errors and not cfg.get("allowed_networks"):
         errors.append(
             f"{VAR}: empty, so every port of the instances would be closed to every other machine. Fix: list the "
             "networks that may reach them (the offices and the monitoring network, e.g. [10.20.0.0/16]), or set "
             "isaac_sim_firewall: false where another firewall guards these hosts."
         )
-    return {"enabled": True, "default": default, "by_kind": by_kind}, errors, warnings
+    return {"enabled": True, "default": default, "by_kind": by_kind, "site": site}, errors, warnings
 
 
 def entries(plan: dict) -> list:
@@ -169,6 +180,7 @@ def model(fw: dict, plan: dict) -> dict | None:
         "by_kind": fw["by_kind"],
         "ports": rows,
         "parents": {row[4]: parent for row in rows if row[4]},
+        "site": fw.get("site", "add"),
     }
 
 
@@ -266,9 +278,11 @@ def render(m: dict | None, managed: str) -> str:
 
 def site_dropin(managed: str) -> str:
     """nftables.service.d/isaac-sim.conf: after the site's rules (which flush the whole ruleset),
-    ours again. The "-": a missing file of ours never fails the site's firewall."""
+    ours again, and our accepts in the site's chains. The "-": a missing file of ours never fails
+    the site's firewall."""
+    again = [f"-{NFT} -f {RULES}", f"-{SITE_SCRIPT} apply"]
     return units.render(
-        [("Service", [("ExecStartPost", f"-{NFT} -f {RULES}"), ("ExecReload", f"-{NFT} -f {RULES}")])],
+        [("Service", [*[("ExecStartPost", c) for c in again], *[("ExecReload", c) for c in again]])],
         header=[managed, f"The Isaac Sim instances' rules ({UNIT}) again after the site's flush the ruleset."],
     )
 
@@ -295,7 +309,10 @@ def unit(managed: str) -> str:
                     ("Type", "oneshot"),
                     ("RemainAfterExit", "yes"),
                     ("ExecStart", f"{NFT} -f {RULES}"),
+                    "# the accepts a site chain that drops by default needs (isaac_sim_firewall_site_policy: add)",
+                    ("ExecStartPost", f"-{SITE_SCRIPT} apply"),
                     "# stopped, the instances' ports answer everyone again: cleanup.yml stops it last",
+                    ("ExecStop", f"-{SITE_SCRIPT} remove"),
                     ("ExecStop", f"{NFT} '{_DROP_ALL_LINE}'"),
                     *sandbox.firewall(),
                 ],
@@ -333,17 +350,71 @@ def in_sync(host, m: dict | None, managed: str) -> bool:
     """Whether the host has exactly `m`: file, unit, and the kernel's tables as last loaded."""
     kept = state(host)
     if m is None:
-        gone = (RULES, UNIT_PATH, SITE_DROPIN)
+        gone = (RULES, UNIT_PATH, SITE_DROPIN, SITE_RULES)
         return all(host.read(path) is None for path in gone) and not _loaded(host)
     return (
-        host.read(RULES) == render(m, managed)
+        _site_in_sync(host, m)
+        and host.read(RULES) == render(m, managed)
         and host.read(UNIT_PATH) == unit(managed)
         and host.read(SITE_DROPIN) == site_dropin(managed)
         and kept.get("model") == m
         and kept.get("listing") is not None
         and listing(host) == kept["listing"]
         and _enabled(host)
+        and _site_in_sync(host, m)
     )
+
+
+def _site_wanted(m: dict) -> tuple:
+    """(the rules of ours for a site's nftables chains, the rich rules for firewalld's policy of ours);
+    both empty where the collection does not add them (isaac_sim_firewall_site_policy: refuse)."""
+    if m.get("site", "add") != "add":
+        return [], []
+    gs = site_firewall.groups(m)
+    return site_firewall.nft_rules(gs), site_firewall.rich_rules(gs)
+
+
+def _site_in_sync(host, m: dict) -> bool:
+    """Our accepts in the site's chains as this model wants them (refuse: never touched)."""
+    if m.get("site", "add") != "add":
+        return True
+    rules, rich = _site_wanted(m)
+    if host.read(SITE_RULES) != _site_file(rules):
+        return False
+    if not host.exists(NFT):
+        return True
+    found = site_firewall.survey(host.run)
+    comments = sorted(r.rsplit('"', 2)[-2] for r in rules)
+    for c in found["chains"]:
+        if c["owner"] == "nft" and c["comments"] != comments:
+            return False
+        running = c["owner"] == "firewalld" and (found.get("firewalld") or {}).get("running")
+        if running and sorted(found["firewalld"].get("runtime") or []) != rich:
+            return False
+    nft_chains = {(c["family"], c["table"], c["chain"]) for c in found["chains"] if c["owner"] == "nft"}
+    return all(tuple(o[:3]) in nft_chains for o in found["ours"])
+
+
+def _site_file(rules: list) -> str:
+    return json.dumps({"nft": rules}, indent=1) + "\n"
+
+
+def _site_load(host, m: dict) -> None:
+    """Our accepts in the site's chains that drop by default: its nftables chains (kept there by
+    isaac-sim-firewall-site after the site reloads them) and firewalld's policy of ours."""
+    if m.get("site", "add") != "add":
+        # refuse: the site's chains are the site's (rules it copied from a refusal included)
+        if host.read(SITE_RULES) is not None:
+            host.remove(SITE_RULES)
+        return
+    rules, rich = _site_wanted(m)
+    host.write(SITE_RULES, _site_file(rules), 0o644)
+    try:
+        site_firewall.apply_nft(host.run, rules)
+        if host.exists(site_firewall.FIREWALL_CMD):
+            site_firewall.apply_firewalld(host.run, rich)
+    except site_firewall.SiteError as exc:
+        raise FirewallError(f"the site's firewall would not take the collection's accepts: {exc}") from exc
 
 
 def _loaded(host) -> bool:
@@ -376,6 +447,7 @@ def load(host, m: dict, managed: str) -> None:
             f"nft could not load {RULES}: {err.strip()}. Fix: install nftables (nft) on the host; the instances "
             "were not changed"
         )
+    _site_load(host, m)
     host.write(STATE, json.dumps({"model": m, "listing": listing(host)}, sort_keys=True) + "\n", 0o644)
     if not _enabled(host):
         host.run(["systemctl", "enable", UNIT])
@@ -391,7 +463,13 @@ def remove(host) -> None:
         host.remove(SITE_DROPIN)
         host.run(["systemctl", "daemon-reload"])
     if host.exists(NFT):
+        # the accepts of ours in the site's chains first, while the site still drops by default
+        kept = state(host).get("model") or {}
+        if kept.get("site", "add") == "add":
+            site_firewall.apply_nft(host.run, [])
+            if host.exists(site_firewall.FIREWALL_CMD):
+                site_firewall.remove_firewalld(host.run)
         host.run([NFT, _DROP_ALL_LINE])
-    for path in (RULES, STATE):
+    for path in (RULES, STATE, SITE_RULES):
         if host.read(path) is not None:
             host.remove(path)

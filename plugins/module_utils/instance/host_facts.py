@@ -16,7 +16,12 @@ import os
 import sys
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service, min_facts
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status, gpu_usage, layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
+    fleet_status,
+    gpu_usage,
+    layout,
+    site_firewall,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.docker_socket import DockerError, DockerSocket
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
     companions,
@@ -218,6 +223,9 @@ def _units(probe: Probe, p: dict, host: dict) -> None:
     host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
     # the firewall's nft: installed by the role only where missing (no package manager call on a re-run)
     host["nft"] = probe.which("nft") is not None
+    # the site's input chains that drop by default, and what of ours they hold (site_firewall.py)
+    if host["nft"]:
+        host["site_firewall"] = site_firewall.survey(probe.run)
     # instances serving now: a Docker restart on this host waits for the canary batches; which ones
     # (None: systemd did not say) tells the deploy whether any instance could start on empty caches
     systemctl = probe.which("systemctl")

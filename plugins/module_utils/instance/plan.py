@@ -21,7 +21,12 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import
     parse_size,
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import container_policy, layout, status_server
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
+    container_policy,
+    layout,
+    site_firewall,
+    status_server,
+)
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
     companions,
     firewall,
@@ -770,6 +775,10 @@ def build(cfg: dict, host: dict) -> dict:
     }
     # what isaac_sim_allowed_networks lets in, port by port (firewall.py); None: no firewall
     planned["firewall"] = firewall.model(fw, planned)
+    # a site chain that drops by default, where the collection does not add its accepts: stop here
+    site_errors = site_firewall.judge(host.get("site_firewall") or {}, planned["firewall"], fw.get("site", "add"))
+    if site_errors:
+        raise PlanError(site_errors)
     return planned
 
 

@@ -206,7 +206,42 @@ def test_the_probe_knocks_on_real_sockets_and_knows_when_it_is_inside(servers):
     report = audit.fleet({"h1": {"findings": []}, "h2": {}}, rows)
     assert report["findings"] == 2 and report["clean"] is False
     assert "h2                       host          did not answer: not audited" in report["table"]
-    assert report["table"][-1].startswith("(not checked: 1 port(s) answered the probe from inside")
+    # the TCP port knocked on from inside its networks answered: nothing to find there; the others were not
+    assert report["table"][-1].startswith("(not knocked on from inside: 3 port(s), no probe host is in their")
+
+
+def row(answer, inside, proto="tcp", port=49100, prober="h3"):
+    return {"host": "h1", "address": "10.0.0.5", "proto": proto, "port": port, "kind": "signal", "source": "10.0.0.7",
+            "prober": prober, "inside": inside, "answer": answer}  # fmt: skip
+
+
+def test_a_port_must_be_silent_outside_its_networks_and_answer_inside_them():
+    rows = [
+        row("open", False, port=1),
+        row("silent", False, port=2),
+        row("open", True, port=3),
+        # dropped on the way from an allowed network: a site firewall that closes what must answer
+        row("silent", True, port=4),
+        # nothing listens (the instance is down: status's business), or UDP that may not answer a datagram
+        row("closed", True, port=5),
+        row("silent", True, "udp", port=6),
+    ]
+    found = audit.probe_findings(rows)
+    assert [(f["what"], f["why"].split(",")[0]) for f in found] == [
+        ("h1 tcp/10.0.0.5:1 (signal)", "answers 10.0.0.7 (h3)"),
+        ("h1 tcp/10.0.0.5:4 (signal)", "does not answer 10.0.0.7 (h3)"),
+    ]
+    report = audit.fleet({"h1": {"findings": [], "ports": [{}]}, "h3": {"findings": [], "ports": [{}]}}, rows, ["h3"])
+    assert report["findings"] == 2
+    assert report["table"][-4:] == [
+        "(not knocked on: 1 port(s) of h3, the probe host itself; audit it from another audit_probe_host)",
+        "(not knocked on from outside: 4 port(s), every probe host is inside their allowed networks; add a host "
+        "outside them to audit_probe_hosts)",
+        "(not knocked on from inside: 2 port(s), no probe host is in their allowed networks; add one to "
+        "audit_probe_hosts to check that they answer there)",
+        "(not judged: 1 UDP port(s) gave no answer from inside their allowed networks; a UDP port may not answer a "
+        "stray datagram)",
+    ]
 
 
 class FakeIO(audit.HostIO):
@@ -256,13 +291,15 @@ def test_a_host_report_lists_its_ports_with_their_networks_and_its_findings():
         (8290, "status", ["10.9.0.0/24"]),
         (49100, "signal", ["10.20.0.0/16"]),
     ]
-    assert audit.targets({"h1": report, "h2": {}})[0] == dict(report["ports"][0], host="h1", address="10.0.0.5")
+    assert audit.targets({"h1": report, "h2": {}})[0] == dict(
+        report["ports"][0], host="h1", address="10.0.0.5", prober=""
+    )
     # a probe host that is itself audited knocks on the others only, and the table says so: from itself every
     # port of its own answers (six false findings were reported that way)
     assert audit.targets({"h1": report, "h2": report}, probe_host="h1") == [
-        dict(p, host="h2", address="10.0.0.5") for p in report["ports"]
+        dict(p, host="h2", address="10.0.0.5", prober="h1") for p in report["ports"]
     ]
-    table = audit.fleet({"h1": report, "h2": report}, [], probe_host="h1")["table"]
+    table = audit.fleet({"h1": report, "h2": report}, [], ["h1"])["table"]
     assert table[-1] == (
         "(not knocked on: 2 port(s) of h1, the probe host itself; audit it from another audit_probe_host)"
     )

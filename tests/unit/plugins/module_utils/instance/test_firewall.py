@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout, site_firewall
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import firewall, lifecycle, plan
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import plan_config
 from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import (
@@ -181,6 +181,37 @@ def test_a_fresh_host_has_its_rules_before_any_instance_starts_and_a_re_run_chan
     again = lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=model_of(4), managed="m"))
     assert again["changed"] is False and again["plan"]["firewall"] is None
     assert not [line for line in h.log if line.startswith(firewall.NFT + " -f")]
+
+
+def test_a_site_chain_that_drops_by_default_gets_our_accepts_with_the_first_rules_and_keeps_them_in_step():
+    h = ScriptedHost(4, running=False)
+    site = ("inet", "filter", "input")
+    h.site[site] = {"policy": "drop", "rules": [(1, "tcp dport 22 accept")]}
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=model_of(4), managed="m"))
+    assert result["failed"] is None
+    ours = site_firewall.nft_rules(site_firewall.groups(model_of(4)))
+    # before the first instance starts, as our own table's rules
+    site_call = next(n for n, line in enumerate(h.log) if "insert rule inet filter input" in line)
+    first_start = next(n for n, line in enumerate(h.log) if line.startswith("systemctl start isaac-sim@"))
+    assert site_call < first_start
+    assert [text for _h, text in h.site[site]["rules"]] == [*ours, "tcp dport 22 accept"]
+    # for isaac-sim-firewall-site (the site's nftables.service reloading its rules, the boot)
+    assert json.loads(h.files[firewall.SITE_RULES][0]) == {"nft": ours}
+    h.log.clear()
+    again = lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=model_of(4), managed="m"))
+    assert again["changed"] is False and not [line for line in h.log if "insert rule" in line]
+    # the site dropped one of ours (a reload of its own file): the next deploy puts it back
+    h.site[site]["rules"].pop(0)
+    assert lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=model_of(4), managed="m"))["changed"]
+    assert [text for _h, text in h.site[site]["rules"]] == [*ours, "tcp dport 22 accept"]
+    # refuse: the site's chain is the site's; what is there stays, nothing is added
+    refused = dict(model_of(4), site="refuse")
+    lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=refused, managed="m"))
+    assert firewall.SITE_RULES not in h.files and len(h.site[site]["rules"]) == len(ours) + 1
+    # no firewall of ours: our accepts leave the site's chain with our tables
+    lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=model_of(4), managed="m"))
+    lifecycle.apply(h.host, want({i: NEW for i in range(4)}, firewall=None, managed="m"))
+    assert h.site[site]["rules"] == [(1, "tcp dport 22 accept")]
 
 
 def test_a_scale_down_keeps_the_rules_of_the_instances_that_go_until_they_are_gone():

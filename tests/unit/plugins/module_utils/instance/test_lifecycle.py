@@ -7,6 +7,7 @@ an instance stuck activating. The real thing runs in the molecule scenarios.
 """
 
 import fnmatch
+import json
 import os
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
@@ -61,6 +62,8 @@ class ScriptedHost:
         self.dirs = set()  # made with mkdir (a lent instance's marker)
         # nftables: the text of the rules last loaded (None: no table of ours), the firewall unit enabled
         self.nft = True
+        # the site's own input chains (nft -j list ruleset), and the handles nft gives rules
+        self.site, self.handle = {}, 100
         self.tables = None
         self.wall_enabled = False
         self.host = lifecycle.Host(
@@ -255,8 +258,46 @@ class ScriptedHost:
                 part = self.tables.split(f"table {family} {firewall.TABLE} {{", 1)[1].split("\n}", 1)[0]
                 return 0, f"table {family} {firewall.TABLE} {{{part}\n}}\n", ""
             return 1, "", "Error: No such file or directory"
-        self.tables = None
+        if argv[1] == "-j":
+            return 0, json.dumps({"nftables": self._site_listing()}), ""
+        if argv[1].startswith(f"table inet {firewall.TABLE}"):
+            self.tables = None
+            return 0, "", ""
+        for cmd in argv[1].split("; "):
+            words = cmd.split()
+            rules = self.site[tuple(words[2:5])]["rules"]
+            if words[0] == "delete":
+                rules[:] = [r for r in rules if r[0] != int(words[-1])]
+            else:
+                self.handle += 1
+                rules.insert(0, (self.handle, cmd.split(" ", 5)[5]))
         return 0, "", ""
+
+    def _site_listing(self) -> list:
+        """nft -j list ruleset of the site's tables (self.site: {(family, table, chain): {"policy", "rules":
+        [(handle, text)]}}), each rule's comment as nft gives it."""
+        out = []
+        for (family, table, chain), c in self.site.items():
+            out.append(
+                {
+                    "chain": {
+                        "family": family,
+                        "table": table,
+                        "name": chain,
+                        "handle": 1,
+                        "type": "filter",
+                        "hook": "input",
+                        "prio": 0,
+                        "policy": c["policy"],
+                    }
+                }
+            )
+            for handle, text in c["rules"]:
+                rule = {"family": family, "table": table, "chain": chain, "handle": handle, "expr": [{"accept": None}]}
+                if ' comment "' in text:
+                    rule["comment"] = text.rsplit('"', 2)[-2]
+                out.append({"rule": rule})
+        return out
 
     def commands(self, verb):
         return [line for line in self.log if line.startswith(f"systemctl {verb}")]
