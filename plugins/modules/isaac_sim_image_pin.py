@@ -44,15 +44,28 @@ options:
   mirror:
     description:
       - A pull-through mirror (C(HOST:PORT), role C(registry_mirror)) of O(mirror_upstream); images of that registry
-        are asked of the mirror, with a C(HEAD) of the manifest from this host (trusting the system's CAs and Docker's
-        C(certs.d/HOST:PORT/ca.crt)), and pinned to the mirror's reference. Not through Docker, which fetches the
-        image's config blob to tell its platform (a proxy asked a blob it does not hold fetches it upstream twice).
+        are pinned to the digest the upstream itself names now (O(upstream), or asked through this host's Docker where
+        no inventory host runs the mirror), on the mirror's reference, so the hosts pull them from there. The mirror
+        alone is not asked - its proxy answers a tag the upstream withdrew from its cached copy.
+      - A tag the upstream no longer has fails the module before any change, naming the tag and the registry.
     type: str
     default: ""
   mirror_upstream:
     description: The registry the mirror proxies, as a URL or a host.
     type: str
     default: ""
+  upstream:
+    description:
+      - The upstream's answers as the mirror's host asked them (M(isaacsim.fleet.isaac_sim_mirror_seed)'s C(upstream))
+        - per image as written, C(digest), or C(cause) and C(said). Omitted - no inventory host runs the mirror.
+    type: dict
+  offline:
+    description:
+      - Where the upstream cannot be asked at all (down, unreachable, the key refused), pin to the mirror's copy of the
+        tag (a C(HEAD) of its manifest on the mirror, trusting the system's CAs and Docker's
+        C(certs.d/HOST:PORT/ca.crt)), and say which digest. Off - the module fails instead.
+    type: bool
+    default: false
   docker_socket:
     description: The Docker daemon's socket.
     type: path
@@ -101,6 +114,8 @@ def main():
             asked_from=dict(type="str", default=""),
             mirror=dict(type="str", default=""),
             mirror_upstream=dict(type="str", default=""),
+            upstream=dict(type="dict"),
+            offline=dict(type="bool", default=False),
             docker_socket=dict(type="path", default="/var/run/docker.sock"),
         ),
         supports_check_mode=True,
@@ -116,6 +131,8 @@ def main():
             p["asked_from"],
             p["mirror"],
             p["mirror_upstream"],
+            upstream_answers=p["upstream"],
+            offline=p["offline"],
         )
     except image_pin.PinError as exc:
         module.fail_json(msg=str(exc))

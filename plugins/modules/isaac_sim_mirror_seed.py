@@ -20,6 +20,9 @@ description:
     C(/run), removed after it, failed or not.
   - An image held whole already is left alone (changed false). Check mode says what would be copied.
   - One change of the mirror's storage at a time - a seed waits while another run seeds or collects garbage.
+  - With O(ask), asks the upstream itself (never the mirror's cached copy) which digest each C(NAME:TAG) names
+    now, with the mirror's own credentials - the deploy's pin compares it with the mirror's answer, so that a tag
+    the upstream withdrew stops the deploy (C(isaac_sim_image_pin)).
 author: isaacsim.fleet contributors (@isaacsim-fleet)
 options:
   references:
@@ -27,7 +30,15 @@ options:
       - The references the hosts pull, C(MIRROR/REPOSITORY@sha256:DIGEST), as C(isaac_sim_image_pin) pinned them.
     type: list
     elements: str
-    required: true
+    default: []
+  ask:
+    description:
+      - Images as the user wrote them (C(nvcr.io/nvidia/isaac-sim:6.0.1)); each one the hosts pull by tag through
+        this mirror is asked of the mirror's upstream with C(skopeo inspect --raw) (one manifest request each).
+        Nothing is copied for them.
+    type: list
+    elements: str
+    default: []
   mirror:
     description: The mirror as the hosts name it, C(HOST:PORT).
     type: str
@@ -64,6 +75,13 @@ held:
   returned: success
   type: list
   elements: str
+upstream:
+  description:
+    - For each image of O(ask) on the mirror's upstream, the upstream's answer - C(digest) (the sha256 of the
+      manifest it serves now), or C(cause) (C(missing) - no such tag there, C(login), C(unreachable), or empty) and
+      C(said) (skopeo's words, without the key); C(url) the upstream.
+  returned: success
+  type: dict
 """
 
 import pwd
@@ -75,7 +93,8 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.host import mirror_
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            references=dict(type="list", elements="str", required=True),
+            references=dict(type="list", elements="str", default=[]),
+            ask=dict(type="list", elements="str", default=[]),
             mirror=dict(type="str", required=True),
             ready_timeout=dict(type="int", default=30),
             lock_timeout=dict(type="int", default=3600),
@@ -87,14 +106,22 @@ def main():
     def run(argv):
         return module.run_command(argv)
 
+    def run_bytes(argv):
+        return module.run_command(argv, encoding=None)
+
+    upstream = {}
     try:
+        if p["ask"]:
+            upstream = mirror_seed.Seeder(run).ask(p["ask"], p["mirror"], run_bytes)
         images = mirror_seed.wanted(p["references"], p["mirror"])
         seeder = mirror_seed.Seeder(run)
-        with mirror_lock.held("a seed of the pinned images", p["lock_timeout"]):
-            copied, held = _seed(module, seeder, images, p)
+        copied, held = [], []
+        if images:
+            with mirror_lock.held("a seed of the pinned images", p["lock_timeout"]):
+                copied, held = _seed(module, seeder, images, p)
     except (mirror_seed.SeedError, mirror_lock.MirrorBusyError, KeyError) as exc:
         module.fail_json(msg=str(exc))
-    module.exit_json(changed=bool(copied), copied=copied, held=held)
+    module.exit_json(changed=bool(copied), copied=copied, held=held, upstream=upstream)
 
 
 def _seed(module, seeder, images, p):

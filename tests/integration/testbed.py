@@ -207,18 +207,20 @@ def registry_image(host, tag: str) -> str:
     return current.split("=", 1)[1].strip('"').rsplit(":", 1)[0] + f":{tag}"
 
 
+# everything our code could change on a host, as one text to compare
+SNAPSHOT = (
+    "sha256sum /etc/isaac-sim/* /etc/systemd/system/isaac-sim* /etc/docker/daemon.json "
+    "/usr/local/libexec/isaac-sim/* /etc/apt/sources.list.d/* /etc/udev/rules.d/* 2>/dev/null; "
+    "dpkg-query -W -f '${Package} ${Version}\\n' 2>/dev/null; "
+    "ls -lnR /var/lib/isaac-sim 2>/dev/null | grep -v standin-shader-cache; "
+    "docker ps -a --no-trunc --format '{{.ID}} {{.Names}} {{.Status}}' | sed 's/Up .*/Up/'; "
+    "systemctl list-units --all --no-legend 'isaac-sim*' | awk '{print $1, $3, $4}'"
+)
+
+
 def snapshot(host) -> str:
-    """Everything our code could change on a host, as one text to compare."""
-    return sh(
-        host,
-        "sha256sum /etc/isaac-sim/* /etc/systemd/system/isaac-sim* /etc/docker/daemon.json "
-        "/usr/local/libexec/isaac-sim/* /etc/apt/sources.list.d/* /etc/udev/rules.d/* 2>/dev/null; "
-        "dpkg-query -W -f '${Package} ${Version}\\n' 2>/dev/null; "
-        "ls -lnR /var/lib/isaac-sim 2>/dev/null | grep -v standin-shader-cache; "
-        "docker ps -a --no-trunc --format '{{.ID}} {{.Names}} {{.Status}}' | sed 's/Up .*/Up/'; "
-        "systemctl list-units --all --no-legend 'isaac-sim*' | awk '{print $1, $3, $4}'",
-        check=False,
-    ).stdout
+    """Everything our code could change on a host (a testinfra host), as one text to compare."""
+    return sh(host, SNAPSHOT, check=False).stdout
 
 
 # the stand-in NGC registry as this machine reaches it, and its token realm (tests/fixtures/registry)
@@ -227,8 +229,10 @@ REGISTRY_REALM = "http://127.0.0.1:5557/token?service=isaacsim-fleet-fixture"
 REGISTRY_KEY_FILE = ROOT / "tests" / "fixtures" / "registry" / "ngc-api-key"
 
 
-def registry_status(path: str, scope: str, accept="application/vnd.docker.distribution.manifest.v2+json") -> int:
-    """The HTTP status the stand-in registry answers GET path with, asked as a client does at a
+def registry_status(
+    path: str, scope: str, accept="application/vnd.docker.distribution.manifest.v2+json", method="GET"
+) -> int:
+    """The HTTP status the stand-in registry answers `method` path with, asked as a client does at a
     Bearer registry such as NGC: a token from its realm for scope, then the request with it."""
     import base64
     import urllib.error
@@ -239,7 +243,7 @@ def registry_status(path: str, scope: str, accept="application/vnd.docker.distri
     with urllib.request.urlopen(ask, timeout=10) as answer:
         token = json.load(answer)["token"]
     request = urllib.request.Request(
-        f"http://{REGISTRY}{path}", headers={"Authorization": f"Bearer {token}", "Accept": accept}
+        f"http://{REGISTRY}{path}", headers={"Authorization": f"Bearer {token}", "Accept": accept}, method=method
     )
     try:
         with urllib.request.urlopen(request, timeout=10) as answer:

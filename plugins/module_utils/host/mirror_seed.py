@@ -18,6 +18,7 @@ Content the proxy did not fetch is not on its expiry schedule, so a seeded image
 from __future__ import annotations
 
 import base64
+import hashlib
 import json
 import os
 import re
@@ -186,6 +187,28 @@ def copy_argv(upstream: dict, name: str, digest: str, port: int, authfile: str) 
     return argv + [f"docker://{url.netloc}/{name}@{digest}", f"docker://127.0.0.1:{port}/{name}@{digest}"]
 
 
+def inspect_argv(upstream: dict, name: str, tag: str, authfile: str) -> list:
+    """skopeo inspect --raw of NAME:TAG on the upstream itself: its top-level manifest as the upstream
+    serves it now (never the mirror's cached copy), whose sha256 is the digest Docker pins."""
+    url = urlparse(upstream["url"])
+    argv = [SKOPEO, "inspect", "--raw", "--retry-times", "2", "--authfile", authfile]
+    if url.scheme == "http":
+        argv.append("--tls-verify=false")
+    return argv + [f"docker://{url.netloc}/{name}:{tag}"]
+
+
+def upstream_answer(rc: int, out: bytes, err: bytes, password: str = "") -> dict:
+    """{"digest"} of a manifest skopeo printed, or {"cause", "said"}: missing (the upstream has no
+    such tag: withdrawn), login, unreachable, or "" (another failure)."""
+    if rc == 0 and out.strip():
+        return {"digest": "sha256:" + hashlib.sha256(out).hexdigest()}
+    said = (out + err).decode(errors="replace").strip()
+    if password:
+        said = said.replace(password, "********")
+    cause = next((kind for pattern, kind in _CAUSES if pattern.search(said)), "")
+    return {"cause": "" if cause == "disk" else cause, "said": said[-400:]}
+
+
 def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -244,6 +267,35 @@ class Seeder:
             raise SeedError(
                 f"{self.config} is missing: this host runs no mirror. Fix: run the registry_mirror role."
             ) from exc
+
+    def ask(self, images: list, mirror: str, run_bytes) -> dict:
+        """{image: upstream_answer() and "url"} for the images (as the user wrote them) that the hosts
+        pull by tag through this mirror, asked of the upstream with the mirror's own credentials (in a
+        root-only file on /run for the asking's time). run_bytes(argv) -> (rc, out, err) as bytes: the
+        manifest is hashed as the upstream sent it. {} where this host runs no mirror yet (the pin then
+        asks the upstream through its own host's Docker)."""
+        if not os.path.exists(self.config):
+            return {}
+        upstream = self.upstream()
+        wanted = {}
+        for image in images:
+            through = registry_mirror.mirror_reference(image, mirror, upstream["url"])
+            path = (through or "").split("/", 1)[-1]
+            if through and "@" not in path and ":" in path:
+                wanted[image] = tuple(path.rsplit(":", 1))
+        if not wanted:
+            return {}
+        scratch = tempfile.mkdtemp(prefix=RUN_PREFIX, dir=self.scratch)
+        try:
+            authfile = os.path.join(scratch, "auth.json")
+            _write(authfile, auth_file(upstream), 0o600)
+            out = {}
+            for image, (name, tag) in wanted.items():
+                rc, got, err = run_bytes(inspect_argv(upstream, name, tag, authfile))
+                out[image] = dict(upstream_answer(rc, got, err, upstream["password"]), url=upstream["url"])
+            return out
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
 
     def sweep(self) -> None:
         """A run killed during its copy left its registry and the key's file: neither outlives it."""

@@ -77,6 +77,8 @@ def resolve(docker, image: str, username: str = "", password: str = "", asked_fr
     except DockerError as exc:
         why = str(exc).replace(password, "********") if password else str(exc)
         # Docker 20.10 passes the registry's 401 on as its own 500, with the registry's word in it
+        if exc.status == 404 or (exc.status != 401 and WITHDRAWN.search(str(exc)) and not REFUSED.search(str(exc))):
+            raise _withdrawn(image, server, why) from exc
         if exc.status in (401, 403) or REFUSED.search(str(exc)):
             raise PinError(
                 f"{server} refused the login of user {username or '(none)'} from {asked_from or 'this host'} when "
@@ -144,6 +146,53 @@ def _pin(image: str, repository: str, digest: str) -> dict:
     return {"image": image, "pinned": f"{repository}@{digest}", "digest": digest}
 
 
+WITHDRAWN = re.compile(r"manifest unknown|not found|\b404\b|name unknown", re.IGNORECASE)
+OFFLINE_VAR = "isaac_sim_pin_offline"
+
+
+def _withdrawn(image: str, where: str, said: str, mirror_note: str = "") -> PinError:
+    return PinError(
+        f"{where} no longer has {image} (…{said.strip()[-160:]}): the tag was withdrawn (or never existed)"
+        f"{mirror_note}. "
+        "A withdrawn image is not rolled out; nothing was changed. Fix: choose a tag the registry has "
+        "(isaac_sim_image), or name the image by its digest (REPOSITORY@sha256:...) to run a copy on purpose."
+    )
+
+
+def _through_mirror(image, through, answer, offline, ask, docker, username, password, asked_from) -> dict:
+    """The pin of an image the hosts pull through the mirror: the digest the upstream itself names now
+    (answer: what the mirror's host asked it, None where no host of the inventory runs the mirror: then
+    asked through this host's Docker). The mirror's own answer (it falls back to its cached copy when its
+    upstream says the tag is gone) counts only with isaac_sim_pin_offline, and says so."""
+    repository = through.rsplit("@", 1)[0].rsplit(":", 1)[0] if "@" not in through else through.split("@", 1)[0]
+    if "@" in through:
+        return dict(ask(through), image=image)
+    if answer is None:
+        try:
+            found = resolve(docker, image, username, password, asked_from)
+            return dict(_pin(image, repository, found["digest"]), image=image)
+        except PinError as exc:
+            answer = {"cause": "missing" if WITHDRAWN.search(str(exc)) else "unreachable", "said": str(exc), "url": ""}
+    if answer.get("digest"):
+        return dict(_pin(image, repository, answer["digest"]), image=image)
+    where = f"the upstream {answer.get('url') or registry_of(image.split('@', 1)[0])}"
+    if answer.get("cause") == "missing":
+        raise _withdrawn(image, where, answer.get("said", ""), " though the mirror may still hold a copy of it")
+    if not offline:
+        raise PinError(
+            f"could not ask {where} which digest {image} names ({answer.get('cause') or 'failed'}: "
+            f"{answer.get('said', '')[:300].strip()}), so whether the tag is still there is unknown; nothing was "
+            f"changed. Fix: check that the mirror's host reaches its upstream and holds its key, or set {OFFLINE_VAR}: "
+            "true to run the mirror's copy of the tag (the deploy says which digest)."
+        )
+    pin = dict(ask(through), image=image)
+    pin["note"] = (
+        f"{where} could not be asked ({answer.get('cause') or 'failed'}); {OFFLINE_VAR}: the mirror's copy "
+        f"{pin['digest']} is used"
+    )
+    return pin
+
+
 def pin_fleet(
     docker,
     images: dict,
@@ -154,13 +203,16 @@ def pin_fleet(
     mirror: str = "",
     upstream: str = "",
     ask=ask_mirror,
+    upstream_answers: dict | None = None,
+    offline: bool = False,
 ) -> dict:
     """Each distinct image of the play resolved once; what every host will run and which it moves.
 
     images: {host: the plan's image}; configured: {host: [what its instances run now]}; mirror:
     HOST:PORT of a pull-through mirror of `upstream` (host/registry_mirror.py): an image of that
-    registry is asked of the mirror (which holds the credentials) and pinned to the mirror's
-    reference, so the hosts pull it from there.
+    registry is pinned to the digest the upstream itself names (upstream_answers: the mirror host's
+    answers, isaac_sim_mirror_seed's `upstream`), on the mirror's reference, so the hosts pull it
+    from there; a tag the upstream no longer has stops the deploy.
     Returns {"pinned": {host: REPOSITORY@DIGEST}, "digests": {image: DIGEST}, "summary": [lines]}.
     """
     from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
@@ -171,8 +223,8 @@ def pin_fleet(
         through = registry_mirror.mirror_reference(image, mirror, upstream) if mirror else None
         if through:
             # the mirror serves anonymously to the fleet: no credentials leave the controller for it
-            pin = ask(through)
-            found[image] = dict(pin, image=image)
+            answer = (upstream_answers or {}).get(image) if upstream_answers is not None else None
+            found[image] = _through_mirror(image, through, answer, offline, ask, docker, username, password, asked_from)
         else:
             found[image] = resolve(docker, image, username, password, asked_from)
     pinned = {host: found[image]["pinned"] for host, image in images.items() if image in found}
@@ -183,7 +235,7 @@ def pin_fleet(
         moving = [host for host in mine if now[host] and pin["pinned"] not in now[host]]
         first = [host for host in mine if not now[host]]
         runs = [host for host in mine if host not in moving and host not in first]
-        parts = [f"{image} is {pin['digest']} now"]
+        parts = [f"{image} is {pin['digest']} now"] + ([pin["note"]] if pin.get("note") else [])
         if moving:
             parts.append(
                 "this deploy moves "

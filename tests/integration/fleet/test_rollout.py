@@ -8,7 +8,9 @@ answer, a rollout scoped by --limit and
 instance selection, a canary pause nobody answers, a Docker settings change that
 restarts Docker one host at a time, a fleet-wide scale-down, and an upgrade approved at
 the canary prompt that goes through, every host on the digest its tag named when the deploy
-began though the tag moves upstream while the canary waits.
+began though the tag moves upstream while the canary waits; then that tag is withdrawn upstream
+(the mirror still holds it) and the next deploy stops before any change, while an instance
+restarts on the digest it runs.
 """
 
 from __future__ import annotations
@@ -352,3 +354,41 @@ def test_upgrade_approved_at_the_canary_converges_every_host_on_one_digest_while
         assert all(i["ready"] and i["image"] == new for i in info["instances"]), h
         through = f"{ip('isaacsim-mirror-1')}:5443/{new.split('/', 1)[1].rsplit(':', 1)[0]}@{digest}"
         assert f'ISAAC_SIM_IMAGE_PINNED="{through}"' in sh(h, "cat /etc/isaac-sim/instance-3.env"), h
+
+
+def test_a_tag_withdrawn_upstream_stops_the_next_deploy_and_the_pinned_digest_still_restarts(fleet):
+    # after the upgrade every host runs 6.0.2 as pinned; then the upstream withdraws 6.0.2 (the only tag of its
+    # image there), as NVIDIA withdraws a broken or vulnerable image
+    new = registry_image(fleet[0], "6.0.2")
+    digest = sh(fleet[0], f"docker image inspect -f '{{{{index .RepoDigests 0}}}}' {new}").strip().split("@", 1)[1]
+    name = UPSTREAM.split("/", 1)[1]
+    mirror = f"{ip('isaacsim-mirror-1')}:5443"
+    accept = "Accept: application/vnd.docker.distribution.manifest.v2+json"
+    through_mirror = (
+        f"curl -s -o /dev/null -w '%{{http_code}}' --cacert /etc/docker/certs.d/{mirror}/ca.crt -H '{accept}' "
+        f"https://{mirror}/v2/{name}/manifests/6.0.2"
+    )
+    # a host once pulled the tag through the mirror, which keeps it
+    assert sh(fleet[0], through_mirror) == "200"
+    deleted = testbed.registry_status(f"/v2/{name}/manifests/{digest}", f"repository:{name}:delete", method="DELETE")
+    assert deleted == 202
+    try:
+        assert testbed.registry_status(f"/v2/{name}/manifests/6.0.2", f"repository:{name}:pull") == 404
+        # the mirror still answers the tag from its cached copy: asking it alone rolled the image out
+        assert sh(fleet[0], through_mirror) == "200"
+        before = {h: sh(h, testbed.SNAPSHOT + "; true") for h in fleet}
+        run = playbook("deploy.yml", {"isaac_sim_image": new})
+        assert run.returncode != 0
+        said = squash(run.stdout)
+        assert f"no longer has {new}" in said and "the upstream http://" in said, said[-3000:]
+        assert "A withdrawn image is not rolled out; nothing was changed." in said
+        assert {h: sh(h, testbed.SNAPSHOT + "; true") for h in fleet} == before
+        # refused after every host was held: each was given back
+        assert [h for h in fleet if sh(h, "test -e /run/lock/isaac-sim.json && echo held; true").strip()] == []
+        # a host restarting an instance runs the digest it has: the unit never pulls
+        sh(fleet[0], "systemctl restart isaac-sim@0")
+        testbed.wait_for(lambda: all_ready(fleet[0]), timeout=120, what="instance 0 ready on the pinned digest")
+        assert containers(fleet[0])["isaac-sim-0"][1].endswith(digest)
+    finally:
+        # the tag back where the registry fixture keeps it (the same image: the same digest)
+        assert move_tag("6.0.2", "isaacsim-fleet/isaac-sim-standin:next") == digest

@@ -39,4 +39,5 @@ def test_the_module_answers_the_pinned_reference_and_changes_nothing(docker, cap
 
 def test_the_module_fails_with_the_reason(docker, capsys):
     result = run_module(isaac_sim_image_pin.main, {"images": {"a": "reg.lab:5000/sim:gone"}}, capsys)
-    assert result["failed"] and result["msg"].startswith("could not ask reg.lab:5000 which digest")
+    # the registry answered 404: the tag is gone, and the message says so
+    assert result["failed"] and result["msg"].startswith("reg.lab:5000 no longer has reg.lab:5000/sim:gone")

@@ -210,3 +210,45 @@ def test_a_copy_the_full_disk_cut_short_removes_its_partial_upload_and_says_so(t
     assert said.startswith("the registry mirror on m1 (isaac-sim-mirror.service): copying n/x@")
     assert "the mirror's disk is full" in said and "GiB free now" in said and "partial upload was removed" in said
     assert sorted(os.listdir(uploads)) == ["older-writer"]
+
+
+def test_the_upstream_itself_is_asked_for_each_tag_with_the_mirror_s_key_and_a_withdrawn_tag_is_named(tmp_path):
+    config = tmp_path / "config.yml"
+    config.write_text(
+        json.dumps({"proxy": {"remoteurl": "http://172.17.0.1:5555", "username": "u", "password": "k-1"}})
+    )
+    scratch = tmp_path / "run"
+    scratch.mkdir()
+    manifest = b'{"schemaVersion": 2, "mediaType": "application/vnd.docker.distribution.manifest.v2+json"}'
+    calls = []
+
+    def run_bytes(argv):
+        calls.append(argv)
+        authfile = argv[argv.index("--authfile") + 1]
+        assert oct(os.stat(authfile).st_mode & 0o777) == "0o600"
+        if argv[-1].endswith(":gone"):
+            return 1, b"", b"FATA[0000] Error parsing image name: reading manifest gone: manifest unknown (k-1)"
+        if argv[-1].endswith(":down"):
+            return 1, b"", b"pinging container registry: dial tcp 172.17.0.1:5555: connect: connection refused"
+        return 0, manifest, b""
+
+    seeder = mirror_seed.Seeder(None, config=str(config), scratch=str(scratch))
+    up = "172.17.0.1:5555/fixtures/isaac-sim-standin"
+    images = [f"{up}:6.0.1", f"{up}:gone", f"{up}:down", f"{up}@sha256:{'ab' * 32}", "nvcr.io/nvidia/isaac-sim:6.0.1"]
+    found = seeder.ask(images, "m.lab:5443", run_bytes)
+    # by tag and on the mirror's upstream only (a digest is pinned as written; another registry is not its)
+    assert sorted(found) == sorted(images[:3])
+    assert found[f"{up}:6.0.1"] == {
+        "digest": "sha256:" + hashlib.sha256(manifest).hexdigest(),
+        "url": "http://172.17.0.1:5555",
+    }
+    assert found[f"{up}:gone"]["cause"] == "missing" and "k-1" not in found[f"{up}:gone"]["said"]
+    assert found[f"{up}:down"]["cause"] == "unreachable"
+    assert calls[0][:3] == ["/usr/bin/skopeo", "inspect", "--raw"] and "--tls-verify=false" in calls[0]
+    assert calls[0][-1] == "docker://172.17.0.1:5555/fixtures/isaac-sim-standin:6.0.1"
+    # the key's file does not outlive the asking; a host that runs no mirror yet answers nothing
+    assert os.listdir(scratch) == []
+    assert (
+        mirror_seed.Seeder(None, config=str(tmp_path / "none.yml"), scratch=str(scratch)).ask(images, "m", run_bytes)
+        == {}
+    )

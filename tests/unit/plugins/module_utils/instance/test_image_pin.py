@@ -127,8 +127,12 @@ def test_each_image_of_the_fleet_is_asked_once_and_the_deploy_says_whom_it_moves
     ]
 
 
-def test_an_image_of_the_mirror_s_upstream_is_asked_of_the_mirror_without_credentials():
-    docker = Docker()
+MOVED = "sha256:" + "cd" * 32
+
+
+def mirror_pin(answers, offline=False, docker=None):
+    """pin_fleet through the mirror m.lab:5443 of nvcr.io; returns (result, what the mirror was asked, docker)."""
+    docker = docker or Docker()
     images = {"gpu-01": "nvcr.io/nvidia/isaac-sim:6.0.1", "gpu-02": "reg.lab/other:1"}
     asked = []
 
@@ -137,14 +141,69 @@ def test_an_image_of_the_mirror_s_upstream_is_asked_of_the_mirror_without_creden
         return {"image": reference, "pinned": reference.split(":6")[0] + f"@{DIGEST}", "digest": DIGEST}
 
     found = image_pin.pin_fleet(
-        docker, images, {}, "$oauthtoken", "k", "gpu-01", "m.lab:5443", "https://nvcr.io", ask=ask
-    )
-    # the mirror with a HEAD of its manifest (ask_mirror), never through Docker and with no credentials
-    assert asked == ["m.lab:5443/nvidia/isaac-sim:6.0.1"] and docker.asked == [("reg.lab/other:1", docker.asked[0][1])]
-    assert docker.asked[0][1]  # another registry: asked directly, with the credentials
-    assert found["pinned"] == {"gpu-01": f"m.lab:5443/nvidia/isaac-sim@{DIGEST}", "gpu-02": f"reg.lab/other@{DIGEST}"}
+        docker, images, {}, "$oauthtoken", "k", "gpu-01", "m.lab:5443", "https://nvcr.io", ask=ask,
+        upstream_answers=answers, offline=offline,
+    )  # fmt: skip
+    return found, asked, docker
+
+
+def test_an_image_of_the_mirror_s_upstream_is_pinned_to_what_the_upstream_itself_names_now():
+    # the mirror's host asked the upstream: its digest, on the mirror's reference; the mirror is not asked (its
+    # proxy answers a tag from its cache), another registry is asked directly with the credentials
+    answers = {"nvcr.io/nvidia/isaac-sim:6.0.1": {"digest": MOVED, "url": "https://nvcr.io"}}
+    found, asked, docker = mirror_pin(answers)
+    assert asked == [] and docker.asked == [("reg.lab/other:1", docker.asked[0][1])] and docker.asked[0][1]
+    assert found["pinned"] == {"gpu-01": f"m.lab:5443/nvidia/isaac-sim@{MOVED}", "gpu-02": f"reg.lab/other@{DIGEST}"}
     # the reports name the image as written
-    assert found["summary"][0].startswith(f"nvcr.io/nvidia/isaac-sim:6.0.1 is {DIGEST} now")
+    assert found["summary"][0].startswith(f"nvcr.io/nvidia/isaac-sim:6.0.1 is {MOVED} now")
+    # no host of the inventory runs the mirror: the upstream is asked through this host's Docker
+    found, asked, docker = mirror_pin(None)
+    assert asked == [] and [name for name, _auth in docker.asked] == [
+        "nvcr.io/nvidia/isaac-sim:6.0.1",
+        "reg.lab/other:1",
+    ]
+    assert found["pinned"]["gpu-01"] == f"m.lab:5443/nvidia/isaac-sim@{DIGEST}"
+
+
+def test_a_tag_the_upstream_withdrew_stops_the_deploy_though_the_mirror_still_holds_it():
+    answers = {
+        "nvcr.io/nvidia/isaac-sim:6.0.1": {
+            "cause": "missing",
+            "said": "reading manifest 6.0.1 in nvcr.io/nvidia/isaac-sim: manifest unknown",
+            "url": "https://nvcr.io",
+        }
+    }
+    with pytest.raises(image_pin.PinError) as exc:
+        mirror_pin(answers)
+    # skopeo's last words, where the cause is
+    assert str(exc.value).startswith(
+        "the upstream https://nvcr.io no longer has nvcr.io/nvidia/isaac-sim:6.0.1 (…reading manifest 6.0.1"
+    )
+    assert "A withdrawn image is not rolled out; nothing was changed." in str(exc.value)
+    # isaac_sim_pin_offline does not make a withdrawn tag good
+    with pytest.raises(image_pin.PinError):
+        mirror_pin(answers, offline=True)
+    # asked through Docker (no mirror host): its 404 says the same
+    error = DockerError("manifest for nvcr.io/nvidia/isaac-sim:6.0.1 not found: manifest unknown", status=404)
+    with pytest.raises(image_pin.PinError) as exc:
+        mirror_pin(None, docker=Docker(error=error))
+    assert "no longer has nvcr.io/nvidia/isaac-sim:6.0.1" in str(exc.value)
+
+
+def test_an_upstream_out_of_reach_stops_the_deploy_unless_the_mirror_s_copy_is_asked_for():
+    answers = {"nvcr.io/nvidia/isaac-sim:6.0.1": {"cause": "unreachable", "said": "dial tcp: i/o timeout", "url": "u"}}
+    with pytest.raises(image_pin.PinError) as exc:
+        mirror_pin(answers)
+    assert "could not ask the upstream u which digest nvcr.io/nvidia/isaac-sim:6.0.1 names (unreachable" in str(
+        exc.value
+    )
+    assert "isaac_sim_pin_offline: true" in str(exc.value)
+    found, asked, _docker = mirror_pin(answers, offline=True)
+    assert asked == ["m.lab:5443/nvidia/isaac-sim:6.0.1"]
+    assert found["summary"][0].startswith(
+        f"nvcr.io/nvidia/isaac-sim:6.0.1 is {DIGEST} now; the upstream u could not be asked (unreachable); "
+        f"isaac_sim_pin_offline: the mirror's copy {DIGEST} is used"
+    )
 
 
 class Conn:
