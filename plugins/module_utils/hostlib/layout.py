@@ -49,6 +49,8 @@ ORPHANS_SCRIPT = "isaac-sim-orphans"
 # every container of the collection carries it in its environment (K_INSTANCE's name), lost or not
 # the collection's accept rules in the site's own nftables chains, again after the site reloaded them
 FIREWALL_SITE_SCRIPT = "isaac-sim-firewall-site"
+# installed with the scripts, but no instance runs them: a change of them restarts no instance
+NOT_RUN_BY_INSTANCES = (FIREWALL_SITE_SCRIPT, "site_firewall.py")
 SCRIPTS = (
     RUN_SCRIPT,
     READY_SCRIPT,

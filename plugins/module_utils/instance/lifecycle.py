@@ -514,8 +514,13 @@ def apply(host: Host, want: dict, check=False) -> dict:
     comp_state = show(host, companion_units(wanted_companions))
     cleared = leftover_companions(host, wanted_companions)
     to_start = [i for i in desired if not serving(state[i])]
-    # the target only groups the instances: a new target file restarts none of them
-    restarting = [p for p in shared if p != os.path.join(layout.UNIT_DIR, layout.TARGET)]
+    # the target only groups the instances, and the firewall's scripts are the firewall unit's: a new one
+    # restarts no instance
+    restarting = [
+        p
+        for p in shared
+        if p != os.path.join(layout.UNIT_DIR, layout.TARGET) and os.path.basename(p) not in layout.NOT_RUN_BY_INSTANCES
+    ]
     to_roll = [i for i in desired if serving(state[i]) and (i in changed_ids or restarting)]
     to_enable = [i for i in desired if not _enabled(state[i])]
     enable_companions = [

@@ -343,6 +343,19 @@ def test_a_target_enabled_before_docker_wanted_it_is_enabled_again_and_nothing_r
     assert h.commands("restart") == [] and h.commands("start") == []
 
 
+def test_a_new_firewall_script_is_written_and_restarts_no_instance():
+    # isaac-sim-firewall-site and its library are the firewall unit's, not the instances'
+    h = ScriptedHost(3)
+    script = os.path.join(layout.LIBEXEC_DIR, layout.FIREWALL_SITE_SCRIPT)
+    lib = os.path.join(layout.LIBEXEC_DIR, "site_firewall.py")
+    files = {UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755), script: ("v2\n", 0o644), lib: ("v2\n", 0o644)}
+    h.files.update({UNIT_FILE: ("unit v1\n", 0o644), GATE: ("gate v1\n", 0o755)})
+    result = lifecycle.apply(h.host, want({i: OLD for i in range(3)}, files=files))
+    assert result["failed"] is None and result["changed"]
+    assert h.files[script] == ("v2\n", 0o644) and h.files[lib] == ("v2\n", 0o644)
+    assert h.commands("restart") == [] and h.commands("start") == [] and result["done"] == []
+
+
 def test_the_target_is_started_by_docker_and_stops_with_it():
     text = unit_files.render_target("managed")
     assert "Requires=docker.service" in text and "WantedBy=multi-user.target docker.service" in text
