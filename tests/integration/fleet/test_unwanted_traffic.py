@@ -102,13 +102,14 @@ def digests(rules: list) -> list:
 
 
 def refusal(run) -> str:
-    """The plan's refusal as the module returned it (the JSON result format: its message exact)."""
-    for line in run.stdout.splitlines():
+    """The plan's refusal as the module returned it (the JSON result format: its message exact), on
+    stdout or stderr (molecule's ansible.cfg: display_failed_stderr)."""
+    for line in (run.stdout + "\n" + run.stderr).splitlines():
         if "FAILED! =>" in line:
             msg = json.loads(line.split("=>", 1)[1]).get("msg", "")
             if "rejected before any change" in msg:
                 return msg
-    raise AssertionError(run.stdout[-3000:])
+    raise AssertionError(run.stdout[-3000:] + run.stderr[-3000:])
 
 
 def from_here(address: str, port: int) -> str:
@@ -328,7 +329,13 @@ def test_with_firewalld_running_the_instances_answer_the_allowed_host_through_a_
     # Debian's firewalld, started by its package in its default zone (public: SSH and DHCPv6 only)
     install = "DEBIAN_FRONTEND=noninteractive apt-get install -y -q firewalld >/tmp/firewalld.log 2>&1"
     sh(third, f"{install} || (apt-get update -q >/dev/null && {install})")
-    assert sh(third, "firewall-cmd --state").strip() == "running"
+    # (the package starts it; a start still under way answers "not running")
+    sh(third, "systemctl enable --now firewalld")
+    testbed.wait_for(
+        lambda: sh(third, "firewall-cmd --state 2>&1; true").strip() == "running", timeout=60, what="firewalld"
+    )
+    # its default configuration, whatever an earlier run of this test left (our policy is permanent)
+    sh(third, "firewall-cmd --permanent --delete-policy isaac-sim >/dev/null 2>&1; firewall-cmd --reload")
     two = [("tcp", SIGNAL + i, "") for i in range(2)] + [("udp", STREAM + i, "") for i in range(2)]
     # the third host's own instances closed to everyone by firewalld's reject, whatever our table accepts
     closed = probe(first, ip(third), two)
@@ -343,7 +350,8 @@ def test_with_firewalld_running_the_instances_answer_the_allowed_host_through_a_
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     rich = sh(third, "firewall-cmd --policy isaac-sim --list-rich-rules")
     assert f'source address="{ip(first)}/32" port port="{SIGNAL}-{SIGNAL + 1}" protocol="tcp" accept' in rich, rich
-    assert sh(third, "firewall-cmd --permanent --policy isaac-sim --list-rich-rules") == rich
+    permanent = sh(third, "firewall-cmd --permanent --policy isaac-sim --list-rich-rules")
+    assert sorted(permanent.splitlines()) == sorted(rich.splitlines())
     yes = probe(first, ip(third), two)
     assert all(yes[f"tcp/{SIGNAL + i}"].startswith("isaac-sim-standin signal") for i in range(2)), yes
     assert all(yes[f"udp/{STREAM + i}"].startswith("isaac-sim-standin stream") for i in range(2)), yes
