@@ -374,6 +374,12 @@ def handler(door: Door, form_action: str = ""):
             form = urllib.parse.parse_qs(self.rfile.read(int(length)).decode("utf-8", "replace"))
             user, password = form.get("user", [""])[0], form.get("password", [""])[0]
             target = form.get("next", ["/"])[0]
+            # over the address's rate (nginx's limit_req, in dry run so the attempt reaches here): refused
+            # without a look at the password, and logged with the user name tried
+            if self.headers.get("X-Fleet-Throttle") == "REJECTED_DRY_RUN":
+                door.log(f"login throttled user={shown(user)} from={self._client()} (too many attempts)")
+                self._page(429, target, "Too many login attempts from this address. Wait a minute and try again.")
+                return
             token = door.login(user, password, self._client())
             if token is None:
                 self._page(401, target, "Wrong user name or password.")

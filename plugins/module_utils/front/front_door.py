@@ -386,6 +386,9 @@ def nginx_conf(p: dict, managed: str) -> str:
         *to_login("/login?next=$request_uri"),
         "    location = /login {",
         "      limit_req zone=fleet_login burst=5 nodelay;",
+        # counted by nginx, refused by the login service, which reads the user name tried and logs it
+        "      limit_req_dry_run on;",
+        "      proxy_set_header X-Fleet-Throttle $limit_req_status;",
         f"      proxy_pass {auth};",
         "      proxy_set_header X-Real-IP $remote_addr;",
         # the origin a browser reached the door at: the login form's POST must come from it

@@ -153,7 +153,8 @@ def render_unit(settings: dict, managed: str) -> str:
     """The template unit isaac-sim@.service. Everything per instance comes from its env file."""
     env = layout.env_file("%i")
     unit_section = [
-        ("Description", "Isaac Sim instance %i"),
+        # what systemctl status and the journal say of an unconfigured isaac-sim@N beside the AssertPathExists line
+        ("Description", f"Isaac Sim instance %i (configured by playbooks/deploy.yml in {env})"),
         ("Requires", "docker.service"),
         ("After", "docker.service network-online.target"),
         ("Wants", "network-online.target"),

@@ -243,3 +243,28 @@ def test_the_mirror_answers_the_fleet_and_comes_back_after_a_reboot(fleet):
     )
     testbed.wait_for(lambda: sh(fleet[0], ask) == "200", timeout=60, what="the mirror answering again")
     assert "isaac_sim_mirror" in sh(MIRROR, "nft list tables")
+
+
+def test_a_mirror_out_of_reach_in_the_middle_of_a_deploy_is_named_with_the_host_and_its_unit(fleet):
+    # the mirror ran when the deploy checked it, and cannot be reached from the first host once it pulls: a
+    # rule on that host refuses its connections to the mirror's port (as a mirror that went down does)
+    first = fleet[0]
+    mirror = f"{ip(MIRROR)}:5443"
+    before = sh(first, "docker ps -q --no-trunc --filter name=isaac-sim- | sort")
+    sh(
+        first,
+        "nft add table inet cut && nft add chain inet cut out '{ type filter hook output priority 0; }' && "
+        f"nft add rule inet cut out ip daddr {ip(MIRROR)} tcp dport 5443 reject with tcp reset",
+    )
+    try:
+        # the image the host runs, pulled again (as a host that lacks it would)
+        run = playbook("deploy.yml", {"isaac_sim_image_pull": "always"}, limit=first)
+    finally:
+        sh(first, "nft delete table inet cut")
+    said = squash(run.stdout + run.stderr)
+    assert run.returncode != 0
+    assert f"{first} could not pull {mirror}/fixtures/isaac-sim-standin@sha256:" in said, said[-3000:]
+    assert f"through the fleet's registry mirror {mirror} (isaac-sim-mirror.service on {MIRROR}): Docker said" in said
+    assert "connection refused" in said
+    # no instance was touched
+    assert sh(first, "docker ps -q --no-trunc --filter name=isaac-sim- | sort") == before

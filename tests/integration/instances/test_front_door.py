@@ -217,6 +217,8 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         # guessing is rate-limited per client address (30/min, a burst of 5)
         codes = [login(address, "olga", f"guess-{i}").status for i in range(12)]
         assert 429 in codes and codes[0] == 401, codes
+        # and each throttled try is logged with the user name it tried
+        in_journal(host, UNITS[1], "login throttled user=olga from=")
 
         for unit in UNITS:
             testbed.assert_sandboxed(host, unit)

@@ -101,6 +101,17 @@ def test_stop_and_start_the_third_instance(host, ip):
     assert tcp_answers(ip, SIGNAL_BASE + 2)
 
 
+def test_an_unconfigured_instance_says_which_file_is_missing_and_how_to_configure_it(host):
+    started = sh(host, "systemctl start isaac-sim@9", check=False)
+    assert started.rc != 0 and "Assertion failed on job for isaac-sim@9.service" in started.stdout + started.stderr
+    # systemd's own words, in status and in the journal: the unit's description names the file and what writes it
+    status = sh(host, "systemctl status isaac-sim@9 --no-pager", check=False).stdout
+    assert (
+        "Assertion failed for isaac-sim@9.service - Isaac Sim instance 9 (configured by playbooks/deploy.yml in "
+        "/etc/isaac-sim/instance-9.env)." in status
+    ), status
+
+
 def test_a_killed_container_is_restarted_by_systemd(host, ip):
     before = int(unit_show(host, "isaac-sim@1.service")["NRestarts"])
     old = container_id(host, "isaac-sim-1")

@@ -181,6 +181,11 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     assert response.status == 303
     response, _body = call(port, "POST", "/login", dict(form, next="/\u0100"))
     assert response.status == 303 and response.getheader("Location") == "/"
+    # over nginx's rate (limit_req in dry run): refused here, good password or not, with the user tried logged
+    for throttle, status in (("REJECTED_DRY_RUN", 429), ("PASSED", 303)):
+        response, _body = call(port, "POST", "/login", form, {"X-Fleet-Throttle": throttle})
+        assert response.status == status, throttle
+    assert "login throttled user=olga from=127.0.0.1 (too many attempts)" in lines
     assert call(port, "GET", "/login")[0].status == 200
 
 
