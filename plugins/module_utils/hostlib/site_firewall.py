@@ -90,6 +90,11 @@ def nft_rules(gs: list) -> list:
     return out
 
 
+def comment_of(rule: str) -> str:
+    """The comment of one of nft_rules() ("isaac-sim <digest>"), as nft lists it back."""
+    return rule.rsplit('"', 2)[-2]
+
+
 def _ranges(ports) -> list:
     """Consecutive ports as "a-b" (firewalld's and iptables' ranges), the rest one by one."""
     out, ports = [], sorted(ports)
@@ -212,7 +217,8 @@ def _firewalld(run) -> dict:
         rc, text, _err = run([FIREWALL_CMD, *extra, "--policy", POLICY, "--list-rich-rules"])
         out[where] = sorted(line.strip() for line in text.splitlines() if line.strip()) if rc == 0 else None
     differs = []
-    for what in ("--list-all-zones", "--list-all-policies"):
+    # only where the policy is still to be made: the reload that takes is what would lose them
+    for what in ("--list-all-zones", "--list-all-policies") if out["permanent"] is None else ():
         now = run([FIREWALL_CMD, what])[1]
         kept = run([FIREWALL_CMD, "--permanent", what])[1]
         if _without_ours(now) != _without_ours(kept):
@@ -267,7 +273,7 @@ def judge(found: dict, m: dict | None, policy: str, host: str = "this host") -> 
         )
         if c["owner"] == "nft":
             rules = nft_rules(gs)
-            missing = [r for r in rules if r.rsplit('"', 2)[-2] not in c["comments"]]
+            missing = [r for r in rules if comment_of(r) not in c["comments"]]
             if missing and not add:
                 cmds = "; ".join(f"nft {_q(_nft_insert(c, r))}" for r in missing)
                 errors.append(
@@ -341,7 +347,7 @@ def apply_nft(run, rules: list) -> bool:
         return False
     found = read(listing)
     targets = [c for c in found["chains"] if c["owner"] == "nft"]
-    wanted = sorted(r.rsplit('"', 2)[-2] for r in rules)
+    wanted = sorted(comment_of(r) for r in rules)
     keep = {(c["family"], c["table"], c["chain"]) for c in targets if c["comments"] == wanted}
     stray = [o for o in found["ours"] if tuple(o[:3]) not in keep]
     todo = [c for c in targets if (c["family"], c["table"], c["chain"]) not in keep]
@@ -354,10 +360,11 @@ def apply_nft(run, rules: list) -> bool:
     return True
 
 
-def apply_firewalld(run, wanted: list) -> bool:
+def apply_firewalld(run, wanted: list, fw: dict | None = None) -> bool:
     """The policy of ours in firewalld with exactly these rich rules, runtime and permanent; made
-    (with the one reload it takes) where it is not there. True when changed."""
-    fw = _firewalld(run)
+    (with the one reload it takes) where it is not there. True when changed. fw: _firewalld()'s
+    answer where the caller has it."""
+    fw = fw if fw is not None else _firewalld(run)
     if not fw.get("running"):
         return False
     if fw.get("permanent") is None:
@@ -383,7 +390,7 @@ def remove_firewalld(run) -> None:
     reload; no reload of ours, which would lose the site's unsaved changes."""
     fw = _firewalld(run)
     if fw.get("running") and (fw.get("runtime") or fw.get("permanent") is not None):
-        apply_firewalld(run, [])
+        apply_firewalld(run, [], fw)
         if fw.get("permanent") is not None:
             _check(run, [FIREWALL_CMD, "--permanent", "--delete-policy", POLICY])
 

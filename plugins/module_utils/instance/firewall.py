@@ -384,7 +384,7 @@ def _site_in_sync(host, m: dict) -> bool:
     if not host.exists(NFT):
         return True
     found = site_firewall.survey(host.run)
-    comments = sorted(r.rsplit('"', 2)[-2] for r in rules)
+    comments = sorted(site_firewall.comment_of(r) for r in rules)
     for c in found["chains"]:
         if c["owner"] == "nft" and c["comments"] != comments:
             return False

@@ -164,8 +164,8 @@ def _through_mirror(image, through, answer, offline, ask, docker, username, pass
     (answer: what the mirror's host asked it, None where no host of the inventory runs the mirror: then
     asked through this host's Docker). The mirror's own answer (it falls back to its cached copy when its
     upstream says the tag is gone) counts only with isaac_sim_pin_offline, and says so."""
-    repository = through.rsplit("@", 1)[0].rsplit(":", 1)[0] if "@" not in through else through.split("@", 1)[0]
-    if "@" in through:
+    repository, _tag, digest = _parsed(through)
+    if digest:
         return dict(ask(through), image=image)
     if answer is None:
         try:
