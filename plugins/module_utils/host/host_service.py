@@ -64,7 +64,9 @@ def actions(state: str, show: dict, files_changed: list, removable: list, direct
     started: its directories made first (they may be a container's mounts), enabled and running,
     restarted when one of its files or directories changed while it ran.
     absent: stopped and disabled, before its files go; a timer's service (Triggers) is stopped with
-    it while files remain, or a run it started may write them again after they went.
+    it while files remain, or a run it started may write them again after they went. What it stopped
+    mid-run (or what had failed) has its failed state reset: once its unit file is gone it would stay
+    in `systemctl --failed` as "not-found failed" until a reboot.
     """
     units_changed = any(is_unit_file(p) for p in files_changed + (removable if state == "absent" else []))
     active = show.get("ActiveState") in ("active", "activating", "reloading")
@@ -73,6 +75,8 @@ def actions(state: str, show: dict, files_changed: list, removable: list, direct
     if state == "absent":
         if active or (show.get("Triggers") and removable):
             verbs.append("stop")
+        if "stop" in verbs or show.get("ActiveState") == "failed":
+            verbs.append("reset-failed")
         if enabled:
             verbs.append("disable")
         if removable:
@@ -221,6 +225,11 @@ class Service:
         else:
             name = self.p["name"]
             units = {"daemon-reload": [], "stop": [name] + self.triggers}.get(verb, [name])
+            if verb == "reset-failed":
+                # tidying: a unit systemd no longer holds has no state to reset, and says so with rc 1
+                for unit in [name] + self.triggers:
+                    self.run([self.systemctl, verb, unit])
+                return
             rc, out, err = self.run([self.systemctl, verb] + units)
             if rc != 0:
                 raise ServiceError(

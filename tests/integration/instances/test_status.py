@@ -466,4 +466,6 @@ def test_metrics_timer_writes_prometheus_text_and_goes_away_when_off(host):
     ok(testbed.run_playbook(host, {"isaac_sim_metrics_enabled": False}))
     assert sh(host, f"test -e {prom}", check=False).rc != 0
     assert sh(host, "test -e /etc/systemd/system/isaac-sim-metrics.timer", check=False).rc != 0
+    # a run of the oneshot stopped mid-way is not left in `systemctl --failed` as "not-found failed"
+    assert "isaac-sim-metrics" not in sh(host, "systemctl --failed --no-legend --plain").stdout
     all_ready(host)

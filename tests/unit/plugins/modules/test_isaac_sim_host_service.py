@@ -95,8 +95,8 @@ def test_absent_stops_disables_and_removes_files_but_keeps_directories(tmp_path,
     result = run_module(
         isaac_sim_host_service.main, {**args(tmp_path), "state": "absent", "remove": [str(tmp_path / "extra")]}, capsys
     )
-    assert result["actions"] == ["stop", "disable", "remove", "daemon-reload"]
-    assert calls == ["show", "stop", "disable", "daemon-reload"]
+    assert result["actions"] == ["stop", "reset-failed", "disable", "remove", "daemon-reload"]
+    assert calls == ["show", "stop", "reset-failed", "disable", "daemon-reload"]
     assert ["/usr/bin/systemctl", "stop", "x.service"] in unit["argvs"]
     assert sorted(os.listdir(tmp_path)) == ["state"]
 
@@ -108,9 +108,11 @@ def test_a_timer_going_away_stops_the_service_it_triggers_in_the_same_call(tmp_p
     unit["Triggers"] = "x.service"
     calls.clear()
     result = run_module(isaac_sim_host_service.main, {**args(tmp_path, **timer), "state": "absent"}, capsys)
-    assert result["actions"] == ["stop", "disable", "remove", "daemon-reload"]
-    assert calls == ["show", "stop", "disable", "daemon-reload"]
+    assert result["actions"] == ["stop", "reset-failed", "disable", "remove", "daemon-reload"]
+    assert calls == ["show", "stop", "reset-failed", "reset-failed", "disable", "daemon-reload"]
     assert ["/usr/bin/systemctl", "stop", "x.timer", "x.service"] in unit["argvs"]
+    # a run of the service stopped mid-way is not left listed as failed once its file is gone
+    assert ["/usr/bin/systemctl", "reset-failed", "x.service"] in unit["argvs"]
 
 
 @pytest.mark.parametrize(

@@ -47,8 +47,23 @@ def test_directories_come_first_and_a_running_service_restarts_on_them(show, exp
 
 
 def test_absent_stops_and_disables_before_removing():
-    assert host_service.actions("absent", RUNNING, [], [UNIT, SCRIPT]) == ["stop", "disable", "remove", "daemon-reload"]
+    assert host_service.actions("absent", RUNNING, [], [UNIT, SCRIPT]) == [
+        "stop",
+        "reset-failed",
+        "disable",
+        "remove",
+        "daemon-reload",
+    ]
     assert host_service.actions("absent", NEW, [], []) == []
+    # failed before (or stopped mid-run): its failed state goes with it, or `systemctl --failed` lists it as
+    # "not-found failed" after its file went (seen in CI with the metrics oneshot)
+    assert host_service.actions("absent", dict(RUNNING, ActiveState="failed"), [], [UNIT]) == [
+        "reset-failed",
+        "disable",
+        "remove",
+        "daemon-reload",
+    ]
+    assert host_service.actions("absent", dict(NEW, ActiveState="failed"), [], []) == ["reset-failed"]
 
 
 def test_a_timer_going_away_stops_its_service_while_its_files_remain():
@@ -59,7 +74,7 @@ def test_a_timer_going_away_stops_its_service_while_its_files_remain():
     assert host_service.actions("absent", timer, [], [prom])[:1] == ["stop"]
     # a timer stopped earlier whose service may still run: stopped all the same
     stopped = dict(timer, ActiveState="inactive", UnitFileState="disabled")
-    assert host_service.actions("absent", stopped, [], [prom]) == ["stop", "remove"]
+    assert host_service.actions("absent", stopped, [], [prom]) == ["stop", "reset-failed", "remove"]
     # nothing left: nothing to do, a re-run changes nothing
     assert host_service.actions("absent", stopped, [], []) == []
 
