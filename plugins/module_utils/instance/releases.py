@@ -220,9 +220,11 @@ def default_image(release: str) -> str:
 
 
 def release_of_tag(tag: str) -> str | None:
-    """The release family a version-like image tag belongs to, else None."""
+    """The release family a version-like image tag belongs to, else None: the release whose name is the
+    longest prefix of the tag, wherever it stands in the table (a 6.3 entry takes 6.3.0 from 6.x)."""
+    found, longest = None, -1
     for name in RELEASES:
         prefix = name[:-2] if name.endswith(".x") else name
-        if tag == prefix or tag.startswith(prefix + "."):
-            return name
-    return None
+        if (tag == prefix or tag.startswith(prefix + ".")) and len(prefix) > longest:
+            found, longest = name, len(prefix)
+    return found

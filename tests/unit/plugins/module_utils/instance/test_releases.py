@@ -1,5 +1,6 @@
 """The release table is the one place release knowledge lives: what lists releases agrees with it."""
 
+import re
 import socket
 import subprocess
 import threading
@@ -7,7 +8,9 @@ import time
 from pathlib import Path
 
 import yaml
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import releases
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.releases import (
+    DEFAULT_RELEASE,
     RELEASES,
     healthcheck,
     release_of_tag,
@@ -19,9 +22,43 @@ ROOT = Path(__file__).resolve().parents[5]
 def test_the_role_documents_exactly_the_releases_of_the_table():
     specs = yaml.safe_load((ROOT / "roles" / "isaac_sim" / "meta" / "argument_specs.yml").read_text())
     text = " ".join(specs["argument_specs"]["main"]["options"]["isaac_sim_release"]["description"])
-    named = {r for r in ("2023.1", "4.x", "5.x", "6.x", "7.x", "3.x") if f"C({r})" in text}
-    assert named == set(RELEASES)
-    assert specs["argument_specs"]["main"]["options"]["isaac_sim_release"]["default"] in RELEASES
+    # the sentence that lists them: "One of C(2023.1), C(4.x), ... (the release table ...)"
+    listed = re.search(r"One of ((?:C\([^)]*\)(?:, | or )?)+)", text)
+    assert listed, text
+    assert re.findall(r"C\(([^)]*)\)", listed.group(1)) == list(RELEASES)
+    assert specs["argument_specs"]["main"]["options"]["isaac_sim_release"]["default"] == DEFAULT_RELEASE
+
+
+def test_the_default_release_is_the_table_s_one_default_wherever_yaml_repeats_it():
+    """YAML cannot read releases.DEFAULT_RELEASE, so each place that repeats it is checked against it."""
+    assert DEFAULT_RELEASE in RELEASES
+
+    def yaml_of(path):
+        return yaml.safe_load((ROOT / path).read_text())
+
+    assert yaml_of("roles/isaac_sim/defaults/main.yml")["isaac_sim_release"] == DEFAULT_RELEASE
+    assert yaml_of("roles/slurm_node/defaults/main.yml")["slurm_node_isaac_sim_release"] == DEFAULT_RELEASE
+    assert yaml_of("roles/train/defaults/main.yml")["train_release"] == DEFAULT_RELEASE
+    toolkit = yaml_of("roles/nvidia_container_toolkit/defaults/main.yml")["nvidia_container_toolkit_release"]
+    assert toolkit == f"{{{{ isaac_sim_release | default('{DEFAULT_RELEASE}') }}}}"
+    for role in ("isaac_sim", "slurm_node", "train"):
+        for entry, spec in yaml_of(f"roles/{role}/meta/argument_specs.yml")["argument_specs"].items():
+            for name, option in spec["options"].items():
+                if name.endswith("release") and "default" in option:
+                    assert option["default"] == DEFAULT_RELEASE, (role, entry, name)
+
+
+def test_a_release_is_the_longest_name_its_tag_starts_with_wherever_it_stands_in_the_table(monkeypatch):
+    """A 6.3 appended after 6.x takes tag 6.3.0 (the first match in table order gave it to 6.x, and the plan
+    refused 6.3's own image); 6.0.1 stays 6.x's."""
+    scratch = dict(RELEASES)
+    scratch["6.3"] = dict(RELEASES["6.x"], default_tag="6.3.0")
+    monkeypatch.setattr(releases, "RELEASES", scratch)
+    assert releases.release_of_tag("6.3.0") == "6.3"
+    assert releases.release_of_tag("6.3") == "6.3"
+    assert releases.release_of_tag("6.0.1") == "6.x"
+    assert releases.release_of_tag("6.30.0") == "6.x"
+    assert releases.release_of_tag("7.0.0") is None
 
 
 def test_every_release_has_what_the_plan_and_the_gates_read():
