@@ -15,7 +15,7 @@ fails is the task's failure too: the real call fails the same way, before any ch
 import time
 
 from ansible.plugins.action import ActionBase
-from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import this_run
+from ansible_collections.isaacsim.fleet.plugins.plugin_utils.run_hold import this_run
 
 # soon at first: most calls (an idempotent deploy, a stop) end within a second
 POLL_S = (0.25, 0.25, 0.5, 1, 1, 2, 2, 3)

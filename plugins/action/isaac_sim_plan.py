@@ -5,7 +5,7 @@ playbooks/deploy.yml plans): names this run to the lock and waits while another 
 isaac_sim_lock action does (its hold)."""
 
 from ansible.plugins.action import ActionBase
-from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import hold, this_run
+from ansible_collections.isaacsim.fleet.plugins.plugin_utils.run_hold import hold, this_run
 
 
 class ActionModule(ActionBase):

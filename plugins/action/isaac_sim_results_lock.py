@@ -8,8 +8,8 @@ import os
 import time
 
 from ansible.plugins.action import ActionBase
-from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import _alive, this_run
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
+from ansible_collections.isaacsim.fleet.plugins.plugin_utils.run_hold import alive, this_run
 
 LOCK_NAME = ".suite-lock.json"
 # the module's documented options (plugins/modules/isaac_sim_results_lock.py), checked as Ansible checks a
@@ -42,7 +42,7 @@ class ActionModule(ActionBase):
         os.makedirs(directory, exist_ok=True)
         current = runlock.read(path) or {}
         dead = ""
-        if current.get("controller") == me["controller"] and not _alive(current.get("pid"), current.get("started")):
+        if current.get("controller") == me["controller"] and not alive(current.get("pid"), current.get("started")):
             dead = current.get("id", "")
         acquired, holder, note = runlock.acquire(
             me, time.time(), 0, dead=dead, path=path, guard=guard, record_path=os.path.join(directory, ".none")

@@ -11,10 +11,10 @@ from unittest import mock
 import pytest
 from ansible.module_utils.common.arg_spec import ArgumentSpecValidator
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_lifecycle as plugin
-from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import this_run
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import runlock
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_lifecycle as lifecycle_module
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_lock as lock_module
+from ansible_collections.isaacsim.fleet.plugins.plugin_utils.run_hold import this_run
 
 PLAY = "Roll this batch"
 # rollout.yml's rolling restart, as its task's arguments render

@@ -9,9 +9,9 @@ from types import SimpleNamespace
 from unittest import mock
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_lock
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_plan as plugin
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import host_facts, runlock
+from ansible_collections.isaacsim.fleet.plugins.plugin_utils import run_hold
 
 PLAY = "Validate"
 PLAN = {"ids": [0, 1], "image": "nvcr.io/nvidia/isaac-sim:6.0.1"}
@@ -56,7 +56,7 @@ def run(monkeypatch):
         clock.monotonic = lambda: host.now
         clock.time = lambda: host.now
         clock.sleep = lambda s: setattr(host, "now", host.now + s)
-        monkeypatch.setattr(isaac_sim_lock, "time", clock)
+        monkeypatch.setattr(run_hold, "time", clock)
         task = mock.MagicMock(check_mode=check_mode, async_val=0)
         task.args = dict(args)
         action = plugin.ActionModule(task, mock.MagicMock(), mock.MagicMock(), None, None, None)
@@ -76,9 +76,9 @@ def test_a_free_host_is_held_by_this_run_and_planned_in_one_call(run, tmp_path):
     host = Host(tmp_path)
     result = run(host, {"release": "6.x", "lock": {"wait": 0}})
     [call] = host.calls
-    assert call["lock"]["holder"] == isaac_sim_lock.this_run(PLAY) and call["release"] == "6.x"
+    assert call["lock"]["holder"] == run_hold.this_run(PLAY) and call["release"] == "6.x"
     assert result["lock"]["acquired"] and result["plan"] == PLAN and not result.get("failed")
-    assert runlock.read(host.files["path"])["id"] == isaac_sim_lock.this_run(PLAY)["id"]
+    assert runlock.read(host.files["path"])["id"] == run_hold.this_run(PLAY)["id"]
 
 
 def test_a_host_another_run_holds_is_waited_for_then_refused_naming_the_holder(run, tmp_path):
@@ -101,7 +101,7 @@ def test_a_host_released_while_waiting_is_taken_and_planned(run, tmp_path):
 
 def test_the_lock_of_an_ended_run_of_this_controller_is_taken_at_once(run, tmp_path):
     host = Host(tmp_path)
-    me = isaac_sim_lock.this_run(PLAY)
+    me = run_hold.this_run(PLAY)
     # this controller, a pid that runs no process (pid_max is at most 2**22)
     ended = dict(me, id=f"{me['controller']}:4194304:1", pid=4194304, started="1", user="carol")
     host.hold(ended)
@@ -122,4 +122,4 @@ def test_a_dry_run_plans_against_a_held_host_and_does_not_fail(run, tmp_path):
 def test_an_empty_lock_is_a_lock_with_its_defaults_and_this_run_named(run, tmp_path):
     host = Host(tmp_path)
     result = run(host, {"release": "6.x", "lock": {}})
-    assert host.calls[0]["lock"]["holder"] == isaac_sim_lock.this_run(PLAY) and result["lock"]["acquired"]
+    assert host.calls[0]["lock"]["holder"] == run_hold.this_run(PLAY) and result["lock"]["acquired"]

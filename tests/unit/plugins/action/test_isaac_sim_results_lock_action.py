@@ -16,8 +16,8 @@ import pytest
 import yaml
 from ansible.errors import AnsibleActionFail
 from ansible_collections.isaacsim.fleet.plugins.action import isaac_sim_results_lock
-from ansible_collections.isaacsim.fleet.plugins.action.isaac_sim_lock import this_run
 from ansible_collections.isaacsim.fleet.plugins.modules import isaac_sim_results_lock as module
+from ansible_collections.isaacsim.fleet.plugins.plugin_utils.run_hold import this_run
 
 # the two tasks of playbooks/test_suite.yml, in its two plays
 PLAN, REPORT = "Plan the suite, then run each host's share", "Report the suite"
