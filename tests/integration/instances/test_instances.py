@@ -28,6 +28,7 @@ def ip(host):
     return testbed.host_ip(host)
 
 
+@pytest.mark.core
 def test_units_pass_systemd_analyze_verify(host):
     out = sh(
         host,
@@ -39,6 +40,7 @@ def test_units_pass_systemd_analyze_verify(host):
     assert "isaac-sim" not in out.stdout, out.stdout
 
 
+@pytest.mark.core
 def test_units_are_stamped_and_wired_to_docker(host):
     unit = sh(host, "cat /etc/systemd/system/isaac-sim@.service").stdout
     assert unit.startswith("# Ansible managed")
@@ -56,6 +58,7 @@ def test_units_are_stamped_and_wired_to_docker(host):
     assert sh(host, "systemctl is-enabled isaac-sim.target").stdout.strip() == "enabled"
 
 
+@pytest.mark.core
 @pytest.mark.parametrize("i", range(INSTANCES))
 def test_env_file_carries_the_port_block(host, i):
     env = sh(host, f"cat /etc/isaac-sim/instance-{i}.env").stdout
@@ -70,6 +73,7 @@ def test_env_file_carries_the_port_block(host, i):
     assert "standin-ngc-api-key" not in env
 
 
+@pytest.mark.core
 @pytest.mark.parametrize("i", range(INSTANCES))
 def test_every_instance_is_enabled_ready_and_answers(host, ip, i):
     show = unit_show(host, f"isaac-sim@{i}.service")
@@ -79,6 +83,7 @@ def test_every_instance_is_enabled_ready_and_answers(host, ip, i):
     assert sh(host, f"ss -Hlun 'sport = :{STREAM_BASE + i}'").stdout.strip(), "stream port (udp) not bound"
 
 
+@pytest.mark.core
 def test_container_runs_as_the_release_user_with_limits(host):
     inspect = sh(
         host,
@@ -89,6 +94,7 @@ def test_container_runs_as_the_release_user_with_limits(host):
     assert sh(host, "stat -c %u:%g /var/lib/isaac-sim/instance-0/cache/main").stdout.strip() == "1234:1234"
 
 
+@pytest.mark.core
 def test_stop_and_start_the_third_instance(host, ip):
     sh(host, "systemctl stop isaac-sim@2")
     assert container_id(host, "isaac-sim-2") == ""
@@ -112,6 +118,7 @@ def test_an_unconfigured_instance_says_which_file_is_missing_and_how_to_configur
     ), status
 
 
+@pytest.mark.core
 def test_a_killed_container_is_restarted_by_systemd(host, ip):
     before = int(unit_show(host, "isaac-sim@1.service")["NRestarts"])
     old = container_id(host, "isaac-sim-1")
@@ -125,6 +132,7 @@ def test_a_killed_container_is_restarted_by_systemd(host, ip):
     assert tcp_answers(ip, SIGNAL_BASE + 1)
 
 
+@pytest.mark.core
 def test_instances_come_back_after_dockerd_restarts(host, ip):
     old = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
     sh(host, "systemctl restart docker")
@@ -217,6 +225,7 @@ def reserved(host):
     return ports
 
 
+@pytest.mark.core
 def test_no_outgoing_connection_of_the_host_can_take_an_instance_port(host):
     ports = instance_ports(host)
     assert len(ports) >= 3 * INSTANCES and ports <= reserved(host)
@@ -245,6 +254,7 @@ def test_no_outgoing_connection_of_the_host_can_take_an_instance_port(host):
     assert not taken & ports, taken & ports
 
 
+@pytest.mark.core
 def test_instances_come_back_after_a_reboot(host, ip):
     testbed.client().containers.get(testbed.name(host)).restart(timeout=30)
     wait_for(
@@ -269,6 +279,7 @@ def test_instances_come_back_after_a_reboot(host, ip):
     assert sh(host, "systemctl is-active isaac-sim-firewall.service").stdout.strip() == "active"
 
 
+@pytest.mark.core
 def test_stopping_the_target_stops_every_instance(host):
     sh(host, "systemctl stop isaac-sim.target")
     for i in range(INSTANCES):

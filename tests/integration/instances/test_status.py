@@ -28,6 +28,7 @@ def ok(result):
     return result
 
 
+@pytest.mark.core
 def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
     all_ready(host)
     result = testbed.info(host)
@@ -168,6 +169,7 @@ def test_a_starting_instance_is_not_ready_and_a_day2_restart_fixes_it(host):
     assert {i: container_id(host, f"isaac-sim-{i}") for i in (0, 1, 3)} == others
 
 
+@pytest.mark.core
 def test_status_playbook_prints_the_table_and_writes_json(host, tmp_path, ip):
     run, out = dashboard(host, tmp_path)
     table = (out / "status.txt").read_text().splitlines()
