@@ -4,7 +4,7 @@
 Prints the cold deploy time, the idempotent re-run time, its ratio to a no-op
 play on the same host, and the re-run's changed count (which must be 0); then
 where the re-run's time goes: per task file and the slowest tasks (medians over
-the re-runs, timed by tests/benchmarks/callback_plugins/task_times.py).
+the re-runs, timed by tools/callback_plugins/task_times.py).
 A script, not a test: timings on shared machines are noisy, so it reports
 figures instead of asserting them. Run after ./tools/bootstrap:
 
@@ -37,7 +37,7 @@ def timed_tasks(inv, playbook, tmp, n):
     out = tmp / f"tasks-{n}.json"
     env = dict(
         ENV,
-        ANSIBLE_CALLBACK_PLUGINS=str(ROOT / "tests" / "benchmarks" / "callback_plugins"),
+        ANSIBLE_CALLBACK_PLUGINS=str(ROOT / "tools" / "callback_plugins"),
         ANSIBLE_CALLBACKS_ENABLED="task_times",
         TASK_TIMES_FILE=str(out),
     )

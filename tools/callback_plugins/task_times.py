@@ -1,7 +1,8 @@
 # Copyright: isaacsim.fleet contributors
 # Apache-2.0
-"""Callback for the benchmarks: each task's wall time, written as JSON to $TASK_TIMES_FILE at the
-end of the play ([{"task", "path", "seconds", "status"}], in the order they ran). Not a test."""
+"""Callback for the benchmarks and for finding where a test run's time goes: each task's wall time,
+written as JSON to $TASK_TIMES_FILE at the end of the play ([{"task", "path", "seconds", "status"}],
+in the order they ran). Not a test."""
 
 from __future__ import annotations
 
