@@ -7,7 +7,7 @@ from __future__ import annotations
 DOCUMENTATION = r"""
 name: isaac_sim_train_stuck
 short_description: Why a training job stays COMPLETING, naming its nodes and what their journal says
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - Turns the failed result of M(isaacsim.fleet.isaac_sim_train_job) for a job stuck in C(COMPLETING) (its
     C(stuck_nodes)) and the journal read on each of those nodes into one message for a person, with the fix.

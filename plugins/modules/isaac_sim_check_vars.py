@@ -9,7 +9,7 @@ DOCUMENTATION = r"""
 ---
 module: isaac_sim_check_vars
 short_description: Refuse variables of the wrong type before any role of the collection runs
-version_added: "0.1.0"
+version_added: "0.3.0"
 description:
   - Checks every variable set for the given hosts (inventory, group and host vars, C(-e)) that a role of
     the collection declares in its C(meta/argument_specs.yml), against its type and choices.

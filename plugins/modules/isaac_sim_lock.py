@@ -8,7 +8,7 @@ DOCUMENTATION = r"""
 ---
 module: isaac_sim_lock
 short_description: Hold a host for one playbook run at a time
-version_added: "0.1.0"
+version_added: "0.3.0"
 description:
   - Every playbook of the collection that changes instances takes the host's lock before it plans
     and gives it back at its end, so two deploys never mix their settings on one host.

@@ -8,7 +8,7 @@ DOCUMENTATION = r"""
 ---
 module: isaac_sim_results_lock
 short_description: Hold a results directory on the controller for one suite at a time
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - Runs on the controller only (an action plugin). Two suites writing one results directory would overwrite each
     other's C(suite.json), C(junit.xml) and bundles; the second is refused, naming the first.

@@ -8,7 +8,7 @@ DOCUMENTATION = r"""
 ---
 module: isaac_sim_train_image
 short_description: Turn the team's Docker image into what a Slurm cluster's jobs run, only when it changed
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - Runs on the build host, where the team's image is in Docker. Reads the image's id (the digest of its
     configuration, which changes with any change of the image); the job image's file name carries it

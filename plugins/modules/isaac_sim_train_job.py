@@ -8,7 +8,7 @@ DOCUMENTATION = r"""
 ---
 module: isaac_sim_train_job
 short_description: Submit, follow and cancel an Isaac Lab training job on a Slurm cluster
-version_added: "0.4.0"
+version_added: "0.3.0"
 description:
   - Runs on the cluster's login node, with Slurm's own commands (C(sinfo), C(sbatch), C(scontrol), C(sacct),
     C(scancel)).
