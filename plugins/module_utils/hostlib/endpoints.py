@@ -4,16 +4,20 @@
 
 from __future__ import annotations
 
+try:
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import builtin_companions
+except ImportError:  # copied flat next to the status endpoint and metrics scripts on a host
+    import builtin_companions
+
 # Who opens a port of the block: the instance (when its profile opens it) or a companion (when one
 # serves it: a port kept for a companion, the 6.x web viewer's, is reported only when one does).
 INSTANCE, COMPANION = "instance", "companion"
 
-# What the Isaac Sim WebRTC Streaming Client asks for (4.x and later), then the web viewer and the
-# services API where the block has them
+# What the Isaac Sim WebRTC Streaming Client asks for (4.x and later), then the services API where the
+# block has it (a built-in companion's port, the 6.x web viewer's, has its shape in builtin_companions.py)
 _STREAMING_CLIENT = (
     ("signal", "signal", "{host}:{port}", INSTANCE),
     ("stream", "stream", "{host}:{port}/udp", INSTANCE),
-    ("web_viewer", "web_viewer", "http://{host}:{port}/", COMPANION),
     ("http", "api", "http://{host}:{port}/", INSTANCE),
 )
 
@@ -37,7 +41,8 @@ URLS = {
 
 def endpoints(release: str, ports: dict, host: str, served=(), listens=None) -> dict:
     """{name: address} for one instance's port block: only what listens, in the shapes of its
-    release (URLS; a release this library does not know has the streaming client's).
+    release (URLS; a release this library does not know has the streaming client's), then the built-in
+    companions' where one serves its port.
 
     listens: the kinds of the block the instance itself opens (its profile's; None: all of them).
     served: the ports of the block a companion listens on.
@@ -45,7 +50,7 @@ def endpoints(release: str, ports: dict, host: str, served=(), listens=None) -> 
     opened = set(ports) if listens is None else set(listens)
     served = set(served)
     out = {}
-    for kind, name, shape, by in URLS.get(release, _STREAMING_CLIENT):
+    for kind, name, shape, by in [*URLS.get(release, _STREAMING_CLIENT), *builtin_companions.shapes()]:
         if kind in ports and (ports[kind] in served if by == COMPANION else kind in opened):
             out[name] = shape.format(host=host, port=ports[kind])
     return out

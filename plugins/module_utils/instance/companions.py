@@ -14,7 +14,7 @@ import re
 import shlex
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import mib_of
-from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import builtin_companions, layout
 
 VAR = "isaac_sim_companions"
 KEYS = {
@@ -41,36 +41,21 @@ PLACEHOLDER_RE = re.compile(r"\{(instance|host|port\.[a-z][a-z0-9_]*)\}")
 ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 DEFAULT_READY_TIMEOUT = 60
 DEFAULT_STOP_TIMEOUT = 10
-VIEWER = "viewer"
 
 
-def web_viewer(image: str, health_interval: int = 30, instances=None) -> dict:
-    """The built-in companion of a 6.x instance: NVIDIA's web viewer (roles/web_viewer_image),
-    told the instance's address and ports when it starts, bound to that address on the block's
-    web-viewer port, healthchecked as NVIDIA's recipe does (curl -f on its page).
+def built_in(name: str, image: str, health_interval: int = 30, instances=None) -> dict:
+    """A built-in companion (hostlib/builtin_companions.py) as an entry of isaac_sim_companions gives one: its
+    container with the image given, its healthcheck every health_interval seconds (at most 5: the readiness
+    gate waits for the first healthy check, which Docker runs one interval after the start).
 
-    instances: the streaming ones, where there are others (None: every instance)."""
-    spec = {
-        "name": VIEWER,
-        "image": image,
-        "user": "1234:1234",
-        "env": {
-            "ISAACSIM_HOST": "{host}",
-            "ISAACSIM_SIGNAL_PORT": "{port.signal}",
-            "ISAACSIM_STREAM_PORT": "{port.stream}",
-            "WEB_VIEWER_PORT": "{port.web_viewer}",
-        },
-        "ports": {"http": "web_viewer"},
-        # NVIDIA checks every 30 s; the readiness gate waits for the first healthy check, which
-        # Docker runs one interval after the start
-        "healthcheck": {
-            "test": ["CMD", "curl", "-f", "http://{host}:{port.http}/"],
-            "interval": max(1, min(5, health_interval)),
-            "timeout": 5,
-            "start_period": 10,
-            "retries": 3,
-        },
-    }
+    instances: the instances that get it, where others do not (None: every instance)."""
+    container = builtin_companions.BUILT_IN[name]["container"]
+    spec = {"name": name, "image": image, "user": container["user"], "env": dict(container["env"])}
+    spec["ports"] = dict(container["ports"])
+    check = container.get("healthcheck")
+    if check:
+        spec["healthcheck"] = {"test": list(check["test"]), "interval": max(1, min(5, health_interval))}
+        spec["healthcheck"].update((k, v) for k, v in check.items() if k != "test")
     if instances is not None:
         spec["instances"] = list(instances)
     return spec

@@ -17,6 +17,7 @@ import sys
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service, min_facts
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
+    builtin_companions,
     fleet_status,
     gpu_usage,
     layout,
@@ -203,18 +204,21 @@ def _images(probe: Probe, p: dict, host: dict, docker) -> None:
         {env.get(layout.K_IMAGE_PINNED) or env.get(layout.K_IMAGE) for env in envs.values()} - {None, ""}
     )
     # companion images not on the host yet: the role pulls them with the instance's image
-    host["companion_images_missing"] = []
-    wanted_images = [c.get("image") for c in p["companions"] if isinstance(c, dict) and c.get("image")]
-    streams = "streaming" in [p["profile"], *p["instance_profiles"].values()]
-    has_viewer = p["release"] in RELEASES and "web_viewer" in RELEASES[p["release"]]["ports"]
-    if p["web_viewer_image"] and streams and has_viewer:
-        wanted_images.insert(0, p["web_viewer_image"])
+    # (image, the variable that names it), the one a missing image is reported by
+    host["companion_images_missing"], host["companion_images_missing_named"] = [], []
+    wanted = [
+        (c.get("image"), "isaac_sim_companions") for c in p["companions"] if isinstance(c, dict) and c.get("image")
+    ]
+    release_ports = RELEASES[p["release"]]["ports"] if p["release"] in RELEASES else {}
+    profiles = [p["profile"], *p["instance_profiles"].values()]
+    wanted[:0] = builtin_companions.images(release_ports, profiles, builtin_companions.given(p))
     if p["hub_cache"].get("enabled") and p["hub_cache"].get("image"):
-        wanted_images.insert(0, p["hub_cache"]["image"])
-    for ref in dict.fromkeys(str(r) for r in wanted_images):
+        wanted.insert(0, (p["hub_cache"]["image"], "isaac_sim_hub_cache_image"))
+    for ref, variable in dict.fromkeys((str(r), v) for r, v in wanted):
         present = _image_id(probe, ref)[0] if docker else False
-        if not present:
+        if not present and ref not in host["companion_images_missing"]:
             host["companion_images_missing"].append(ref)
+            host["companion_images_missing_named"].append(f"{ref} ({variable})")
 
 
 def _units(probe: Probe, p: dict, host: dict) -> None:

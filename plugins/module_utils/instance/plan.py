@@ -22,6 +22,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.common.parse import
 )
 from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import (
+    builtin_companions,
     container_policy,
     layout,
     site_firewall,
@@ -655,24 +656,23 @@ def build(cfg: dict, host: dict) -> dict:
     errors += profile_errors
 
     comp_specs = cfg.get("companions") or []
-    viewer_image = cfg.get("web_viewer_image") or ""
-    viewed = [i for i, name in profiles.items() if name == STREAMING]
-    if viewer_image and "web_viewer" in profile["ports"] and (viewed or not profiles):
-        if parse_image(viewer_image) is None:
+    # the built-in companions (the web viewer) first, for the instances of the profiles they serve
+    images = builtin_companions.given(cfg)
+    built = []
+    for name, entry, instances in builtin_companions.serving(profile["ports"], profiles, images):
+        image = images[entry["variable"]]
+        if parse_image(image) is None:
             errors.append(
-                f"isaac_sim_web_viewer_image: {viewer_image!r} is not a valid image reference. "
-                "Fix: give the reference playbooks/web_viewer_image.yml built, "
-                "e.g. registry.lab:5000/isaac-sim/web-viewer:2.1.5."
+                f"{entry['variable']}: {image!r} is not a valid image reference. "
+                f"Fix: give the reference {entry['made_by']} built, e.g. {entry['example']}."
             )
-        if any(isinstance(c, dict) and c.get("name") == companions.VIEWER for c in comp_specs):
+        if any(isinstance(c, dict) and c.get("name") == name for c in comp_specs):
             errors.append(
-                f"isaac_sim_companions: the name {companions.VIEWER} is the built-in web viewer's "
-                "(isaac_sim_web_viewer_image). Fix: rename that companion."
+                f"isaac_sim_companions: the name {name} is the built-in {entry['title']}'s "
+                f"({entry['variable']}). Fix: rename that companion."
             )
-        # a viewer needs a stream to show: the streaming instances only
-        every = len(viewed) == len(profiles)
-        viewer = companions.web_viewer(viewer_image, as_int(cfg["health_interval"]), None if every else viewed)
-        comp_specs = [viewer] + list(comp_specs)
+        built.append(companions.built_in(name, image, as_int(cfg["health_interval"]), instances))
+    comp_specs = built + list(comp_specs)
     # {kind: True when the instance itself listens there} (web_viewer is kept for a companion)
     release_ports = {kind: spec[2] is not None for kind, spec in profile["ports"].items()}
     errors += companions.check(

@@ -146,6 +146,7 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
         "images_configured": [],
         "mirror_trusted": False,
         "companion_images_missing": [],
+        "companion_images_missing_named": [],
         "metrics_timer": True,
         "status_unit": False,
         "hub_unit": False,
@@ -224,6 +225,11 @@ def test_missing_images_are_listed_for_the_role_to_pull(host, capsys):
     )
     assert result["host"]["image_present"] is False and result["host"]["image_id"] is None
     assert result["host"]["companion_images_missing"] == ["reg/viewer:2", "reg/bridge:1"]
+    # each named by the variable that gives it, for the pull's message where nothing may be pulled
+    assert result["host"]["companion_images_missing_named"] == [
+        "reg/viewer:2 (isaac_sim_web_viewer_image)",
+        "reg/bridge:1 (isaac_sim_companions)",
+    ]
 
 
 def test_macvlan_reads_the_lan_and_a_docker_that_does_not_answer_is_an_error(host, capsys, monkeypatch):
