@@ -10,7 +10,7 @@ short_description: Errors for an instance address planned on two hosts
 version_added: "0.3.0"
 description:
   - For the plans of several hosts (M(isaacsim.fleet.isaac_sim_plan)), one error per address that
-    instances on two hosts would both take (O(isaacsim.fleet.isaac_sim#role:isaac_sim_network_mode=macvlan)).
+    instances on two hosts would both take (O(isaacsim.fleet.isaac_sim#role:main:isaac_sim_network_mode=macvlan)).
     Each host's own plan already refuses a clash inside the host.
 positional: _input, hosts
 options:
@@ -41,7 +41,7 @@ _value:
 
 
 def address_clashes(plans, hosts) -> list:
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.network import clashes
 
     by_host = {}

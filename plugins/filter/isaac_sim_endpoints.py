@@ -36,7 +36,7 @@ _value:
 
 
 def isaac_sim_endpoints(*args, **kwargs):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.endpoints import summary_lines
 
     return summary_lines(*args, **kwargs)

@@ -57,7 +57,7 @@ _value:
 
 
 def isaac_sim_fleet_report(*args, **kwargs):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import build
 
     return build(*args, **kwargs)

@@ -46,7 +46,7 @@ _value:
 
 
 def isaac_sim_front_door(settings: dict, what: str):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.front import front_door
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 

@@ -44,7 +44,7 @@ _value:
 
 
 def isaac_sim_host_service_in_place(files, seen, directories=None) -> bool:
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.host import host_service
 
     params = {"files": dict(files or {}), "directories": list(directories or []), "state": "started"}

@@ -47,7 +47,7 @@ _NEEDS = {
 
 
 def isaac_sim_host_units(settings: dict, service: str) -> dict:
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
     from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import unit_files
 

@@ -41,7 +41,7 @@ _value:
 
 
 def isaac_sim_registry_mirror(settings: dict, what: str):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.host import registry_mirror
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 

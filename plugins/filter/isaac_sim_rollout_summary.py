@@ -42,7 +42,7 @@ _value:
 
 
 def isaac_sim_rollout_summary(*args, **kwargs):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.instance.lifecycle import summary
 
     return summary(*args, **kwargs)

@@ -31,7 +31,7 @@ _value:
 
 
 def isaac_sim_run_summary(*args, **kwargs):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.runs.testrun import summary_lines
 
     return summary_lines(*args, **kwargs)

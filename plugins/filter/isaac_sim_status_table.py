@@ -32,7 +32,7 @@ _value:
 
 
 def isaac_sim_status_table(*args, **kwargs):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.fleet_report import table
 
     return table(*args, **kwargs)

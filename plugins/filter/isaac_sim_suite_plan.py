@@ -76,7 +76,7 @@ def _previous(path) -> list:
 
 
 def suite_plan(path, hosts, previous=None, allowed=None):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
 
     try:

@@ -45,7 +45,7 @@ _value:
 
 
 def suite_report(results, wall=None, previous=None, plan=None, why=None):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.runs import suite
 
     results = suite.with_missing(results, plan or {}, why or {})

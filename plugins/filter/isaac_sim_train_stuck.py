@@ -49,7 +49,7 @@ def _read(result: dict) -> dict:
 
 
 def train_stuck(job: dict, journals: list) -> str:
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.train.slurm import stuck_message
 
     read = {str(r["item"]): _read(r) for r in journals or [] if "item" in r and not r.get("skipped")}

@@ -42,7 +42,7 @@ _value:
 
 
 def isaac_sim_warm_plan(hosts: list, hostvars: dict, kept: list) -> dict:
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import warm_cache
 
     probes = []

@@ -31,7 +31,7 @@ _value:
 
 
 def systemd_env_quote(value):
-    # on use, not at load: Ansible loads every filter file here to find one (README, Layout)
+    # on use, not at load: Ansible loads every filter file here to find one (docs/docsite/rst/contributing.rst, Layout)
     from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.layout import quote
 
     return quote(value)

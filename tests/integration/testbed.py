@@ -155,20 +155,41 @@ def exposure_of(run, unit: str) -> float:
     return float(found.group(1))
 
 
+# the security guide's sandbox table: an RST list-table whose last column is "Exposure"
+SANDBOX_TABLE = ROOT / "docs" / "docsite" / "rst" / "security.rst"
+
+
+def list_tables(text: str) -> list[list[list[str]]]:
+    """The rows (lists of cells) of each RST list-table of a document, cells of one line each."""
+    tables, rows, inside = [], None, False
+    for line in text.splitlines():
+        if line.strip().startswith(".. list-table::"):
+            rows, inside = [], True
+            tables.append(rows)
+        elif inside and re.match(r"^\s*\* - ", line):
+            rows.append([line.split("* - ", 1)[1].strip()])
+        elif inside and rows and re.match(r"^\s+- ", line):
+            rows[-1].append(line.split("- ", 1)[1].strip())
+        elif inside and line.strip() and not line.startswith(" "):
+            inside = False
+    return tables
+
+
 def listed_exposure(row: str) -> float:
-    """The exposure the README's table lists for the unit named `row` (as the table names it)."""
-    for line in (ROOT / "README.md").read_text().splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if line.lstrip().startswith("|") and cells[0] == f"`{row}`":
-            return float(cells[-1])
-    raise AssertionError(f"README.md's sandbox table has no row for {row}")
+    """The exposure the security guide's sandbox table lists for the unit named `row` (as the table names it)."""
+    for rows in list_tables(SANDBOX_TABLE.read_text()):
+        if rows and rows[0][-1] == "Exposure":
+            for cells in rows[1:]:
+                if cells[0] == f"``{row}``":
+                    return float(cells[-1])
+    raise AssertionError(f"{SANDBOX_TABLE.relative_to(ROOT)}'s sandbox table has no row for {row}")
 
 
 def assert_sandboxed(host, unit: str, row: str | None = None):
-    """The unit's exposure is the one the README lists (row: the table's name, default the unit)."""
+    """The unit's exposure is the one the security guide lists (row: the table's name, default the unit)."""
     measured, listed = exposure(host, unit), listed_exposure(row or unit)
     print(f"systemd-analyze security {unit}: {measured}")
-    assert measured == listed, f"{unit}: {measured}, README.md lists {listed}"
+    assert measured == listed, f"{unit}: {measured}, {SANDBOX_TABLE.relative_to(ROOT)} lists {listed}"
 
 
 def container_id(host, container: str) -> str:

@@ -5,7 +5,8 @@
 A unit that runs a container (an instance, a companion, the Hub cache, a test run's service)
 sandboxes the host side only: the docker client, the scripts around it and their checks. The
 container itself is Docker's, confined by hostlib/container_policy.py. Each profile is what its unit
-needs and no more; `systemd-analyze security` rates them (README, "Hardening").
+needs and no more; `systemd-analyze security` rates them (docs/docsite/rst/security.rst, "Every host unit is
+sandboxed").
 """
 
 from __future__ import annotations

@@ -321,7 +321,7 @@ def errors(where: str, whose: str, args, allowed=(), rules=None, allow_var: str 
         return [f"{where}: {exc} ({whose}). Fix: write the arguments as docker run takes them, one word per item."]
     return [
         f"{where}: {text} {why} ({whose}). Fix: remove it; where this host must allow it, add {text!r} to "
-        f"{allow_var} (the README's Security section says what that gives away)."
+        f"{allow_var} (the security guide, docs/docsite/rst/security.rst, says what that gives away)."
         for text, why in found
     ]
 

@@ -84,7 +84,7 @@ FORBIDDEN = (
 
 def cors_origin(origin, origins):
     """The Access-Control-Allow-Origin to send: the page's origin when it is one allowed, else none.
-    "null" is a dashboard opened as a file (and any sandboxed frame: see the README)."""
+    "null" is a dashboard opened as a file (and any sandboxed frame: see docs/docsite/rst/operate.rst)."""
     return origin if origin is not None and origin in origins else None
 
 

@@ -144,7 +144,7 @@ def test_runs_whose_controller_or_runner_was_killed_leave_the_instance_clean_and
     # its runner killed too: the run is stuck, holding instance 1, until the next run on the host
     swept = killed_mid_run(host, tmp_path, hold_s=300, runner_too=True)
     held = container_id(host, "isaac-sim-1")
-    # a run's service runs its docker client in the sandbox README.md lists
+    # a run's service runs its docker client in the sandbox the security guide lists
     assert_sandboxed(host, f"isaac-sim-run-{swept}-check.service", "isaac-sim-run-RUN-SERVICE.service")
     # a run nobody will fetch, older than the retention limit
     sh(host, f"mkdir -p {runs}/ancient-run && echo '{{}}' > {runs}/ancient-run/result.json")

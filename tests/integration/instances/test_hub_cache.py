@@ -50,7 +50,7 @@ def test_one_hub_per_host_started_before_the_instances_that_share_its_directory(
     status = testbed.info(host)
     assert status["summary"]["stray"] == 0 and "isaac-sim-hub" not in by_name(status)
     assert [(s["name"], s["state"]) for s in status["host_services"]] == [("hub", "running")]
-    # the host side of every unit of an instance's host sandboxed as README.md lists it
+    # the host side of every unit of an instance's host sandboxed as the security guide lists it
     testbed.assert_sandboxed(host, "isaac-sim-hub.service")
     testbed.assert_sandboxed(host, "isaac-sim@0.service", "isaac-sim@.service")
     testbed.assert_sandboxed(host, "isaac-sim-firewall.service")
