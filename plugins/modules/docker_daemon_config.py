@@ -20,6 +20,18 @@ description:
     the merge waits (nothing is written) and the role installs Docker and calls again.
   - Supports check mode and diff.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Merges in memory and says whether the file would change; writes nothing.
+  diff_mode:
+    support: full
+    details: The file's content before and after the merge.
+  platform:
+    platforms: posix
 options:
   path:
     description: The daemon.json file.

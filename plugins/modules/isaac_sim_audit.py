@@ -12,18 +12,28 @@ version_added: "0.3.0"
 description:
   - O(action=host) reads the host - every container's confinement (privileged, added capabilities, the host's
     namespaces, a confinement turned off, host devices, Docker's socket mounted), the files under C(/etc), C(/root)
-    and C(/var/lib) and the journal that hold O(key), the modes of the collection's env files, units and scripts,
-    and the firewall's tables - and lists the ports the host opens with the networks allowed for each.
+    and C(/var/lib) and the journal that hold O(key), the modes of the collection's env files (one that holds a
+    variable of O(secret_env_names) readable by root only), units and scripts, and the firewall's tables - and lists
+    the ports the host opens with the networks allowed for each.
   - O(action=probe) runs on a probe host (the controller, or a host of the fleet) and knocks on each port of
     O(reports) - a TCP connect, a UDP datagram that waits for an answer. A port must not answer a probe host
     outside the networks allowed for it, and a TCP port must answer one inside them.
   - O(action=report) makes the fleet's report of the hosts' O(reports) and every probe host's O(probed) rows.
   - Never changes anything; the key is never returned.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.secret_env
 attributes:
   check_mode:
     support: full
-    description: Reads only.
+    details: Reads only; the same in check mode.
+  diff_mode:
+    support: none
+    details: Nothing changes, so there is no diff.
+  platform:
+    platforms: posix
 options:
   action:
     description: What to do.
@@ -34,11 +44,6 @@ options:
     description: The registry key to look for (C(isaac_sim_registry_password)); empty - not looked for.
     type: str
     default: ""
-  secret_env_names:
-    description: Variables of the instances' env files that are secrets (C(isaac_sim_secret_env)'s names).
-    type: list
-    elements: str
-    default: []
   reports:
     description: For O(action=probe) and O(action=report) - host name to the result of O(action=host) on it (empty -
       it did not answer).

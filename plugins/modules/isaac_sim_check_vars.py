@@ -17,19 +17,30 @@ description:
     hosts it was set for; Ansible's own validation at the role would print the whole spec for every host.
   - Runs on the controller only (an action plugin); playbooks/inventory_check.yml calls it first.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.attributes.action
+attributes:
+  action:
+    support: full
+    details: The whole work is the action plugin's, on the controller; the module file holds only its
+      documentation.
+  check_mode:
+    support: full
+    details: Changes nothing; the same in check mode.
+  diff_mode:
+    support: none
+    details: Nothing changes, so there is no diff.
+  platform:
+    platforms: all
+    details: Runs on the controller only; no host is contacted.
 options:
   hosts:
     description: The hosts whose variables are checked.
     type: list
     elements: str
     required: true
-attributes:
-  action:
-    support: full
-    description: Runs on the controller.
-  check_mode:
-    support: full
-    description: Changes nothing.
 """
 
 EXAMPLES = r"""

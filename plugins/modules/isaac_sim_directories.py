@@ -15,6 +15,19 @@ description:
   - Never removes anything; a path that exists and is not a directory fails the task untouched.
   - Supports check mode and diff.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Says which directories would be created or given their owner and mode; changes nothing.
+  diff_mode:
+    support: partial
+    details: A line per directory changed - what it needed (create, owner, mode) and the owner, group and mode it
+      gets; its earlier owner and mode are not shown.
+  platform:
+    platforms: posix
 options:
   paths:
     description: Directories, parents first.

@@ -26,6 +26,22 @@ description:
     that another run used, and nothing else restarts it while it is lent.
   - Run it with C(async) so a long run survives the controller's connection.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.layout.data_root
+  - isaacsim.fleet.runs
+attributes:
+  check_mode:
+    support: partial
+    details: Reads the compose file and checks the images, the GPUs and the borrowed instance; nothing is pulled,
+      started or tidied, and C(changed) is true. An image not on the host fails the check, though the real run would
+      pull it first (O(pull)).
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: posix
 options:
   compose:
     description: The compose file, parsed (for example C(lookup('file', path) | from_yaml)).
@@ -84,36 +100,6 @@ options:
       - The dedicated simulator's release (C(2023.1), C(4.x), C(5.x), C(6.x)); by default that of the host's deployed
         instances, else the one the image's tag names.
     type: str
-  gpus:
-    description: The host's GPU ids this run may give its services (each service that reserves GPUs gets its own).
-    type: list
-    elements: str
-    default: []
-  data_root:
-    description: Where runs keep their directories (C(DATA_ROOT/runs/RUN)).
-    type: path
-    default: /var/lib/isaac-sim
-  unfetched_after:
-    description:
-      - Seconds a finished run's directory waits for the controller that started it; after that (its controller
-        went away), the next run on the host takes it and brings it back with its own (RV(recovered)). A run whose
-        runner died is taken at once.
-    type: float
-    default: 600
-  keep_days:
-    description:
-      - Days a run's directory stays on the host at most, fetched or not (RV(expired)); C(0) keeps them for ever.
-    type: float
-    default: 14
-  allowed_docker_args:
-    description:
-      - Arguments that take a service's container out of its confinement (C(privileged), C(cap_add), a
-        C(security_opt) that turns a confinement off, C(pid)/C(ipc)/C(userns_mode) C(host), C(devices)) and that
-        the operator allows all the same, each named exactly as docker run takes it (C(--cap-add=NET_ADMIN)). A
-        service that asks for one not named here is refused before the run starts.
-    type: list
-    elements: str
-    default: []
   pull:
     description:
       - Pull the services' images missing on the host, before anything starts; one that cannot be pulled is an error.

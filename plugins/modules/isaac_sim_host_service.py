@@ -17,6 +17,18 @@ description:
   - O(state=absent) stops and disables the unit, then removes its files and O(remove).
   - One call per service and run, whatever the number of files; supports check mode and diff.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Says which files would be written or removed and what would be done to the unit; changes nothing.
+  diff_mode:
+    support: partial
+    details: Names the files that are (or would be) written or removed; their content is not shown.
+  platform:
+    platforms: posix
 options:
   name:
     description: The systemd unit, e.g. C(isaac-sim-status.service).

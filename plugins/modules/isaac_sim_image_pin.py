@@ -18,6 +18,18 @@ description:
   - An image already named by digest is returned as written, without asking. It only reads, and runs
     the same in check mode.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Only asks the registries; the same in check mode.
+  diff_mode:
+    support: none
+    details: Nothing on the host changes, so there is no diff.
+  platform:
+    platforms: posix
 options:
   images:
     description:

@@ -23,13 +23,19 @@ description:
   - Read-only; supports check mode and always returns C(changed=false).
   - Needs root (C(become)) to read env files that hold secrets.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.layout.config_dir
 attributes:
   check_mode:
     support: full
-    description: Reads only; the same in check mode.
+    details: Reads only; the same in check mode.
   diff_mode:
     support: none
-    description: Nothing changes, so there is no diff.
+    details: Nothing changes, so there is no diff.
+  platform:
+    platforms: posix
 options:
   public_address:
     description:
@@ -57,10 +63,6 @@ options:
     description: The Docker daemon's socket.
     type: str
     default: unix:///var/run/docker.sock
-  config_dir:
-    description: Where the role writes the instances' env files.
-    type: path
-    default: /etc/isaac-sim
   run_dir:
     description: Where the readiness gate writes its ready markers.
     type: path

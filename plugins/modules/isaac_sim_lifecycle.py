@@ -35,13 +35,25 @@ description:
     O(action=stop) stops them (they stay enabled), O(action=remove) stops, disables and forgets them; caches, logs
     and data stay unless O(purge).
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.attributes.action
+  - isaacsim.fleet.layout.data_root
 attributes:
+  action:
+    support: full
+    details: Runs the module on the host as a background job and renews this run's hold on the host's lock while it
+      waits; an apply looks in check mode first and starts no job when nothing would change.
   check_mode:
     support: full
-    description: Reports what would be written, started, restarted and removed; changes nothing.
+    details: Reports what would be written, started, restarted and removed; changes nothing.
   diff_mode:
     support: partial
-    description: Shows the shared files (units, scripts); env files may hold secrets and are not shown.
+    details: With O(action=apply), shows the shared files (units, scripts); env files may hold secrets and are not
+      shown.
+  platform:
+    platforms: posix
 options:
   action:
     description: What to do.
@@ -91,14 +103,10 @@ options:
     type: bool
     default: true
   purge:
-    description: Also delete the caches, logs and data of removed instances.
+    description: Also delete the caches, logs and data of removed instances - under O(data_root), or with
+      O(action=apply) under the plan's C(data_root).
     type: bool
     default: false
-  data_root:
-    description: Where the instances' caches, logs and data are (C(DATA_ROOT/instance-N)), for O(purge).
-      O(action=apply) takes it from the plan.
-    type: path
-    default: /var/lib/isaac-sim
   controller_run:
     description:
       - The playbook run that asks, filled by the action plugin of the same name. When that run holds the

@@ -22,6 +22,23 @@ description:
   - Taking and renewing the lock is not a change of the host's configuration; it reports
     C(changed=false). In check mode nothing is written; a lock held by another run is reported.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.attributes.action
+attributes:
+  action:
+    support: full
+    details: Fills O(holder) from the controller, waits up to O(wait) seconds for a held lock and finds holders that
+      have ended.
+  check_mode:
+    support: full
+    details: Says whether the lock would be taken or renewed and who holds it; writes nothing.
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: posix
 options:
   state:
     description:

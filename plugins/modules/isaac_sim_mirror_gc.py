@@ -17,18 +17,27 @@ description:
     The mirror is stopped meanwhile and started again, failed or not.
   - Nothing to drop changes nothing. Check mode says what would be dropped.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.mirror_lock
+attributes:
+  check_mode:
+    support: full
+    details: Says what would be dropped; the mirror is neither stopped nor changed (its lock is held while the storage
+      is read).
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: debian
+    details: The registry of Debian's C(docker-registry) package - its user, program and storage.
 options:
   keep:
     description: The manifest digests (C(sha256:...)) to keep, in any repository.
     type: list
     elements: str
     required: true
-  lock_timeout:
-    description:
-      - Seconds to wait while another run changes the mirror's storage (a deploy's seed); the mirror holds one such
-        change at a time.
-    type: int
-    default: 3600
 """
 
 EXAMPLES = r"""

@@ -15,6 +15,19 @@ description:
     the bytes they take and what is left on the disk under them.
   - Only reads; the same in check mode.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Reads only; the same in check mode.
+  diff_mode:
+    support: none
+    details: Nothing changes, so there is no diff.
+  platform:
+    platforms: debian
+    details: The registry of Debian's C(docker-registry) package - its storage.
 options:
   min_free_gb:
     description: Free space on the storage's disk, in GiB, below which the mirror is marked low on space (it still

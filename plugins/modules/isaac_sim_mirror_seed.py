@@ -24,6 +24,20 @@ description:
     now, with the mirror's own credentials - the deploy's pin compares it with the mirror's answer, so that a tag
     the upstream withdrew stops the deploy (C(isaac_sim_image_pin)).
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.mirror_lock
+attributes:
+  check_mode:
+    support: full
+    details: Says what would be copied; nothing is copied. O(ask) asks the upstream as outside check mode.
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: debian
+    details: The registry of Debian's C(docker-registry) package - its user, program and storage.
 options:
   references:
     description:
@@ -47,12 +61,6 @@ options:
     description: Seconds to wait for the loopback registry to answer.
     type: int
     default: 30
-  lock_timeout:
-    description:
-      - Seconds to wait while another run changes the mirror's storage (a seed from another inventory, a garbage
-        collection); the mirror holds one such change at a time.
-    type: int
-    default: 3600
 """
 
 EXAMPLES = r"""

@@ -17,6 +17,26 @@ description:
   - Read-only; never changes the host, but for the host's lock where O(lock) is given. Runs the same in check
     mode, where the lock is only looked at.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.attributes.action
+  - isaacsim.fleet.layout.data_root
+  - isaacsim.fleet.layout.config_dir
+  - isaacsim.fleet.secret_env
+attributes:
+  action:
+    support: full
+    details: Where O(lock) is given, names this run to the host's lock and waits while another run holds it.
+  check_mode:
+    support: full
+    details: Changes nothing but the host's lock where O(lock) is given; in check mode that lock is only looked at,
+      not taken, and the plan is made all the same.
+  diff_mode:
+    support: none
+    details: Nothing changes, so there is no diff.
+  platform:
+    platforms: posix
 options:
   release:
     description:
@@ -80,10 +100,6 @@ options:
     description: Shared memory size per container.
     type: str
     default: 2g
-  data_root:
-    description: Host directory holding each instance's caches, logs and data.
-    type: path
-    default: /var/lib/isaac-sim
   public_address:
     description: Address clients use to reach the streams; empty means the host's default IPv4.
     type: str
@@ -102,11 +118,6 @@ options:
     description: Extra environment variables for the containers.
     type: dict
     default: {}
-  secret_env_names:
-    description: Names of secret variables passed to the containers (values are not given to this module).
-    type: list
-    elements: str
-    default: []
   docker_args:
     description:
       - Extra C(docker run) arguments, one per item.
@@ -290,10 +301,6 @@ options:
     description: Fail when a planned port is held by a process that is not one of our instances.
     type: bool
     default: true
-  config_dir:
-    description: Where the instances' env files live.
-    type: path
-    default: /etc/isaac-sim
   systemd_dir:
     description: Where the unit files live.
     type: path

@@ -15,6 +15,25 @@ description:
   - The holder is this C(ansible-playbook) run, in C(PATH/.suite-lock.json); a holder whose process is gone (killed,
     failed before it gave the directory back) gives it up to the next suite at once.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.attributes.action
+attributes:
+  action:
+    support: full
+    details: The whole work is the action plugin's, on the controller; the module file holds only its
+      documentation.
+  check_mode:
+    support: partial
+    details: A directory that does not exist is not made and nothing is held; one that exists is taken (its lock file
+      written) or given back as outside check mode, and refused while another suite writes there.
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: all
+    details: Runs on the controller only; no host is contacted.
 options:
   path:
     description: The results directory (made when missing).

@@ -20,6 +20,22 @@ description:
   - One run failing, hanging (it ends at its own timeout) or not starting never stops the others.
   - Use C(async) - a suite takes as long as its runs.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.layout.data_root
+  - isaacsim.fleet.runs
+attributes:
+  check_mode:
+    support: partial
+    details: Reads every run's file and checks the images; nothing is pulled, started or tidied, and C(changed) is
+      true when there are runs. An image not on the host is reported as one that cannot be had, though the real runs
+      would pull it first.
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: posix
 options:
   runs:
     description:
@@ -38,32 +54,6 @@ options:
     description: The instances of this host that runs may borrow.
     type: list
     elements: int
-    default: []
-  gpus:
-    description: The host's GPU ids that runs may reserve.
-    type: list
-    elements: str
-    default: []
-  data_root:
-    description: Where runs keep their directories.
-    type: path
-    default: /var/lib/isaac-sim
-  unfetched_after:
-    description:
-      - Seconds a finished run's directory waits for the controller that started it; after that, the next run or
-        suite on the host takes it and brings it back with its own (RV(recovered)).
-    type: float
-    default: 600
-  keep_days:
-    description: Days a run's directory stays on the host at most, fetched or not (RV(expired)); C(0) keeps them.
-    type: float
-    default: 14
-  allowed_docker_args:
-    description: The confinement-loosening docker arguments the runs' services may ask for
-      (C(test_suite_allowed_docker_args)), as O(isaacsim.fleet.isaac_sim_experience#module:allowed_docker_args) for
-      a single run.
-    type: list
-    elements: str
     default: []
 notes:
   - Check mode reads every file and checks the images; nothing starts.

@@ -19,6 +19,18 @@ description:
     C(/etc/subuid)), without it the build needs root. enroot - a squashfs image with C(enroot import). Podman and
     Docker - a C(docker save) archive that each node loads once.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Says whether a build is due and the command it would run; builds nothing.
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: posix
 options:
   source:
     description: The team's image in the build host's Docker (name:tag or id).

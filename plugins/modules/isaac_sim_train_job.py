@@ -26,6 +26,24 @@ description:
     C(sacct), from the accounting database, or with C(sacct -c) from the job completion log where the cluster keeps
     no database (that log is on the controller).
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+  - isaacsim.fleet.attributes.action
+attributes:
+  action:
+    support: full
+    details: With O(state=finished) and O(state=cancelled), follows the job from the controller, printing a line
+      whenever it changes.
+  check_mode:
+    support: full
+    details: O(state=submitted) returns the scripts it would write and submits nothing, O(state=cancelled) cancels
+      nothing; the other states only read.
+  diff_mode:
+    support: partial
+    details: With O(state=submitted), the new job's batch and node scripts; its snapshot of the code is not shown.
+  platform:
+    platforms: posix
 options:
   state:
     description: What to do.

@@ -23,6 +23,19 @@ description:
   - C(state=probe) also removes a warm run a killed deploy left behind.
   - Nothing here starts, stops or restarts an instance; the lifecycle starts them afterwards.
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Finds the instances that would start cold and the keys, and says what would change; nothing is warmed,
+      seeded or removed.
+  diff_mode:
+    support: none
+    details: No diff is returned.
+  platform:
+    platforms: posix
 options:
   state:
     description: What to do.

@@ -14,6 +14,18 @@ description:
     driver is older than the minimum of the chosen Isaac Sim release (or O(min_version)).
   - Read-only; always C(changed=false).
 author: isaacsim.fleet contributors (@isaacsim-fleet)
+extends_documentation_fragment:
+  - isaacsim.fleet.attributes
+  - isaacsim.fleet.attributes.platform
+attributes:
+  check_mode:
+    support: full
+    details: Reads only; the same in check mode.
+  diff_mode:
+    support: none
+    details: Nothing changes, so there is no diff.
+  platform:
+    platforms: posix
 options:
   release:
     description: Isaac Sim release family whose minimum driver applies.
