@@ -254,7 +254,9 @@ def test_no_outgoing_connection_of_the_host_can_take_an_instance_port(host):
     assert not taken & ports, taken & ports
 
 
-@pytest.mark.core
+# not core: a test host's reboot is a restart of its container, which can come back at another address
+# of Docker's default bridge when another scenario starts hosts meanwhile (seen with molecule/trixie beside
+# the cluster scenario's create); the instances then cannot bind the deployed public address
 def test_instances_come_back_after_a_reboot(host, ip):
     testbed.client().containers.get(testbed.name(host)).restart(timeout=30)
     wait_for(

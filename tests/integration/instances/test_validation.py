@@ -265,7 +265,6 @@ def test_a_pull_with_the_key_leaves_it_nowhere_on_the_host_nor_in_the_play_s_out
     assert not sh(host, "ls -d /run/isaac-sim-pull.* 2>/dev/null", check=False).stdout.strip()
 
 
-@pytest.mark.core
 def test_check_mode_on_the_deployed_host_runs_and_changes_nothing(host):
     before = testbed.snapshot(host)
     result = testbed.run_playbook(host, check=True)
