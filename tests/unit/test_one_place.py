@@ -104,6 +104,10 @@ def test_a_built_in_companion_is_one_table_entry(recorder):
     )
     planned = plan.build(cfg, {"memory_bytes": 64 * 1024**3})
     # the streaming instance 0 gets it on its block's port; the headless instance 1 streams nothing to record
+    # the instances keep their own image (a built-in's image is its companion's alone)
+    assert planned["image"] == "registry.lab:5000/isaac-sim:6.3.0"
+    instance_env = layout.parse(unit_files.render_env(planned["instances"][0], planned, "sha256:abc", {}, "managed"))
+    assert instance_env[layout.K_IMAGE] == "registry.lab:5000/isaac-sim:6.3.0"
     streaming, headless = planned["instances"]
     (comp,) = [c for c in streaming["companions"] if c["name"] == "recorder"]
     assert comp["ports"] == {"http": 8600} and not [c for c in headless["companions"] if c["name"] == "recorder"]

@@ -660,10 +660,11 @@ def build(cfg: dict, host: dict) -> dict:
     images = builtin_companions.given(cfg)
     built = []
     for name, entry, instances in builtin_companions.serving(profile["ports"], profiles, images):
-        image = images[entry["variable"]]
-        if parse_image(image) is None:
+        # (not `image`: the instances' own, read below)
+        built_image = images[entry["variable"]]
+        if parse_image(built_image) is None:
             errors.append(
-                f"{entry['variable']}: {image!r} is not a valid image reference. "
+                f"{entry['variable']}: {built_image!r} is not a valid image reference. "
                 f"Fix: give the reference {entry['made_by']} built, e.g. {entry['example']}."
             )
         if any(isinstance(c, dict) and c.get("name") == name for c in comp_specs):
@@ -671,7 +672,7 @@ def build(cfg: dict, host: dict) -> dict:
                 f"isaac_sim_companions: the name {name} is the built-in {entry['title']}'s "
                 f"({entry['variable']}). Fix: rename that companion."
             )
-        built.append(companions.built_in(name, image, as_int(cfg["health_interval"]), instances))
+        built.append(companions.built_in(name, built_image, as_int(cfg["health_interval"]), instances))
     comp_specs = built + list(comp_specs)
     # {kind: True when the instance itself listens there} (web_viewer is kept for a companion)
     release_ports = {kind: spec[2] is not None for kind, spec in profile["ports"].items()}
