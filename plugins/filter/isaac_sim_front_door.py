@@ -24,7 +24,7 @@ options:
       - The front door's settings - C(server_name), C(port), C(http_port), C(auth_port), C(login_rate),
         C(session_hours), C(users), C(backends), C(viewer_port_base), C(turn), C(turn_port), C(turn_min_port),
         C(turn_max_port), C(turn_gid); for C(services) also C(cert), C(key) (PEM text), C(auth_code) (the
-        login service's code) and C(turn_secret).
+        login service's code), C(store_code) (its store's code) and C(turn_secret).
     type: dict
     required: true
   what:
@@ -63,6 +63,7 @@ def isaac_sim_front_door(settings: dict, what: str):
             settings["key"],
             settings["auth_code"],
             settings.get("turn_secret", ""),
+            settings["store_code"],
         )
     if what == "removal":
         return [{"name": unit, "state": "absent", **spec} for unit, spec in front_door.removal().items()]

@@ -86,8 +86,8 @@ OWN_TEXTS = {
         "the same HOST:PORT, optional for the pin (empty: no mirror) and required by the seed, which runs on it",
     ),
     "name": (
-        {"isaac_sim_experience", "isaac_sim_host_service"},
-        "an experience's name, against a systemd unit's",
+        {"isaac_sim_door_token", "isaac_sim_experience", "isaac_sim_host_service"},
+        "an experience's name, against a systemd unit's and an API token's",
     ),
     "path": (
         {"docker_daemon_config", "isaac_sim_results_lock"},
@@ -113,6 +113,7 @@ OWN_TEXTS = {
     ),
     "state": (
         {
+            "isaac_sim_door_token",
             "isaac_sim_host_service",
             "isaac_sim_lock",
             "isaac_sim_results_lock",

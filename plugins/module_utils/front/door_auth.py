@@ -10,19 +10,22 @@ isaac-sim-front-door-auth.service.
 Users come from a JSON file of the role's ({name: {role, hash}}, root's alone): the hash is
 PBKDF2-SHA256 in passlib's format ($pbkdf2-sha256$ROUNDS$SALT$SUM, as Ansible's
 password_hash('pbkdf2_sha256') and the isaac_sim_password_hash filter write it), so no plain
-password is ever on a host. A session is a cookie signed with a key the service makes once and
-keeps (HMAC-SHA256 over user, role, expiry and a fingerprint of the user's hash); a user removed,
-given another role or a new password loses the session at the next request. Which role a path
-needs is nginx's to say (its locations match the path as it serves it; `need=operator` on the
-question), never a parse of the raw URI here. Every login, every refused login and every refused
-request is a line on stdout (the journal) with the user's name and the client's address. A
-logged-in user gets short-lived credentials of the front door's TURN relay at /turn-credentials
-(coturn's shared-secret scheme), each handed out written down.
+password is ever on a host. Sessions are kept by the service (front/door_store.py): the cookie is a
+random secret, so a logout ends the session everywhere at the next request, and a user removed,
+given another role or a new password loses it too. Programs send an API token instead
+(`Authorization: Bearer isf_...`, made with isaac_sim_door_token): it acts as its user, within its
+scopes. Which role and scope a path needs is nginx's to say (its locations match the path as it
+serves it; `need=` on the question), never a parse of the raw URI here. Every login, logout,
+refused login and refused request is a line on stdout (the journal) with the user's name (and
+token's) and the client's address. A logged-in user gets short-lived credentials of the front
+door's TURN relay at /turn-credentials (coturn's shared-secret scheme), each handed out written
+down.
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import hmac
 import html
@@ -34,10 +37,22 @@ import time
 import urllib.parse
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+try:
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_store
+except ImportError:  # on the front door host, copied beside this script (front_door.files)
+    import isaac_sim_door_store as door_store  # type: ignore[no-redef]
+
 # __Host-: the browser keeps it for this host alone (Secure, Path=/, no Domain)
 COOKIE = "__Host-fleet_session"
 SCHEME = "$pbkdf2-sha256$"
 ROLES = ("viewer", "operator")
+# what nginx's question may need: (the role, and the scope of a token)
+NEEDS = {
+    "": ("viewer", "read"),
+    "operator": ("operator", "read"),
+    "act": ("operator", "act"),
+    "operate": ("operator", "operate"),
+}
 _NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
 MIN_ROUNDS = 10000
 
@@ -93,50 +108,12 @@ def verify_password(password: str, stored: str) -> bool:
     return hmac.compare_digest(hashlib.pbkdf2_hmac("sha256", password.encode(), salt, rounds), digest)
 
 
-def _b64url(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).decode().rstrip("=")
-
-
-def _unb64url(text: str) -> bytes:
-    return base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
-
-
-def _fingerprint(key: bytes, stored_hash: str) -> str:
-    return _b64url(hmac.new(key, b"hash:" + str(stored_hash).encode(), hashlib.sha256).digest()[:9])
-
-
 def turn_credentials(user: str, secret: bytes, expires: int) -> tuple:
     """(user name, password) for the TURN relay, in coturn's shared-secret scheme (use-auth-secret):
     the name is EXPIRY:USER, the password base64(HMAC-SHA1(secret, name)); coturn refuses both
     after EXPIRY, so nothing is stored and nothing needs revoking."""
     name = f"{int(expires)}:{user}"
     return name, base64.b64encode(hmac.new(secret, name.encode(), hashlib.sha1).digest()).decode()
-
-
-def make_session(user: str, role: str, key: bytes, expires: int, stored_hash: str = "") -> str:
-    payload = [user, role, int(expires), _fingerprint(key, stored_hash)]
-    text = _b64url(json.dumps(payload, separators=(",", ":")).encode())
-    sig = _b64url(hmac.new(key, text.encode(), hashlib.sha256).digest())
-    return f"{text}.{sig}"
-
-
-def read_session(token: str, key: bytes, users: dict, now: float):
-    """(user, role) of a valid, unexpired session whose user still has that role and password;
-    else None (whatever the token holds)."""
-    try:
-        text, _dot, sig = str(token or "").partition(".")
-        want = _b64url(hmac.new(key, text.encode(), hashlib.sha256).digest())
-        if not sig or not hmac.compare_digest(sig.encode(), want.encode()):
-            return None
-        user, role, expires, fingerprint = json.loads(_unb64url(text))
-        record = users.get(user) or {}
-        if now >= expires or record.get("role") != role:
-            return None
-        if not hmac.compare_digest(str(fingerprint).encode(), _fingerprint(key, record.get("hash", "")).encode()):
-            return None
-    except (ValueError, TypeError, UnicodeError):
-        return None
-    return user, role
 
 
 def cookie_value(header: str) -> str:
@@ -158,8 +135,18 @@ def safe_next(target: str) -> str:
     return target
 
 
-def may_open(role: str, need: str) -> bool:
-    return need != "operator" or role == "operator"
+def may_open(role: str, need: str, scopes=None) -> bool:
+    """Whether a user of that role (through a token: with those scopes) may open what needs need;
+    a need nobody knows opens nothing."""
+    if need not in NEEDS:
+        return False
+    role_needed, scope = NEEDS[need]
+    return (role_needed == "viewer" or role == "operator") and (scopes is None or scope in scopes)
+
+
+def bearer(header: str) -> str:
+    scheme, _sp, value = (header or "").strip().partition(" ")
+    return value.strip() if scheme.lower() == "bearer" else ""
 
 
 def shown(name) -> str:
@@ -188,31 +175,17 @@ def say(line: str) -> None:
 
 
 class Door:
-    """The service's state: users (reloaded when their file changes), the session key, the clock."""
+    """The service's state: users (reloaded when their file changes), the store of sessions and
+    tokens, the clock."""
 
-    def __init__(self, users_file: str, key_file: str, hours: float, log=say, clock=time.time, turn=None):
+    def __init__(self, users_file: str, store_file: str, hours: float, log=say, clock=time.time, turn=None):
         """turn: {url, secret_file, seconds} of the TURN relay whose credentials a session gets."""
         self.users_file, self.hours, self.log, self.clock = users_file, hours, log, clock
-        self.key = self._key(key_file)
+        self.store = door_store.Store(store_file, clock=clock)
         self.turn = turn
         self._users, self._mtime = {}, None
         # an unknown user's password is checked against this, so both answers take as long
         self._decoy = hash_password(os.urandom(8).hex())
-
-    @staticmethod
-    def _key(path: str) -> bytes:
-        try:
-            with open(path, "rb") as f:
-                key = f.read()
-            if len(key) >= 32:
-                return key
-        except FileNotFoundError:
-            pass
-        key = os.urandom(32)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "wb") as f:
-            f.write(key)
-        return key
 
     def users(self) -> dict:
         mtime = os.stat(self.users_file).st_mtime_ns
@@ -221,44 +194,79 @@ class Door:
                 self._users, self._mtime = json.load(f), mtime
         return self._users
 
-    def check(self, cookie_header: str, path: str, client: str, need: str = ""):
-        """(status, user) for nginx: 204 passes, 401 means log in, 403 refused for the role.
-        path: the request as sent (for the journal only); need: what nginx's location asks for."""
-        session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
-        if session is None:
-            self.log(f"refused user=- path={path!r} from={client} (no valid session)")
-            return 401, None
-        user, role = session
-        if not may_open(role, need):
-            self.log(f"refused user={user} path={path!r} from={client} (role {role}, needs {need})")
-            return 403, user
-        return 204, user
+    def identify(self, cookie_header: str, authorization: str = ""):
+        """{user, role, token, scopes, expires} of the request's token (when it sends one) or
+        session: the user still there with that role (and, for a session, that password); else None.
+        A token acts with its user's role of now."""
+        users = self.users()
+        text = bearer(authorization)
+        if text:
+            token = self.store.token(text)
+            record = users.get(token["user"]) if token else None
+            if not token or not isinstance(record, dict) or record.get("role") not in ROLES:
+                return None
+            return {
+                "user": token["user"],
+                "role": record["role"],
+                "token": token["name"],
+                "scopes": token["scopes"],
+                "expires": token["expires"],
+            }
+        session = self.store.session(cookie_value(cookie_header))
+        record = users.get(session["user"]) if session else None
+        if not session or not isinstance(record, dict) or record.get("role") != session["role"]:
+            return None
+        if not hmac.compare_digest(session["fingerprint"], door_store.fingerprint(record.get("hash", ""))):
+            return None
+        return {
+            "user": session["user"],
+            "role": session["role"],
+            "token": None,
+            "scopes": None,
+            "expires": session["expires"],
+        }
 
-    def whoami(self, cookie_header: str):
-        """(status, {user, role}) of the session, for the pages behind the door (not logged: asked
-        on each page load, and it opens nothing)."""
-        session = read_session(cookie_value(cookie_header), self.key, self.users(), self.clock())
-        if session is None:
-            return 401, None
-        return 200, {"user": session[0], "role": session[1]}
+    @staticmethod
+    def _who(who) -> str:
+        return f"user={who['user']}" + (f" token={who['token']}" if who and who.get("token") else "")
 
-    def relay(self, cookie_header: str, client: str):
+    def check(self, cookie_header: str, path: str, client: str, need: str = "", authorization: str = ""):
+        """(status, identity) for nginx: 204 passes, 401 means log in, 403 refused for the role
+        or the token's scopes. path: the request as sent (for the journal only); need: what nginx's
+        location asks for."""
+        who = self.identify(cookie_header, authorization)
+        if who is None:
+            what = "no valid token" if bearer(authorization) else "no valid session"
+            self.log(f"refused user=- path={path!r} from={client} ({what})")
+            return 401, None
+        if not may_open(who["role"], need, who["scopes"]):
+            wanted = "/".join(NEEDS.get(need, ("?", "?")))
+            self.log(f"refused {self._who(who)} path={path!r} from={client} (role {who['role']}, needs {wanted})")
+            return 403, who
+        return 204, who
+
+    def whoami(self, cookie_header: str, authorization: str = ""):
+        """(status, {user, role, token}) of the session or token, for the pages behind the door
+        (not logged: asked on each page load, and it opens nothing)."""
+        who = self.identify(cookie_header, authorization)
+        if who is None:
+            return 401, None
+        return 200, {"user": who["user"], "role": who["role"], "token": who["token"]}
+
+    def relay(self, cookie_header: str, client: str, authorization: str = ""):
         """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials, which
-        never outlive the session they were handed to."""
-        token = cookie_value(cookie_header)
-        session = read_session(token, self.key, self.users(), self.clock())
-        if session is None:
+        never outlive the session (or token) they were handed to."""
+        who = self.identify(cookie_header, authorization)
+        if who is None:
             self.log(f"refused user=- path='/turn-credentials' from={client} (no valid session)")
             return 401, None
         with open(self.turn["secret_file"], "rb") as f:
             secret = f.read().strip()
-        # read_session checked the token: its payload's expiry is the session's
-        ends = int(json.loads(_unb64url(token.partition(".")[0]))[2])
         now = int(self.clock())
-        expires = min(now + int(self.turn["seconds"]), ends)
+        expires = min(now + int(self.turn["seconds"]), int(who["expires"]))
         seconds = expires - now
-        name, password = turn_credentials(session[0], secret, expires)
-        self.log(f"turn credentials user={session[0]} from={client} until={expires}")
+        name, password = turn_credentials(who["user"], secret, expires)
+        self.log(f"turn credentials {self._who(who)} from={client} until={expires}")
         server = {"urls": [self.turn["url"]], "username": name, "credential": password}
         return 200, {"iceServers": [server], "ttl": seconds}
 
@@ -271,8 +279,14 @@ class Door:
             self.log(f"login refused user={shown(user)} from={client} ({why})")
             return None
         self.log(f"login user={user} role={record['role']} from={client}")
-        expires = int(self.clock() + self.hours * 3600)
-        return make_session(user, record["role"], self.key, expires, record.get("hash", ""))
+        secret, _expires = self.store.open_session(user, record["role"], record.get("hash", ""), self.hours, client)
+        return secret
+
+    def logout(self, cookie_header: str, client: str) -> None:
+        """Ends the session the cookie names, here, so the cookie opens nothing anywhere after."""
+        user = self.store.end_session(cookie_value(cookie_header))
+        if user:
+            self.log(f"logout user={user} from={client}")
 
 
 def handler(door: Door, form_action: str = ""):
@@ -326,23 +340,28 @@ def handler(door: Door, form_action: str = ""):
         def _get(self):
             url = urllib.parse.urlsplit(self.path)
             if url.path == "/auth":
-                code, user = door.check(
+                code, who = door.check(
                     self.headers.get("Cookie", ""),
                     self.headers.get("X-Original-URI", "/"),
                     self._client(),
                     urllib.parse.parse_qs(url.query).get("need", [""])[0],
+                    self.headers.get("Authorization", ""),
                 )
-                self._send(code, headers=[("X-Fleet-User", user)] if user else [])
+                said = [("X-Fleet-User", who["user"])] if who else []
+                self._send(code, headers=said + ([("X-Fleet-Token", who["token"])] if who and who["token"] else []))
             elif url.path == "/session":
-                code, answer = door.whoami(self.headers.get("Cookie", ""))
+                code, answer = door.whoami(self.headers.get("Cookie", ""), self.headers.get("Authorization", ""))
                 self._send(code, json.dumps(answer).encode() if answer else b"", kind="application/json")
             elif url.path == "/turn-credentials" and door.turn:
-                code, answer = door.relay(self.headers.get("Cookie", ""), self._client())
+                code, answer = door.relay(
+                    self.headers.get("Cookie", ""), self._client(), self.headers.get("Authorization", "")
+                )
                 body = json.dumps(answer).encode() if answer else b""
                 self._send(code, body, kind="application/json")
             elif url.path == "/login":
                 self._page(200, urllib.parse.parse_qs(url.query).get("next", ["/"])[0])
             elif url.path == "/logout":
+                door.logout(self.headers.get("Cookie", ""), self._client())
                 self._send(
                     303,
                     headers=[
@@ -400,7 +419,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description="The front door's login service (isaacsim.fleet)")
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--users", required=True)
-    parser.add_argument("--key", required=True)
+    parser.add_argument("--store", required=True, help="the SQLite file of sessions and tokens")
     parser.add_argument("--hours", type=float, default=8)
     parser.add_argument("--form-action", default="", help="sources the login may lead to besides itself")
     parser.add_argument("--turn-url", default="", help="the TURN relay (turns:NAME:PORT?transport=tcp)")
@@ -408,7 +427,10 @@ def main(argv=None):
     parser.add_argument("--turn-seconds", type=int, default=3600, help="how long its credentials are good")
     args = parser.parse_args(argv)
     turn = {"url": args.turn_url, "secret_file": args.turn_secret, "seconds": args.turn_seconds}
-    door = Door(args.users, args.key, args.hours, turn=turn if args.turn_url else None)
+    # the signing key of the sessions of releases before 0.4.0, which kept none: nothing reads it now
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(os.path.join(os.path.dirname(args.store), "session.key"))
+    door = Door(args.users, args.store, args.hours, turn=turn if args.turn_url else None)
     ThreadingHTTPServer(("127.0.0.1", args.port), handler(door, args.form_action)).serve_forever()
 
 

@@ -36,6 +36,9 @@ CONFIG_DIR = f"{layout.CONFIG_DIR}/front-door"
 RUN_DIR = "/run/isaac-sim-front-door"
 STATE_DIR = "/var/lib/isaac-sim-front-door"
 AUTH_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-auth"
+# the store of sessions and tokens (front/door_store.py), beside the script that imports it
+STORE_CODE = f"{layout.LIBEXEC_DIR}/isaac_sim_door_store.py"
+STORE = f"{STATE_DIR}/door.db"
 NGINX = "/usr/sbin/nginx"
 PYTHON = "/usr/bin/python3"
 # nginx's workers drop to the distribution's web user (Debian's base-passwd has it)
@@ -273,6 +276,7 @@ def nginx_conf(p: dict, managed: str) -> str:
         return [
             f"      auth_request {question};",
             "      auth_request_set $fleet_user $upstream_http_x_fleet_user;",
+            "      auth_request_set $fleet_token $upstream_http_x_fleet_token;",
             "      error_page 401 = @fleet_login;",
         ]
 
@@ -302,7 +306,7 @@ def nginx_conf(p: dict, managed: str) -> str:
         "  default_type application/octet-stream;",
         "  server_tokens off;",
         *(f"  {kind}_temp_path {RUN_DIR}/{kind};" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")),
-        '  log_format fleet \'$remote_addr user=$fleet_user "$request" $status'
+        '  log_format fleet \'$remote_addr user=$fleet_user token=$fleet_token "$request" $status'
         + (' cert="$ssl_client_s_dn"' if p.get("client_ca") else "")
         + "';",
         "  access_log syslog:server=unix:/dev/log,tag=isaac_sim_front_door,nohostname fleet;",
@@ -349,15 +353,18 @@ def nginx_conf(p: dict, managed: str) -> str:
             # nothing behind the login stays in a browser's cache: after a logout, the page asks again
             '    add_header Cache-Control "no-store" always;',
             "    set $fleet_user -;",
+            "    set $fleet_token -;",
             "    absolute_redirect off;",
             *ask("/fleet-auth"),
         ]
 
     def to_login(target):
-        # a page's own requests (fetch: Sec-Fetch-Dest empty) get 401, a person the login page
+        # a page's own requests (fetch: Sec-Fetch-Dest empty) and a program's (an Authorization header) get
+        # 401, a person the login page
         return [
             "    location @fleet_login {",
             '      if ($http_sec_fetch_dest = "empty") { return 401; }',
+            "      if ($http_authorization) { return 401; }",
             f"      return 302 {target};",
             "    }",
             "    location = /favicon.ico { access_log off; return 204; }",
@@ -602,7 +609,7 @@ def auth_unit(p: dict, managed: str) -> str:
                     (
                         "ExecStart",
                         f"{PYTHON} {AUTH_SCRIPT} --port {p['auth_port']} --users {CONFIG_DIR}/users.json "
-                        f"--key {STATE_DIR}/session.key --hours {p['session_hours']}"
+                        f"--store {STORE} --hours {p['session_hours']}"
                         # after a login, the web viewers' ports of this front door
                         + (f" --form-action https://{_bracketed(p['server_name'])}:*" if viewers(p) else "")
                         # the relay's credentials live as long as a session
@@ -631,7 +638,7 @@ def auth_unit(p: dict, managed: str) -> str:
     )
 
 
-def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "") -> dict:
+def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "", store_code: str = "") -> dict:
     """{unit: {path: {content, mode}}} for isaac_sim_host_service, the login service's first (nginx
     asks it from its first request on); the TURN relay's where p["turn"] (secret: its shared
     secret; p["turn_gid"]: the group of the package's user, which reads its files)."""
@@ -639,6 +646,7 @@ def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: st
         AUTH_UNIT: {
             f"/etc/systemd/system/{AUTH_UNIT}": {"content": auth_unit(p, managed), "mode": "0644"},
             AUTH_SCRIPT: {"content": auth_code, "mode": "0644"},
+            STORE_CODE: {"content": store_code, "mode": "0644"},
             f"{CONFIG_DIR}/users.json": {"content": users_json(p), "mode": "0600"},
             **({f"{CONFIG_DIR}/turn.secret": {"content": secret + "\n", "mode": "0600"}} if p.get("turn") else {}),
         },
@@ -670,10 +678,12 @@ def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: st
     return out
 
 
-def services(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "") -> list:
+def services(
+    p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "", store_code: str = ""
+) -> list:
     """[{name, state, files, remove}] for isaac_sim_host_service, in order: what runs, started;
     the relay, when off, stopped and removed with its files."""
-    present, gone = files(p, managed, cert, key, auth_code, secret), removal()
+    present, gone = files(p, managed, cert, key, auth_code, secret, store_code), removal()
     return [
         {"name": u, "state": "started", "files": present[u], "remove": []}
         if u in present
@@ -687,7 +697,10 @@ def removal() -> dict:
     what it leaves (the configuration with the dashboard status.yml wrote, the script, the session
     key); in the order files() gives them."""
     return {
-        AUTH_UNIT: {"files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}}, "remove": [AUTH_SCRIPT, STATE_DIR]},
+        AUTH_UNIT: {
+            "files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}},
+            "remove": [AUTH_SCRIPT, STORE_CODE, STATE_DIR],
+        },
         UNIT: {"files": {f"/etc/systemd/system/{UNIT}": {"content": ""}}, "remove": [CONFIG_DIR]},
         turn.UNIT: {
             "files": {f"/etc/systemd/system/{turn.UNIT}": {"content": ""}},

@@ -158,6 +158,47 @@ def check_the_logs(host, address, viewer, operator):
         assert answer.status == 200
 
 
+def tokens(host, tmp_path, **over):
+    variables = {"front_door_token_dir": str(tmp_path / "tokens"), **over}
+    return testbed.run_playbook(
+        host, variables, extra_inventory=door_inventory(testbed.name(host)), playbook="playbooks/front_door_token.yml"
+    )
+
+
+def check_sessions_and_tokens(host, address, status_path, operator, tmp):
+    """Sessions live on the front door: a restart of the login service keeps them, a logout ends the
+    cookie's session for good (the cookie kept and sent again opens nothing). A program's token acts
+    as its user within its scopes, is written down by name, and opens nothing once revoked."""
+    sh(host, f"systemctl restart {UNITS[1]}")
+    wait_for(lambda: request(address, "GET", status_path, cookie=operator)[0].status == 200, timeout=20)
+    ended = login(address, "olga", "op-secret").getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
+    assert request(address, "GET", status_path, cookie=ended)[0].status == 200
+    response, _d, _v = request(address, "GET", "/logout", cookie=ended)
+    assert response.status == 303 and "Max-Age=0" in response.getheader("Set-Cookie")
+    assert request(address, "GET", status_path, cookie=ended)[0].status == 302
+    assert request(address, "GET", "/session", cookie=ended)[0].status == 401
+    in_journal(host, UNITS[1], "logout user=olga from=")
+    # the operator's other session goes on
+    assert request(address, "GET", status_path, cookie=operator)[0].status == 200
+
+    made = ok(tokens(host, tmp, front_door_token_state="present", front_door_token_user="olga",
+                     front_door_token_name="ci", front_door_token_scopes=["read"]))  # fmt: skip
+    [file] = (tmp / "tokens").glob("*-olga-ci.token")
+    token = file.read_text().strip()
+    assert oct(file.stat().st_mode & 0o777) == "0o600" and token not in made.stdout
+    bearer = {"Authorization": f"Bearer {token}"}
+    response, data, _v = request(address, "GET", status_path, headers=bearer)
+    assert response.status == 200 and json.loads(data)["host"], data[:300]
+    in_journal(host, UNITS[0], f'user=olga token=ci "GET {status_path}')
+    # a program gets 401, never the login page; a bad token is no token
+    assert request(address, "GET", status_path, headers={"Authorization": "Bearer isf_x"})[0].status == 401
+    listed = ok(tokens(host, tmp))
+    assert "olga/ci (" in listed.stdout and " read active until " in listed.stdout, listed.stdout[-2000:]
+    ok(tokens(host, tmp, front_door_token_state="absent", front_door_token_user="olga", front_door_token_name="ci"))
+    assert request(address, "GET", status_path, headers=bearer)[0].status == 401
+    in_journal(host, UNITS[1], f"refused user=- path='{status_path}' from=")
+
+
 def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_cleanly(host, tmp_path):
     address = testbed.host_ip(host)
     first = ok(run(host, front_door_server_name=address))
@@ -194,6 +235,7 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         assert json.loads(data)["host"]
         # a forged cookie is no session
         assert request(address, "GET", status_path, cookie=operator[:-2] + "xx")[0].status == 302
+        check_sessions_and_tokens(host, address, status_path, operator, tmp_path)
 
         # a viewer opens the status but not an operator's path; the operator passes it
         viewer = login(address, "vic", "view-secret").getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]

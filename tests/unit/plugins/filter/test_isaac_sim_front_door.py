@@ -23,6 +23,7 @@ def settings(**over):
         "cert": "C",
         "key": "K",
         "auth_code": "CODE",
+        "store_code": "STORE",
     }
     base.update(over)
     return base
@@ -43,7 +44,7 @@ def test_errors_services_and_a_refusal_of_bad_settings():
     ]
     with pytest.raises(AnsibleFilterError, match="front_door_users: empty"):
         fd_filter.isaac_sim_front_door(settings(users=[]), "services")
-    # what goes with each unit: its unit file; the script, the session key, the configuration
+    # what goes with each unit: its unit file; the scripts, the sessions and tokens, the configuration
     removal = by_name(fd_filter.isaac_sim_front_door({}, "removal"))
     assert all(s["state"] == "absent" for s in removal.values())
     assert removal["isaac-sim-front-door-auth.service"]["files"] == {
@@ -51,6 +52,7 @@ def test_errors_services_and_a_refusal_of_bad_settings():
     }
     assert removal["isaac-sim-front-door-auth.service"]["remove"] == [
         "/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth",
+        "/usr/local/libexec/isaac-sim/isaac_sim_door_store.py",
         "/var/lib/isaac-sim-front-door",
     ]
     assert removal["isaac-sim-front-door.service"]["remove"] == ["/etc/isaac-sim/front-door"]

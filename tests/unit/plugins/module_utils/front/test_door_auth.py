@@ -1,5 +1,6 @@
-"""The front door's login service (module_utils/front/door_auth.py): hashes, sessions, the
-decisions nginx asks for, and the service itself over a real socket."""
+"""The front door's login service (module_utils/front/door_auth.py) and its store (door_store.py):
+hashes, sessions kept server-side, API tokens, the decisions nginx asks for, and the service itself
+over a real socket."""
 
 from __future__ import annotations
 
@@ -8,12 +9,13 @@ import hashlib
 import hmac
 import http.client
 import json
+import os
 import threading
 import urllib.parse
 from http.server import ThreadingHTTPServer
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, door_store
 
 # made by passlib 1.7.4: pbkdf2_sha256.using(rounds=1000, salt=b"fleet-salt-16byt").hash("correct horse")
 PASSLIB = "$pbkdf2-sha256$1000$ZmxlZXQtc2FsdC0xNmJ5dA$hSivT8ZpaXf5jhjMaT/bchS401SFqVLg0iXf9B.gPrs"
@@ -49,29 +51,118 @@ def test_a_hash_the_service_cannot_use_is_named(stored, problem):
 
 
 USERS = {"olga": {"role": "operator", "hash": PASSLIB_DEFAULT}, "vic": {"role": "viewer", "hash": PASSLIB_DEFAULT}}
-KEY = b"k" * 32
 
 
-def test_a_session_holds_while_signed_unexpired_and_its_user_keeps_the_role_and_password():
-    token = door_auth.make_session("vic", "viewer", KEY, 1000, PASSLIB_DEFAULT)
-    assert door_auth.read_session(token, KEY, USERS, now=999) == ("vic", "viewer")
-    assert door_auth.read_session(token, KEY, USERS, now=1000) is None  # expired
-    assert door_auth.read_session(token, b"other" * 8, USERS, now=0) is None  # another key
-    assert door_auth.read_session(token[:-1] + ("A" if token[-1] != "A" else "B"), KEY, USERS, now=0) is None
-    # the payload changed to another role, signature kept: refused
-    forged = (
-        door_auth.make_session("vic", "operator", b"guess" * 8, 1000, PASSLIB_DEFAULT).split(".", maxsplit=1)[0]
-        + "."
-        + token.split(".")[1]
+def door(tmp_path, users=USERS, **kwargs):
+    (tmp_path / "users.json").write_text(json.dumps(users))
+    return door_auth.Door(str(tmp_path / "users.json"), str(tmp_path / "door.db"), 1, **kwargs)
+
+
+def users_now(tmp_path, users):
+    """A changed users file, as a re-run of the role writes it (another mtime)."""
+    (tmp_path / "users.json").write_text(json.dumps(users))
+    os.utime(tmp_path / "users.json", ns=(1, os.stat(tmp_path / "users.json").st_mtime_ns + 1))
+
+
+def test_a_session_holds_until_logout_expiry_or_its_user_s_role_or_password_changes(tmp_path):
+    now = [1000.0]
+    d = door(tmp_path, log=lambda line: None, clock=lambda: now[0])
+    cookie = f"{door_auth.COOKIE}=" + d.login("vic", "s3cret", "10.0.0.1")
+    assert d.identify(cookie)["user"] == "vic"
+    # only the digest of the cookie is kept: the file gives no session away
+    assert cookie.split("=", 1)[1].encode() not in (tmp_path / "door.db").read_bytes()
+    assert d.identify(cookie[:-1] + ("A" if cookie[-1] != "A" else "B")) is None
+    # a restarted service (a new Door on the same file) keeps it
+    again = door(tmp_path, log=lambda line: None, clock=lambda: now[0])
+    assert again.identify(cookie)["role"] == "viewer"
+    now[0] += 3600
+    assert d.identify(cookie) is None  # expired
+    now[0] = 1000.0
+    users_now(tmp_path, {"vic": {"role": "operator", "hash": PASSLIB_DEFAULT}})
+    assert d.identify(cookie) is None  # another role
+    users_now(tmp_path, {"vic": {"role": "viewer", "hash": PASSLIB}})
+    assert d.identify(cookie) is None  # a new password
+    users_now(tmp_path, {})
+    assert d.identify(cookie) is None  # removed
+    users_now(tmp_path, USERS)
+    assert d.identify(cookie)["user"] == "vic"
+    # a logout ends it, wherever the cookie is sent from next
+    d.logout(cookie, "10.0.0.1")
+    assert d.identify(cookie) is None and again.identify(cookie) is None
+    for junk in ("", "garbage", f"{door_auth.COOKIE}=", f"{door_auth.COOKIE}=\u0100", None):
+        assert d.identify(junk) is None
+
+
+def test_a_token_acts_as_its_user_within_its_scopes_until_revoked_or_expired(tmp_path):
+    now = [1000.0]
+    lines = []
+    d = door(tmp_path, log=lines.append, clock=lambda: now[0])
+    text, record = d.store.make_token("olga", "ci", ["read", "act"], 2)
+    assert text.startswith("isf_") and record["state"] == "active" and record["expires"] == 1000 + 2 * 86400
+    bearer = f"Bearer {text}"
+    assert d.check("", "/api/fleet", "10.0.0.9", "", bearer)[0] == 204
+    assert d.check("", "/api/x", "10.0.0.9", "act", bearer)[0] == 204
+    code, who = d.check("", "/api/hosts/a/drain", "10.0.0.9", "operate", bearer)
+    assert code == 403 and who["token"] == "ci"
+    assert lines[-1] == (
+        "refused user=olga token=ci path='/api/hosts/a/drain' from=10.0.0.9 (role operator, needs operator/operate)"
     )
-    assert door_auth.read_session(forged, KEY, USERS, now=0) is None
-    # the user given another role, or removed: the session ends at the next request
-    assert door_auth.read_session(token, KEY, {"vic": {"role": "operator", "hash": PASSLIB_DEFAULT}}, now=0) is None
-    assert door_auth.read_session(token, KEY, {}, now=0) is None
-    # a new password ends the sessions the old one opened
-    assert door_auth.read_session(token, KEY, {"vic": {"role": "viewer", "hash": PASSLIB}}, now=0) is None
-    for junk in ("", "garbage.", "é.é", "\u0100.x", None, "e30.x"):
-        assert door_auth.read_session(junk, KEY, USERS, now=0) is None
+    # the scheme's name in any case; a wrong secret, a made-up id or a cookie's value are no token
+    assert d.check("", "/", "x", "", f"bearer {text}")[0] == 204
+    assert d.check("", "/", "x", "", bearer[:-1] + ("A" if bearer[-1] != "A" else "B"))[0] == 401
+    assert lines[-1] == "refused user=- path='/' from=x (no valid token)"
+    assert d.check("", "/", "x", "", "Bearer isf_000000000000_" + "A" * 43)[0] == 401
+    # a token with a bad Authorization never falls back to the cookie's session
+    cookie = f"{door_auth.COOKIE}=" + d.login("olga", "s3cret", "x")
+    assert d.check(cookie, "/", "x", "", "Bearer nonsense")[0] == 401
+    assert d.check(cookie, "/", "x", "", "Basic b2xnYTpz")[0] == 204
+    # the user's role of now: demoted, the token's act scope opens nothing
+    users_now(tmp_path, {"olga": {"role": "viewer", "hash": PASSLIB_DEFAULT}})
+    assert d.check("", "/", "x", "act", bearer)[0] == 403 and d.check("", "/", "x", "", bearer)[0] == 204
+    users_now(tmp_path, {})
+    assert d.check("", "/", "x", "", bearer)[0] == 401
+    users_now(tmp_path, USERS)
+    # revoked, or a new token of that name: the old one ends
+    newer, _r = d.store.make_token("olga", "ci", ["read"], 1)
+    assert d.check("", "/", "x", "", bearer)[0] == 401 and d.check("", "/", "x", "", f"Bearer {newer}")[0] == 204
+    assert d.store.revoke("olga", "ci") and not d.store.revoke("olga", "ci")
+    assert d.check("", "/", "x", "", f"Bearer {newer}")[0] == 401
+    short, _r = d.store.make_token("vic", "look", ["read"], 1)
+    now[0] += 86400
+    assert d.check("", "/", "x", "", f"Bearer {short}")[0] == 401
+    states = [(t["name"], t["state"]) for t in d.store.tokens()]
+    assert sorted(states) == [("ci", "revoked"), ("ci", "revoked"), ("look", "expired")]
+    assert all("digest" not in t for t in d.store.tokens())
+
+
+@pytest.mark.parametrize(
+    "user, role, name, scopes, days, problem",
+    [
+        ("olga", "operator", "ci", ["read", "act", "operate"], 365, None),
+        ("vic", "viewer", "ci", ["read"], 1, None),
+        ("vic", "viewer", "ci", ["read", "act"], 30, "scopes: vic is a viewer, who may hold read only."),
+        ("ann", None, "ci", ["read"], 30, "user: 'ann' is not a user of this front door."),
+        ("olga", "operator", "ci x", ["read"], 30, "name: 'ci x' is not a token name."),
+        ("olga", "operator", "ci", [], 30, "scopes: [] is not a choice."),
+        ("olga", "operator", "ci", ["write"], 30, "scopes: ['write'] is not a choice."),
+        ("olga", "operator", "ci", ["read"], 0, "days: 0 is not 1-365."),
+        ("olga", "operator", "ci", ["read"], 366, "days: 366 is not 1-365."),
+        ("olga", "operator", "ci", ["read"], True, "days: True is not 1-365."),
+    ],
+)
+def test_a_token_asked_for_wrongly_is_named(user, role, name, scopes, days, problem):
+    errors = door_store.token_errors(user, role, name, scopes, days)
+    assert (errors == []) if problem is None else (len(errors) == 1 and errors[0].startswith(problem)), errors
+
+
+def test_the_store_is_root_s_alone_and_keeps_no_secret(tmp_path):
+    store = door_store.Store(str(tmp_path / "door.db"))
+    assert (tmp_path / "door.db").stat().st_mode & 0o777 == 0o600
+    text, _r = store.make_token("olga", "ci", ["read"], 1)
+    secret, _e = store.open_session("olga", "operator", PASSLIB_DEFAULT, 1, "x")
+    data = (tmp_path / "door.db").read_bytes()
+    assert text.rsplit("_", 1)[1].encode() not in data and secret.encode() not in data
+    assert [s["user"] for s in store.sessions()] == ["olga"]
 
 
 @pytest.mark.parametrize(
@@ -92,7 +183,12 @@ def test_after_login_only_a_path_of_the_front_door(target, expected):
 
 def test_operator_paths_and_names_in_the_journal():
     assert door_auth.may_open("viewer", "") and not door_auth.may_open("viewer", "operator")
-    assert door_auth.may_open("operator", "operator")
+    assert door_auth.may_open("operator", "operator") and not door_auth.may_open("operator", "root")
+    # a token: its scopes too
+    assert door_auth.may_open("operator", "act", ["read", "act"])
+    assert not door_auth.may_open("operator", "act", ["read"])
+    assert door_auth.may_open("viewer", "", ["read"]) and not door_auth.may_open("viewer", "act", ["act"])
+    assert door_auth.bearer("Bearer  isf_x ") == "isf_x" and door_auth.bearer("Basic x") == ""
     assert door_auth.shown("olga") == "olga" and door_auth.shown("x\nlogin user=root") == "<invalid>"
     assert door_auth.cookie_value("a=1; __Host-fleet_session=T.S; b=2") == "T.S" and door_auth.cookie_value(None) == ""
 
@@ -102,7 +198,7 @@ def service(tmp_path):
     users = tmp_path / "users.json"
     users.write_text(json.dumps(USERS))
     lines = []
-    door = door_auth.Door(str(users), str(tmp_path / "session.key"), hours=1, log=lines.append)
+    door = door_auth.Door(str(users), str(tmp_path / "door.db"), hours=1, log=lines.append)
     server = ThreadingHTTPServer(("127.0.0.1", 0), door_auth.handler(door, "https://fleet.lab:*"))
     threading.Thread(target=server.serve_forever, daemon=True).start()
     yield server.server_address[1], lines, tmp_path
@@ -121,7 +217,6 @@ def call(port, method, path, body=None, headers=None):
 
 def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     port, lines, tmp_path = service
-    assert (tmp_path / "session.key").stat().st_mode & 0o777 == 0o600
     response, page = call(port, "GET", "/login?next=/hosts/a/status")
     assert response.status == 200 and b'value="/hosts/a/status"' in page
     # the login may lead on to a web viewer's port of the front door, nowhere else
@@ -148,21 +243,32 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     assert response.status == 204 and response.getheader("X-Fleet-User") == "vic"
     # who is logged in, for the pages behind the door; nothing for a request without a session
     response, body = call(port, "GET", "/session", headers=session)
-    assert response.status == 200 and json.loads(body) == {"user": "vic", "role": "viewer"}
+    assert response.status == 200 and json.loads(body) == {"user": "vic", "role": "viewer", "token": None}
     assert call(port, "GET", "/session")[0].status == 401
     assert call(port, "GET", "/session", headers={"Cookie": session["Cookie"][:-2] + "xx"})[0].status == 401
     # what a path needs is nginx's location's to say (need=), whatever the raw path looks like
     odd = dict(session, **{"X-Original-URI": "/%6Fperator/x"})
     response, _body = call(port, "GET", "/auth?need=operator", headers=odd)
     assert response.status == 403 and lines[-1].startswith("refused user=vic path='/%6Fperator/x'")
-    # a changed users file is read again: vic removed, the session gone
-    (tmp_path / "users.json").write_text(json.dumps({"olga": USERS["olga"]}))
-    import os
-
-    os.utime(tmp_path / "users.json", ns=(1, 1))
-    assert call(port, "GET", "/auth", headers=session)[0].status == 401
-    response, _body = call(port, "GET", "/logout")
+    # a logout ends the session here: the cookie, kept, opens nothing after
+    response, _body = call(port, "GET", "/logout", headers=session)
     assert response.status == 303 and "Max-Age=0" in response.getheader("Set-Cookie")
+    assert lines[-1] == "logout user=vic from=127.0.0.1"
+    assert call(port, "GET", "/auth", headers=session)[0].status == 401
+    assert call(port, "GET", "/session", headers=session)[0].status == 401
+    # a token: its user and name for nginx's log
+    text, _r = door_store.Store(str(tmp_path / "door.db")).make_token("olga", "ci", ["read"], 1)
+    response, _body = call(port, "GET", "/auth", headers={"Authorization": f"Bearer {text}"})
+    assert response.status == 204 and (response.getheader("X-Fleet-User"), response.getheader("X-Fleet-Token")) == (
+        "olga",
+        "ci",
+    )
+    response, body = call(port, "GET", "/session", headers={"Authorization": f"Bearer {text}"})
+    assert json.loads(body) == {"user": "olga", "role": "operator", "token": "ci"}
+    # a changed users file is read again: olga removed, her token opens nothing
+    users_now(tmp_path, {"vic": USERS["vic"]})
+    assert call(port, "GET", "/auth", headers={"Authorization": f"Bearer {text}"})[0].status == 401
+    users_now(tmp_path, USERS)
     # bad requests: one answer each, and the service goes on
     assert call(port, "GET", "/auth", headers={"Cookie": "__Host-fleet_session=%C3.x"})[0].status == 401
     assert call(port, "POST", "/login", headers={"Content-Length": "abc"})[0].status == 400
@@ -189,13 +295,6 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     assert call(port, "GET", "/login")[0].status == 200
 
 
-def test_the_session_key_is_kept_across_restarts(tmp_path):
-    users = tmp_path / "users.json"
-    users.write_text("{}")
-    first = door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lambda line: None)
-    assert door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lambda line: None).key == first.key
-
-
 def test_turn_credentials_are_coturn_s_shared_secret_scheme():
     # coturn (use-auth-secret) recomputes the password from the name: base64(HMAC-SHA1(secret, name))
     name, password = door_auth.turn_credentials("vic", b"north", 1795000000)
@@ -209,7 +308,7 @@ def test_a_logged_in_user_gets_relay_credentials_written_down_and_nobody_else(tm
     (tmp_path / "turn.secret").write_text("north\n")
     lines, now = [], [1795000000.0]
     turn = {"url": "turns:fleet.lab:5349?transport=tcp", "secret_file": str(tmp_path / "turn.secret"), "seconds": 600}
-    door = door_auth.Door(str(users), str(tmp_path / "k"), 1, log=lines.append, clock=lambda: now[0], turn=turn)
+    door = door_auth.Door(str(users), str(tmp_path / "door.db"), 1, log=lines.append, clock=lambda: now[0], turn=turn)
     server = ThreadingHTTPServer(("127.0.0.1", 0), door_auth.handler(door))
     threading.Thread(target=server.serve_forever, daemon=True).start()
     port = server.server_address[1]
@@ -236,4 +335,4 @@ def test_a_logged_in_user_gets_relay_credentials_written_down_and_nobody_else(tm
         server.shutdown()
         server.server_close()
     # a service without a relay has no such path
-    assert door_auth.Door(str(users), str(tmp_path / "k"), 1).turn is None
+    assert door_auth.Door(str(users), str(tmp_path / "door.db"), 1).turn is None

@@ -160,7 +160,7 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
 
 
 def test_files_keep_secrets_root_s_and_list_the_login_service_first():
-    files = front_door.files(GOOD, "managed", "CERT", "KEY", "CODE")
+    files = front_door.files(GOOD, "managed", "CERT", "KEY", "CODE", store_code="STORE")
     assert list(files) == [front_door.AUTH_UNIT, front_door.UNIT]
     auth, door = files[front_door.AUTH_UNIT], files[front_door.UNIT]
     assert auth["/etc/isaac-sim/front-door/users.json"]["mode"] == "0600"
@@ -169,8 +169,11 @@ def test_files_keep_secrets_root_s_and_list_the_login_service_first():
     }
     assert door["/etc/isaac-sim/front-door/door.key"] == {"content": "KEY", "mode": "0600"}
     assert auth["/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth"]["content"] == "CODE"
+    # the store's code beside the script, which imports it under that name
+    assert auth["/usr/local/libexec/isaac-sim/isaac_sim_door_store.py"]["content"] == "STORE"
     unit = auth["/etc/systemd/system/isaac-sim-front-door-auth.service"]["content"]
     assert "--port 9480 --users /etc/isaac-sim/front-door/users.json" in unit and "IPAddressAllow=localhost" in unit
+    assert "--store /var/lib/isaac-sim-front-door/door.db" in unit and "StateDirectory=isaac-sim-front-door" in unit
     assert 'href="/hosts/gpu-1/status"' in door["/etc/isaac-sim/front-door/www/index.html"]["content"]
 
 
