@@ -60,17 +60,18 @@ def write(root: Path, path: str, text: str) -> None:
     target.write_text(text)
 
 
+CHANGES_010 = """
+release_date: "2026-11-22"
+modules: [{name: a, description: A module., namespace: ""}]
+plugins: {filter: [{name: f, description: A filter., namespace: null}]}
+objects: {role: [{name: r, description: A role., namespace: null}]}
+"""
+
+
 def collection(root: Path, galaxy_version: str = "0.2.0", releases: dict | None = None) -> Path:
     """A collection whose changelog has release 0.1.0 listing module a, filter f and role r."""
     if releases is None:
-        releases = {
-            "0.1.0": {
-                "release_date": "2026-11-22",
-                "modules": [{"name": "a", "description": "A module.", "namespace": ""}],
-                "plugins": {"filter": [{"name": "f", "description": "A filter.", "namespace": None}]},
-                "objects": {"role": [{"name": "r", "description": "A role.", "namespace": None}]},
-            }
-        }
+        releases = {"0.1.0": yaml.safe_load(CHANGES_010)}
     write(root, "galaxy.yml", yaml.safe_dump(dict(GALAXY, version=galaxy_version)))
     write(root, "changelogs/changelog.yaml", yaml.safe_dump({"ancestor": None, "releases": releases}))
     write(root, "plugins/modules/a.py", module_source("a", "0.1.0"))
@@ -159,6 +160,52 @@ def test_galaxy_version_below_the_latest_release_fails(tmp_path):
     )
 
 
+def test_a_plugin_in_a_subdirectory_is_checked(tmp_path):
+    """H10: plugins/modules/sub/x.py is read too."""
+    root = collection(tmp_path)
+    write(root, "plugins/modules/sub/__init__.py", "")
+    write(root, "plugins/modules/sub/x.py", module_source("x", "7.0.0"))
+    (error,) = check.version_added_errors(root)
+    assert error.startswith("plugins/modules/sub/x.py: version_added '7.0.0'")
+
+
+@pytest.mark.parametrize("spec_file", ["meta/argument_specs.yaml", "meta/main.yml"])
+def test_a_role_s_argument_specs_are_read_from_each_place_ansible_reads(tmp_path, spec_file):
+    root = collection(tmp_path)
+    write(
+        root,
+        f"roles/s/{spec_file}",
+        "---\nargument_specs:\n  main:\n    short_description: S\n    version_added: '5.0.0'\n",
+    )
+    (error,) = check.version_added_errors(root)
+    assert error.startswith(f"roles/s/{spec_file}: version_added '5.0.0' (at main)")
+
+
+def role_with_entry_point(root: Path, entry_version: str) -> None:
+    write(
+        root,
+        "roles/r/meta/argument_specs.yml",
+        "---\nargument_specs:\n  main:\n    short_description: R\n    version_added: '0.1.0'\n"
+        f"  check:\n    short_description: C\n    version_added: '{entry_version}'\n",
+    )
+
+
+def test_an_entry_point_cannot_predate_its_role(tmp_path):
+    root = collection(tmp_path, releases={"0.0.1": {}, "0.1.0": yaml.safe_load(CHANGES_010)})
+    role_with_entry_point(root, "0.0.1")
+    (error,) = check.version_added_errors(root)
+    assert "version_added '0.0.1' (at check) is before the role's own version_added '0.1.0'" in error
+
+
+def test_an_entry_point_missing_at_its_release_s_tag_came_after_it(repo):
+    git(repo, "tag", "0.1.0")
+    role_with_entry_point(repo, "0.1.0")  # copied from main, added after 0.1.0
+    (error,) = check.version_added_errors(repo)
+    assert "role r had no entry point check at that release's tag" in error
+    role_with_entry_point(repo, "0.2.0")
+    assert check.version_added_errors(repo) == []
+
+
 def test_this_collection_s_version_added_name_its_releases():
     assert check.version_added_errors(ROOT) == []
 
@@ -240,8 +287,24 @@ def test_a_commit_that_only_removes_a_fragment_has_no_entry(repo):
 
 def test_the_no_changelog_marker_lets_a_commit_through(repo):
     write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# comment\n")
-    commit(repo, "Comment in a\n\nNothing users see. [No changelog]")
+    commit(repo, "Comment in a [no changelog]\n\nNothing users see.")
     assert check.fragment_errors(repo) == []
+
+
+@pytest.mark.parametrize(
+    "message",
+    [
+        "Comment in a\n\nNothing users see. [no changelog]",  # not on the subject line
+        "Comment in a [No changelog]",  # not in lower case
+        "Comment in a [NO CHANGELOG]",
+        "Comment in a, not[no changelog]",  # not a word of its own
+    ],
+)
+def test_the_no_changelog_marker_counts_only_on_the_subject_line_as_written(repo, message):
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# comment\n")
+    commit(repo, message)
+    (error,) = check.fragment_errors(repo)
+    assert "changes plugins/modules/a.py without a changelog fragment" in error
 
 
 def test_a_later_commit_with_a_fragment_covers_a_commit_it_names(repo):
@@ -272,13 +335,169 @@ def test_galaxy_s_version_bump_needs_no_fragment_but_its_dependencies_do(repo):
     assert "changes galaxy.yml without" in error
 
 
+def release(root: Path, version: str) -> None:
+    """What antsibull-changelog release does: a release in changelog.yaml, its fragments consumed."""
+    changes = root / "changelogs/changelog.yaml"
+    data = yaml.safe_load(changes.read_text())
+    data["releases"][version] = {"release_date": "2026-12-01"}
+    changes.write_text(yaml.safe_dump(data))
+    for path in (root / "changelogs/fragments").glob("*.y*ml"):
+        path.unlink()
+
+
 def test_only_commits_since_the_release_commit_are_read(repo):
     write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
     commit(repo, "Change a")
     assert len(check.fragment_errors(repo)) == 1
-    changes = repo / "changelogs/changelog.yaml"
-    changes.write_text(changes.read_text() + "# the next release\n")
+    release(repo, "0.2.0")
     commit(repo, "Release 0.2.0")
+    assert check.fragment_errors(repo) == []
+
+
+def test_a_commit_that_touches_changelog_yaml_without_a_release_excuses_nothing(repo):
+    """H2: a comment in changelog.yaml neither makes that commit the release commit nor gives it an entry."""
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    commit(repo, "Change a")
+    changes = repo / "changelogs/changelog.yaml"
+    changes.write_text(changes.read_text() + "# a comment\n")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed again\n")
+    commit(repo, "A comment in the changelog, and a again")
+    errors = check.fragment_errors(repo)
+    assert len(errors) == 2
+    assert all("since release 0.1.0's commit" in e for e in errors)
+
+
+def test_the_latest_release_s_tag_is_the_base(repo):
+    write(repo, "README.md", "later\n")
+    commit(repo, "Docs")
+    git(repo, "tag", "0.1.0")  # the release, tagged on a later commit: what comes after the tag is read
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    sha = commit(repo, "Change a")
+    (error,) = check.fragment_errors(repo)
+    assert error.startswith(f"commit {sha[:12]}")
+    assert f"since release 0.1.0's commit {git(repo, 'rev-parse', 'HEAD~1').strip()[:12]}" in error
+
+
+def test_a_blank_line_added_to_an_old_fragment_covers_nothing(repo):
+    """H3: a fragment covers the commit that adds it or gives it a new entry, not one that only touches it."""
+    fragment(repo)
+    write(repo, "README.md", "docs\n")
+    commit(repo, "A fragment")
+    path = repo / "changelogs/fragments/change.yml"
+    path.write_text(path.read_text() + "\n")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    commit(repo, "Change a, a blank line in the fragment")
+    (error,) = check.fragment_errors(repo)
+    assert "Change a, a blank line" in error
+    path.write_text(path.read_text() + "  - Another fix.\n")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed again\n")
+    commit(repo, "Change a again, a new entry")
+    assert len(check.fragment_errors(repo)) == 1  # the new entry covers its own commit
+
+
+def test_a_renamed_fragment_covers_nothing(repo):
+    fragment(repo)
+    commit(repo, "A fragment")
+    (repo / "changelogs/fragments/change.yml").rename(repo / "changelogs/fragments/renamed.yml")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    commit(repo, "Change a, rename the fragment")
+    (error,) = check.fragment_errors(repo)
+    assert "Change a, rename" in error
+
+
+def test_the_working_tree_needs_a_new_fragment_or_entry_too(repo):
+    fragment(repo)
+    commit(repo, "A fragment")
+    path = repo / "changelogs/fragments/change.yml"
+    path.write_text(path.read_text() + "\n")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    (error,) = check.fragment_errors(repo)
+    assert error.startswith("the working tree changes plugins/modules/a.py")
+    path.write_text(path.read_text() + "  - Another fix.\n")
+    assert check.fragment_errors(repo) == []
+
+
+def test_a_fragment_removed_later_no_longer_covers_its_commit(repo):
+    """H4: the covering fragment must still be there at HEAD, unless a release consumed it."""
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    fragment(repo)
+    sha = commit(repo, "Change a")
+    git(repo, "rm", "-q", "changelogs/fragments/change.yml")
+    git(repo, "commit", "-q", "-m", "Drop the fragment")
+    (error,) = check.fragment_errors(repo)
+    assert error.startswith(f"commit {sha[:12]}")
+    assert "its fragment changelogs/fragments/change.yml was removed since" in error
+    git(repo, "reset", "-q", "--hard", sha)
+    release(repo, "0.2.0")  # the release consumes it
+    commit(repo, "Release 0.2.0")
+    assert check.fragment_errors(repo) == []
+
+
+def test_a_fragment_removed_in_the_working_tree_no_longer_covers(repo):
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    fragment(repo)
+    commit(repo, "Change a")
+    (repo / "changelogs/fragments/change.yml").unlink()
+    (error,) = check.fragment_errors(repo)
+    assert '("Change a")' in error
+    assert check.fragment_errors(repo, worktree=False) == []
+
+
+def test_a_hidden_fragment_covers_nothing_and_is_named(repo):
+    """H5: antsibull-changelog never reads .name.yml."""
+    fragment(repo, ".change.yml")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    commit(repo, "Change a, a hidden fragment")
+    (error,) = check.fragment_errors(repo)
+    assert "Change a, a hidden fragment" in error
+    (error,) = check.fragment_file_errors(repo)
+    assert error.startswith("changelogs/fragments/.change.yml: antsibull-changelog ignores a fragment")
+
+
+@pytest.mark.parametrize(
+    "text", ["---\nminor_changes: []\n", '---\nminor_changes: [""]\n', "---\nbugfixes:\n  - A fix.\n  - ' '\n"]
+)
+def test_a_fragment_without_a_non_empty_entry_fails(tmp_path, text):
+    """H6: antsibull-changelog lint lets an empty section through."""
+    write(tmp_path, "changelogs/fragments/empty.yml", text)
+    write(tmp_path, "changelogs/fragments/good.yml", "---\nbugfixes:\n  - A fix.\nrelease_summary: Summary.\n")
+    (error,) = check.fragment_file_errors(tmp_path)
+    assert error.startswith("changelogs/fragments/empty.yml: ")
+    assert "has no entry or an empty one" in error
+
+
+def test_an_empty_fragment_covers_nothing(repo):
+    write(repo, "changelogs/fragments/empty.yml", '---\nminor_changes: [""]\n')
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    commit(repo, "Change a, an empty fragment")
+    assert len(check.fragment_errors(repo)) == 1
+
+
+def test_a_merge_that_changes_a_plugin_itself_needs_a_fragment(repo):
+    """H8: a merge's own changes (its conflict resolution or an edit made in it) are read."""
+    git(repo, "checkout", "-q", "-b", "side")
+    write(repo, "README.md", "side\n")
+    commit(repo, "Side [no changelog]")
+    git(repo, "checkout", "-q", "main")
+    write(repo, "galaxy.yml", yaml.safe_dump(dict(GALAXY, version="0.3.0")))
+    commit(repo, "Next version")
+    git(repo, "merge", "-q", "--no-ff", "--no-commit", "side")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed in the merge\n")
+    git(repo, "add", "-A")
+    git(repo, "commit", "-q", "-m", "Merge side")
+    (error,) = check.fragment_errors(repo)
+    assert '("Merge side") changes plugins/modules/a.py without' in error
+
+
+def test_a_clean_merge_needs_nothing_of_its_own(repo):
+    git(repo, "checkout", "-q", "-b", "side")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    fragment(repo)
+    commit(repo, "Change a")
+    git(repo, "checkout", "-q", "main")
+    write(repo, "README.md", "main\n")
+    commit(repo, "Docs")
+    git(repo, "merge", "-q", "--no-ff", "-m", "Merge side", "side")
     assert check.fragment_errors(repo) == []
 
 
@@ -306,23 +525,39 @@ def test_an_uncommitted_change_to_a_tracked_plugin_is_seen(repo):
 
 
 def test_a_shallow_clone_reads_the_commits_it_holds(repo, tmp_path, capsys):
-    """CI may clone with --depth: the oldest commit held seems to add every file, changelog.yaml too, so the
-    commits after it are read (none at depth 1), never an error for the history it lacks."""
+    """CI may clone with --depth and has no remote to deepen from: where the release commit is not in the clone,
+    every commit held is read but the boundary commit, whose parent is not there (one line names it)."""
     write(repo, "README.md", "one\n")
     commit(repo, "One")
     write(repo, "plugins/modules/late.py", module_source("late", "0.2.0"))
     commit(repo, "A module without a fragment")
     write(repo, "README.md", "two\n")
-    commit(repo, "Two")
+    two_sha = commit(repo, "Two")
     one, two = tmp_path / "one", tmp_path / "two"
     git(tmp_path, "clone", "-q", "--depth", "1", f"file://{repo}", str(one))
     assert check.fragment_errors(one) == []
-    assert "a shallow clone" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"a shallow clone without release 0.1.0's commit: its boundary commit {two_sha[:12]} could not" in out
     # deep enough to hold the commit without a fragment after its boundary commit (One, not the release): found
     git(tmp_path, "clone", "-q", "--depth", "3", f"file://{repo}", str(two))
     assert git(two, "rev-parse", "--is-shallow-repository").strip() == "true"
     (error,) = check.fragment_errors(two)
     assert "plugins/modules/late.py" in error
+    assert "since the shallow clone's boundary" in error
+    assert "release commit" not in error
+
+
+def test_a_shallow_clone_s_boundary_commit_is_not_the_release_commit(repo, tmp_path, capsys):
+    """H1: a boundary that changes a plugin without a fragment is named as not judged; the next commit is read."""
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed\n")
+    boundary = commit(repo, "Change a")
+    write(repo, "plugins/modules/a.py", module_source("a", "0.1.0") + "# changed again\n")
+    after = commit(repo, "Change a again")
+    clone = tmp_path / "clone"
+    git(tmp_path, "clone", "-q", "--depth", "2", f"file://{repo}", str(clone))
+    (error,) = check.fragment_errors(clone)
+    assert error.startswith(f"commit {after[:12]}")
+    assert f"its boundary commit {boundary[:12]} could not be judged" in capsys.readouterr().out
 
 
 def test_main_exits_1_and_names_each_error(repo, capsys, monkeypatch):
