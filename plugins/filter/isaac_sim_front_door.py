@@ -21,10 +21,10 @@ positional: _input, what
 options:
   _input:
     description:
-      - The front door's settings - C(server_name), C(port), C(http_port), C(auth_port), C(login_rate),
+      - The front door's settings - C(server_name), C(port), C(http_port), C(auth_port), C(api_port), C(login_rate),
         C(session_hours), C(users), C(backends), C(viewer_port_base), C(turn), C(turn_port), C(turn_min_port),
         C(turn_max_port), C(turn_gid); for C(services) also C(cert), C(key) (PEM text), C(auth_code) (the
-        login service's code), C(store_code) (its store's code) and C(turn_secret).
+        login service's code), C(store_code) (its store's code), C(api_code) (the fleet API's code) and C(turn_secret).
     type: dict
     required: true
   what:
@@ -61,9 +61,8 @@ def isaac_sim_front_door(settings: dict, what: str):
             layout.MANAGED,
             settings["cert"],
             settings["key"],
-            settings["auth_code"],
+            {"auth": settings["auth_code"], "store": settings["store_code"], "api": settings["api_code"]},
             settings.get("turn_secret", ""),
-            settings["store_code"],
         )
     if what == "removal":
         return [{"name": unit, "state": "absent", **spec} for unit, spec in front_door.removal().items()]

@@ -30,7 +30,12 @@ OUTSIDE_FIREWALL = (
     "-A OUTPUT -m conntrack --ctstate ESTABLISHED -j ACCEPT",
     "-A OUTPUT -p tcp -d {door} --dport 5349 -j ACCEPT",
 )
-UNITS = ("isaac-sim-front-door.service", "isaac-sim-front-door-auth.service", "isaac-sim-front-door-turn.service")
+UNITS = (
+    "isaac-sim-front-door.service",
+    "isaac-sim-front-door-auth.service",
+    "isaac-sim-front-door-turn.service",
+    "isaac-sim-front-door-api.service",
+)
 # hashed once: a new salt is a changed users file, which a re-run would rightly apply
 USERS = [
     {"name": "olga", "role": "operator", "password_hash": door_auth.hash_password("op-secret", 10000)},

@@ -246,12 +246,13 @@ class Door:
         return 204, who
 
     def whoami(self, cookie_header: str, authorization: str = ""):
-        """(status, {user, role, token}) of the session or token, for the pages behind the door
+        """(status, {user, role, token, scopes}) of the session or token, for the pages behind the door
         (not logged: asked on each page load, and it opens nothing)."""
         who = self.identify(cookie_header, authorization)
         if who is None:
             return 401, None
-        return 200, {"user": who["user"], "role": who["role"], "token": who["token"]}
+        scopes = who["scopes"] if who["scopes"] is not None else list(door_store.ROLE_SCOPES[who["role"]])
+        return 200, {"user": who["user"], "role": who["role"], "token": who["token"], "scopes": scopes}
 
     def relay(self, cookie_header: str, client: str, authorization: str = ""):
         """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials, which

@@ -32,6 +32,7 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layo
 
 UNIT = "isaac-sim-front-door.service"
 AUTH_UNIT = "isaac-sim-front-door-auth.service"
+API_UNIT = "isaac-sim-front-door-api.service"
 CONFIG_DIR = f"{layout.CONFIG_DIR}/front-door"
 RUN_DIR = "/run/isaac-sim-front-door"
 STATE_DIR = "/var/lib/isaac-sim-front-door"
@@ -39,6 +40,7 @@ AUTH_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-auth"
 # the store of sessions and tokens (front/door_store.py), beside the script that imports it
 STORE_CODE = f"{layout.LIBEXEC_DIR}/isaac_sim_door_store.py"
 STORE = f"{STATE_DIR}/door.db"
+API_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-api"
 NGINX = "/usr/sbin/nginx"
 PYTHON = "/usr/bin/python3"
 # nginx's workers drop to the distribution's web user (Debian's base-passwd has it)
@@ -80,12 +82,13 @@ def check(p: dict) -> list:
         ("front_door_port", "port", 1),
         ("front_door_http_port", "http_port", 0),
         ("front_door_auth_port", "auth_port", 1024),
+        ("front_door_api_port", "api_port", 1024),
     ):
         value = _port(p.get(key))
         if not isinstance(value, int) or not low <= value <= 65535:
             errors.append(
                 f"{var}: {value!r} is not a port of {low}-65535. Fix: e.g. "
-                f"{ {'port': 443, 'http_port': '80 (0: no redirect)', 'auth_port': 9480}[key] }."
+                f"{ {'port': 443, 'http_port': '80 (0: no redirect)', 'auth_port': 9480, 'api_port': 9481}[key] }."
             )
         elif value:
             ports.setdefault(value, []).append(var)
@@ -272,12 +275,12 @@ def nginx_conf(p: dict, managed: str) -> str:
     door = door_url(p)
     ipv6 = p.get("ipv6", True)
 
-    def guarded(question="/fleet-auth"):
+    def guarded(question="/fleet-auth", login="@fleet_login"):
         return [
             f"      auth_request {question};",
             "      auth_request_set $fleet_user $upstream_http_x_fleet_user;",
             "      auth_request_set $fleet_token $upstream_http_x_fleet_token;",
-            "      error_page 401 = @fleet_login;",
+            f"      error_page 401 = {login};",
         ]
 
     def ask(location, query=""):
@@ -424,6 +427,28 @@ def nginx_conf(p: dict, managed: str) -> str:
         "    location /operator/ {",
         *guarded("/fleet-auth-operator"),
         f"      root {CONFIG_DIR}/www;",
+        "    }",
+    ]
+    api = f"http://127.0.0.1:{p['api_port']}"
+    lines += [
+        # the fleet's API: a program gets 401 in JSON, never the login page; the API asks the login service
+        # itself who is calling (the cookie and token go on to it, to 127.0.0.1 only)
+        "    location @fleet_api_login {",
+        "      default_type application/json;",
+        '      return 401 \'{"error": "log in, or send an API token (Authorization: Bearer isf_...)"}\\n\';',
+        "    }",
+        "    location /api/ {",
+        *guarded(login="@fleet_api_login"),
+        f"      proxy_pass {api};",
+        "      proxy_set_header X-Real-IP $remote_addr;",
+        "    }",
+        # no login: that it answers, and its own description
+        *(f"    location = /api/{path} {{ proxy_pass {api}; }}" for path in ("health", "openapi.json", "docs")),
+        # an instance's journal: operators (nginx's match of the path asks for the role)
+        "    location ~ ^/api/hosts/[^/]+/instances/[0-9]+/logs$ {",
+        *guarded("/fleet-auth-operator", "@fleet_api_login"),
+        f"      proxy_pass {api};",
+        "      proxy_set_header X-Real-IP $remote_addr;",
         "    }",
     ]
     for backend in (b for b in p.get("backends") or [] if b.get("status_url")):
@@ -638,17 +663,71 @@ def auth_unit(p: dict, managed: str) -> str:
     )
 
 
-def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "", store_code: str = "") -> dict:
+def api_unit(p: dict, managed: str) -> str:
+    return units.render(
+        [
+            (
+                "Unit",
+                [
+                    ("Description", "isaacsim.fleet front door: the fleet's API"),
+                    ("Wants", f"network-online.target {AUTH_UNIT}"),
+                    ("After", f"network-online.target {AUTH_UNIT}"),
+                ],
+            ),
+            (
+                "Service",
+                [
+                    (
+                        "ExecStart",
+                        f"{PYTHON} {API_SCRIPT} --port {p['api_port']} --config {CONFIG_DIR}/api.json "
+                        f"--auth http://127.0.0.1:{p['auth_port']}",
+                    ),
+                    ("Restart", "on-failure"),
+                    ("RestartSec", 2),
+                    # it reads the hosts' status endpoints on the LAN, and asks the login service on 127.0.0.1
+                    *sandbox.reader(),
+                    ("PrivateDevices", "yes"),
+                    ("ProtectProc", "invisible"),
+                ],
+            ),
+            ("Install", [("WantedBy", "multi-user.target")]),
+        ],
+        header=[managed],
+    )
+
+
+def api_json(p: dict) -> str:
+    """What the API serves of the door (no secret): the hosts behind it and where their status is,
+    the entrances, the relay, the session length."""
+    door = json.loads(door_json(p))
+    body = {
+        "door": door["url"],
+        "relay": door["relay"],
+        "entrances": door["entrances"],
+        "session_hours": p["session_hours"],
+        "hosts": [
+            {"name": b["name"], "status_url": b["status_url"]} for b in p.get("backends") or [] if b.get("status_url")
+        ],
+    }
+    return json.dumps(body, indent=2, sort_keys=True) + "\n"
+
+
+def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = "") -> dict:
     """{unit: {path: {content, mode}}} for isaac_sim_host_service, the login service's first (nginx
     asks it from its first request on); the TURN relay's where p["turn"] (secret: its shared
     secret; p["turn_gid"]: the group of the package's user, which reads its files)."""
     out = {
         AUTH_UNIT: {
             f"/etc/systemd/system/{AUTH_UNIT}": {"content": auth_unit(p, managed), "mode": "0644"},
-            AUTH_SCRIPT: {"content": auth_code, "mode": "0644"},
-            STORE_CODE: {"content": store_code, "mode": "0644"},
+            AUTH_SCRIPT: {"content": code["auth"], "mode": "0644"},
+            STORE_CODE: {"content": code["store"], "mode": "0644"},
             f"{CONFIG_DIR}/users.json": {"content": users_json(p), "mode": "0600"},
             **({f"{CONFIG_DIR}/turn.secret": {"content": secret + "\n", "mode": "0600"}} if p.get("turn") else {}),
+        },
+        API_UNIT: {
+            f"/etc/systemd/system/{API_UNIT}": {"content": api_unit(p, managed), "mode": "0644"},
+            API_SCRIPT: {"content": code["api"], "mode": "0644"},
+            f"{CONFIG_DIR}/api.json": {"content": api_json(p), "mode": "0644"},
         },
         UNIT: {
             f"/etc/systemd/system/{UNIT}": {"content": nginx_unit(managed), "mode": "0644"},
@@ -678,12 +757,10 @@ def files(p: dict, managed: str, cert: str, key: str, auth_code: str, secret: st
     return out
 
 
-def services(
-    p: dict, managed: str, cert: str, key: str, auth_code: str, secret: str = "", store_code: str = ""
-) -> list:
+def services(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = "") -> list:
     """[{name, state, files, remove}] for isaac_sim_host_service, in order: what runs, started;
     the relay, when off, stopped and removed with its files."""
-    present, gone = files(p, managed, cert, key, auth_code, secret, store_code), removal()
+    present, gone = files(p, managed, cert, key, code, secret), removal()
     return [
         {"name": u, "state": "started", "files": present[u], "remove": []}
         if u in present
@@ -701,6 +778,7 @@ def removal() -> dict:
             "files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}},
             "remove": [AUTH_SCRIPT, STORE_CODE, STATE_DIR],
         },
+        API_UNIT: {"files": {f"/etc/systemd/system/{API_UNIT}": {"content": ""}}, "remove": [API_SCRIPT]},
         UNIT: {"files": {f"/etc/systemd/system/{UNIT}": {"content": ""}}, "remove": [CONFIG_DIR]},
         turn.UNIT: {
             "files": {f"/etc/systemd/system/{turn.UNIT}": {"content": ""}},

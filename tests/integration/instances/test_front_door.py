@@ -165,6 +165,31 @@ def tokens(host, tmp_path, **over):
     )
 
 
+def check_the_api(host, address, bearer):
+    """The fleet's API behind the door: a program with a token reads the fleet as the dashboard does;
+    without one it gets 401 in JSON (never the login page); its health and description need no
+    login; an instance's journal is an operator's."""
+    name = testbed.name(host)
+    response, data, _v = request(address, "GET", "/api/fleet", headers=bearer)
+    assert response.status == 200 and response.getheader("Content-Type") == "application/json", data[:300]
+    fleet = json.loads(data)
+    [door_host] = fleet["hosts"]
+    assert (fleet["user"], door_host["name"], door_host["reachable"]) == ("olga", name, True), fleet
+    assert [i["id"] for i in door_host["instances"]] == list(range(INSTANCES))
+    assert all(i["ready"] and i["release"] == "6.x" and i["holder"] is None for i in door_host["instances"])
+    response, data, _v = request(address, "GET", "/api/fleet")
+    assert response.status == 401 and json.loads(data)["error"].startswith("log in, or send an API token")
+    assert request(address, "GET", "/api/health")[0].status == 200
+    response, data, _v = request(address, "GET", "/api/openapi.json")
+    assert json.loads(data)["info"]["title"] == "Isaac Sim fleet API"
+    logs = f"/api/hosts/{name}/instances/1/logs?tail=5"
+    response, data, _v = request(address, "GET", logs, headers=bearer)
+    assert response.status == 200 and len(data.decode().splitlines()) == 5, data[:300]
+    viewer = login(address, "vic", "view-secret").getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
+    assert request(address, "GET", logs, cookie=viewer)[0].status == 403
+    assert request(address, "GET", f"/api/hosts/{name}/instances/1", cookie=viewer)[0].status == 200
+
+
 def check_sessions_and_tokens(host, address, status_path, operator, tmp):
     """Sessions live on the front door: a restart of the login service keeps them, a logout ends the
     cookie's session for good (the cookie kept and sent again opens nothing). A program's token acts
@@ -192,6 +217,7 @@ def check_sessions_and_tokens(host, address, status_path, operator, tmp):
     in_journal(host, UNITS[0], f'user=olga token=ci "GET {status_path}')
     # a program gets 401, never the login page; a bad token is no token
     assert request(address, "GET", status_path, headers={"Authorization": "Bearer isf_x"})[0].status == 401
+    check_the_api(host, address, bearer)
     listed = ok(tokens(host, tmp))
     assert "olga/ci (" in listed.stdout and " read active until " in listed.stdout, listed.stdout[-2000:]
     ok(tokens(host, tmp, front_door_token_state="absent", front_door_token_user="olga", front_door_token_name="ci"))

@@ -15,6 +15,7 @@ def settings(**over):
         "port": "443",
         "http_port": "80",
         "auth_port": "9480",
+        "api_port": "9481",
         "viewer_port_base": "20000",
         "login_rate": "10r/m",
         "session_hours": 8,
@@ -24,6 +25,7 @@ def settings(**over):
         "key": "K",
         "auth_code": "CODE",
         "store_code": "STORE",
+        "api_code": "API",
     }
     base.update(over)
     return base
@@ -39,6 +41,7 @@ def test_errors_services_and_a_refusal_of_bad_settings():
     services = fd_filter.isaac_sim_front_door(settings(), "services")
     assert [(s["name"], s["state"]) for s in services] == [
         ("isaac-sim-front-door-auth.service", "started"),
+        ("isaac-sim-front-door-api.service", "started"),
         ("isaac-sim-front-door.service", "started"),
         ("isaac-sim-front-door-turn.service", "absent"),
     ]

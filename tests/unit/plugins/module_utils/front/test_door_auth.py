@@ -243,7 +243,8 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     assert response.status == 204 and response.getheader("X-Fleet-User") == "vic"
     # who is logged in, for the pages behind the door; nothing for a request without a session
     response, body = call(port, "GET", "/session", headers=session)
-    assert response.status == 200 and json.loads(body) == {"user": "vic", "role": "viewer", "token": None}
+    assert response.status == 200
+    assert json.loads(body) == {"user": "vic", "role": "viewer", "token": None, "scopes": ["read"]}
     assert call(port, "GET", "/session")[0].status == 401
     assert call(port, "GET", "/session", headers={"Cookie": session["Cookie"][:-2] + "xx"})[0].status == 401
     # what a path needs is nginx's location's to say (need=), whatever the raw path looks like
@@ -264,7 +265,7 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
         "ci",
     )
     response, body = call(port, "GET", "/session", headers={"Authorization": f"Bearer {text}"})
-    assert json.loads(body) == {"user": "olga", "role": "operator", "token": "ci"}
+    assert json.loads(body) == {"user": "olga", "role": "operator", "token": "ci", "scopes": ["read"]}
     # a changed users file is read again: olga removed, her token opens nothing
     users_now(tmp_path, {"vic": USERS["vic"]})
     assert call(port, "GET", "/auth", headers={"Authorization": f"Bearer {text}"})[0].status == 401

@@ -7,12 +7,14 @@ import json
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, front_door
 
+CODE = {"auth": "CODE", "store": "STORE", "api": "API"}
 HASH = door_auth.hash_password("pw", 10000, b"0123456789abcdef")
 GOOD = {
     "server_name": "fleet.lab",
     "port": 443,
     "http_port": 80,
     "auth_port": 9480,
+    "api_port": 9481,
     "login_rate": "10r/m",
     "session_hours": 8,
     "users": [{"name": "olga", "role": "operator", "password_hash": HASH}],
@@ -146,22 +148,32 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     assert 'if ($http_sec_fetch_dest = "empty") { return 401; }' in login and "return 302 /login?next=" in login
     root = conf.split("    location / {", 1)[1].split("}", 1)[0]
     assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
-    # only the login page, the logout, nginx's own internal question and who-am-I (which reads the
-    # session itself: 401 without one) go without nginx asking
+    # only the login page, the logout, nginx's own internal question, who-am-I (which reads the
+    # session itself: 401 without one) and the API's health and description go without nginx asking
     unguarded = [
         b.split("{")[0] for b in conf.split("location ")[1:] if "auth_request /fleet-auth" not in b.split("}")[0]
     ]
     open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "= /session"]
-    open_ones.append("@fleet_login")
-    assert sorted(u.strip() for u in unguarded) == open_ones
+    open_ones += ["= /api/docs", "= /api/health", "= /api/openapi.json", "@fleet_api_login", "@fleet_login"]
+    assert sorted(u.strip() for u in unguarded) == sorted(open_ones)
+    # the API: a program gets 401 (JSON), not the login page; the journal is an operator's
+    api = conf.split("    location /api/ {", 1)[1].split("}", 1)[0]
+    assert "error_page 401 = @fleet_api_login;" in api and "proxy_pass http://127.0.0.1:9481;" in api
+    logs = conf.split("    location ~ ^/api/hosts/[^/]+/instances/[0-9]+/logs$ {", 1)[1].split("}", 1)[0]
+    assert "auth_request /fleet-auth-operator;" in logs
     assert "fleet_viewer" not in conf and "location = /viewers/" not in conf
     other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0, ipv6=False), "managed")
     assert "return 301" not in other and "listen 8443 ssl;" in other and "[::]" not in other
 
 
 def test_files_keep_secrets_root_s_and_list_the_login_service_first():
-    files = front_door.files(GOOD, "managed", "CERT", "KEY", "CODE", store_code="STORE")
-    assert list(files) == [front_door.AUTH_UNIT, front_door.UNIT]
+    files = front_door.files(GOOD, "managed", "CERT", "KEY", {"auth": "CODE", "store": "STORE", "api": "API"})
+    assert list(files) == [front_door.AUTH_UNIT, front_door.API_UNIT, front_door.UNIT]
+    api = files[front_door.API_UNIT]
+    assert api["/usr/local/libexec/isaac-sim/isaac-sim-front-door-api"]["content"] == "API"
+    said = json.loads(api["/etc/isaac-sim/front-door/api.json"]["content"])
+    assert said["hosts"] == [{"name": "gpu-1", "status_url": "http://10.0.0.5:8290/status"}], said
+    assert "--auth http://127.0.0.1:9480" in api["/etc/systemd/system/isaac-sim-front-door-api.service"]["content"]
     auth, door = files[front_door.AUTH_UNIT], files[front_door.UNIT]
     assert auth["/etc/isaac-sim/front-door/users.json"]["mode"] == "0600"
     assert json.loads(auth["/etc/isaac-sim/front-door/users.json"]["content"]) == {
@@ -255,7 +267,7 @@ def test_each_bad_relay_setting_is_named_with_its_fix(over, start):
 
 
 def test_the_relay_speaks_tls_only_relays_to_the_instances_alone_and_its_credentials_need_a_login():
-    files = front_door.files(RELAYED, "managed", "CERT", "KEY", "CODE", "s3cr3t")
+    files = front_door.files(RELAYED, "managed", "CERT", "KEY", CODE, "s3cr3t")
     relay = files["isaac-sim-front-door-turn.service"]
     conf = relay["/etc/isaac-sim/front-door/turnserver.conf"]
     # the package's user reads its configuration (the secret) and the key; nobody else
@@ -289,7 +301,7 @@ def test_the_relay_speaks_tls_only_relays_to_the_instances_alone_and_its_credent
     assert "proxy_pass http://127.0.0.1:9480;" in where
     assert "turn-credentials" not in front_door.nginx_conf(VIEWERS, "managed")
     # below 1024, the one capability to bind it
-    low = front_door.files(dict(RELAYED, turn_port=443, port=8443), "managed", "C", "K", "X", "s")
+    low = front_door.files(dict(RELAYED, turn_port=443, port=8443), "managed", "C", "K", CODE, "s")
     assert (
         "AmbientCapabilities=CAP_NET_BIND_SERVICE"
         in low["isaac-sim-front-door-turn.service"]["/etc/systemd/system/isaac-sim-front-door-turn.service"]["content"]
@@ -321,7 +333,7 @@ def test_a_viewer_s_port_follows_its_host_s_place_whatever_serves_a_status_endpo
 
 def test_the_door_says_its_address_certificate_relay_and_each_instance_s_entrance():
     relay = dict(RELAYED, port=8443, cert_not_after="notAfter=Nov 26 09:00:00 2027 GMT\n")
-    files = front_door.files(relay, "managed", "CERT", "KEY", "CODE", "SECRET")
+    files = front_door.files(relay, "managed", "CERT", "KEY", CODE, "SECRET")
     said = json.loads(files[front_door.UNIT]["/etc/isaac-sim/front-door/www/front-door.json"]["content"])
     assert said == {
         "url": "https://fleet.lab:8443/",
@@ -360,11 +372,11 @@ def test_with_a_client_ca_every_tls_port_asks_for_a_certificate_it_signed():
     assert all("ssl_client_certificate /etc/isaac-sim/front-door/client-ca.crt;" in block for block in tls)
     assert "ssl_verify_client" not in servers[0]
     assert 'cert="$ssl_client_s_dn"' in conf
-    files = front_door.files(asked, "managed", "CERT", "KEY", "CODE")[front_door.UNIT]
+    files = front_door.files(asked, "managed", "CERT", "KEY", CODE)[front_door.UNIT]
     assert files["/etc/isaac-sim/front-door/client-ca.crt"] == {"content": pem, "mode": "0644"}
     # none given: none asked, no file
     plain = front_door.nginx_conf(dict(VIEWERS, client_ca_path="", client_ca=""), "managed")
     assert "ssl_verify_client" not in plain and "ssl_client_s_dn" not in plain
     assert (
-        "/etc/isaac-sim/front-door/client-ca.crt" not in front_door.files(VIEWERS, "m", "C", "K", "X")[front_door.UNIT]
+        "/etc/isaac-sim/front-door/client-ca.crt" not in front_door.files(VIEWERS, "m", "C", "K", CODE)[front_door.UNIT]
     )

@@ -1,0 +1,159 @@
+"""The fleet's API (module_utils/front/fleet_api.py) over real sockets: the login service says who
+calls (a session or a token), a host's status endpoint stands behind, and the API answers what the
+fleet, a host, an instance and its journal are, to whom."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, fleet_api
+
+HASH = door_auth.hash_password("s3cret", 10000, b"0123456789abcdef")
+STATUS = {
+    "host": "gpu-1",
+    "generated_at": "2026-11-28T14:00:26Z",
+    "deployed": True,
+    "error": None,
+    "instances": [
+        {"id": 0, "name": "isaac-sim-0", "configured": True, "state": "ready", "ready": True, "release": "6.x",
+         "image": "nvcr.io/nvidia/isaac-sim:6.0.1", "digest": "sha256:" + "a" * 64, "ports": {"signal": 49100},
+         "urls": {"signal": "10.0.0.5:49100"}, "container": {"test_run": None}, "restarts": 0},
+        {"id": 1, "name": "isaac-sim-1", "configured": True, "state": "starting", "ready": False, "release": "6.x",
+         "urls": {"signal": "10.0.0.5:49101"}, "container": {"test_run": "nightly-7"}},
+    ],
+}  # fmt: skip
+
+
+def serve(handler_class):
+    server = ThreadingHTTPServer(("127.0.0.1", 0), handler_class)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
+
+
+class HostStatus(BaseHTTPRequestHandler):
+    reads = 0
+
+    def do_GET(self):  # noqa: N802
+        if self.path == "/status":
+            HostStatus.reads += 1
+            body, kind = json.dumps(STATUS).encode(), "application/json"
+        elif self.path == "/logs/1":
+            body, kind = "".join(f"line {i}\n" for i in range(300)).encode(), "text/plain"
+        else:
+            self.send_response(404)
+            self.end_headers()
+            return
+        self.send_response(200)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture
+def api(tmp_path):
+    (tmp_path / "users.json").write_text(
+        json.dumps({"olga": {"role": "operator", "hash": HASH}, "vic": {"role": "viewer", "hash": HASH}})
+    )
+    door = door_auth.Door(str(tmp_path / "users.json"), str(tmp_path / "door.db"), 1, log=lambda line: None)
+    auth = serve(door_auth.handler(door))
+    host = serve(HostStatus)
+    config = {
+        "door": "https://fleet.lab/",
+        "entrances": {"gpu-1": {"0": "https://fleet.lab/viewers/gpu-1/0/"}},
+        "hosts": [
+            {"name": "gpu-1", "status_url": f"http://127.0.0.1:{host.server_address[1]}/status"},
+            {"name": "gpu-2", "status_url": "http://127.0.0.1:9/status"},
+        ],
+        "session_hours": 8,
+    }
+    lines = []
+    auth_url = f"http://127.0.0.1:{auth.server_address[1]}"
+    service = fleet_api.Api(
+        fleet_api.Fleet(config, ttl=60, timeout=2),
+        lambda cookie, authorization: fleet_api.ask_identity(auth_url, cookie, authorization),
+        log=lines.append,
+    )
+    server = serve(fleet_api.handler(service))
+    operator = f"{door_auth.COOKIE}=" + door.login("olga", "s3cret", "x")
+    viewer = f"{door_auth.COOKIE}=" + door.login("vic", "s3cret", "x")
+    yield server.server_address[1], door, operator, viewer, lines
+    for s in (server, auth, host):
+        s.shutdown()
+        s.server_close()
+
+
+def call(port, path, cookie="", token="", method="GET"):
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    headers = {**({"Cookie": cookie} if cookie else {}), **({"Authorization": f"Bearer {token}"} if token else {})}
+    conn.request(method, path, headers=headers)
+    response = conn.getresponse()
+    body = response.read()
+    conn.close()
+    return response.status, response.getheader("Content-Type"), body
+
+
+def test_the_fleet_is_read_by_a_session_or_a_token_and_direct_addresses_go_to_operators(api):
+    port, door, operator, viewer, _lines = api
+    assert call(port, "/api/fleet")[0] == 401
+    status, kind, body = call(port, "/api/fleet", viewer)
+    assert status == 200 and kind == "application/json"
+    fleet = json.loads(body)
+    first, second = fleet["hosts"]
+    assert (first["name"], first["reachable"], second["name"], second["reachable"]) == ("gpu-1", True, "gpu-2", False)
+    assert second["error"].startswith("URLError") and second["instances"] == []
+    ready, starting = first["instances"]
+    assert ready["entrance"] == "https://fleet.lab/viewers/gpu-1/0/" and ready["ready"] and ready["holder"] is None
+    assert starting["holder"] == {"kind": "test_run", "id": "nightly-7"} and starting["entrance"] is None
+    assert "urls" not in ready
+    token, _r = door.store.make_token("olga", "ci", ["read"], 1)
+    by_token = json.loads(call(port, "/api/fleet", token=token)[2])
+    assert by_token["user"] == "olga" and by_token["hosts"][0]["instances"][0]["urls"] == {"signal": "10.0.0.5:49100"}
+    # one read of the host however many ask within ttl
+    assert HostStatus.reads == 1
+    status, _k, body = call(port, "/api/hosts/gpu-1/instances/1", operator)
+    assert status == 200 and json.loads(body)["name"] == "isaac-sim-1"
+    assert call(port, "/api/hosts/gpu-1", viewer)[0] == 200
+    assert call(port, "/api/hosts/gpu-9", viewer)[0] == 404
+    assert call(port, "/api/hosts/gpu-1/instances/7", viewer)[0] == 404
+    # a token that may not read reads nothing
+    acting, _r = door.store.make_token("olga", "act-only", ["act"], 1)
+    assert call(port, "/api/fleet", token=acting)[0] == 403
+
+
+def test_the_journal_is_an_operator_s_and_the_tail_is_bounded(api):
+    port, _door, operator, viewer, lines = api
+    assert call(port, "/api/hosts/gpu-1/instances/1/logs", viewer)[0] == 403
+    assert lines[-1] == "refused user=vic path='/api/hosts/gpu-1/instances/1/logs' from=127.0.0.1 (role viewer)"
+    status, kind, body = call(port, "/api/hosts/gpu-1/instances/1/logs?tail=3", operator)
+    assert status == 200 and kind.startswith("text/plain") and body == b"line 297\nline 298\nline 299\n"
+    assert len(call(port, "/api/hosts/gpu-1/instances/1/logs", operator)[2].splitlines()) == 200
+    for bad in ("0", "201", "x"):
+        assert call(port, f"/api/hosts/gpu-1/instances/1/logs?tail={bad}", operator)[0] == 400, bad
+    status, _k, body = call(port, "/api/hosts/gpu-2/instances/0/logs", operator)
+    assert status == 404  # an unreachable host has no instance to read
+
+
+def test_health_and_the_description_need_no_login_and_nothing_else_is_there(api):
+    port, _door, operator, _viewer, _lines = api
+    assert json.loads(call(port, "/api/health")[2]) == {"status": "ok", "version": fleet_api.VERSION}
+    doc = json.loads(call(port, "/api/openapi.json")[2])
+    assert doc["openapi"] == "3.0.3" and "/api/hosts/{host}/instances/{n}/logs" in doc["paths"]
+    # every route the service answers is in the document, and each documented path answers
+    assert {p for p in doc["paths"]} == {
+        "/api/health", "/api/openapi.json", "/api/docs", "/api/fleet", "/api/config", "/api/hosts/{host}",
+        "/api/hosts/{host}/instances/{n}", "/api/hosts/{host}/instances/{n}/logs",
+    }  # fmt: skip
+    status, kind, page = call(port, "/api/docs")
+    assert status == 200 and kind.startswith("text/html") and b"GET /api/fleet" in page and b"<script" not in page
+    assert call(port, "/api/nothing", operator)[0] == 404
+    assert call(port, "/api/fleet", operator, method="POST")[0] == 405
+    config = json.loads(call(port, "/api/config", operator)[2])
+    assert config["hosts"] == ["gpu-1", "gpu-2"] and "status_urls" in config and "users" not in config
