@@ -106,6 +106,7 @@ tokens:
 """
 
 import json
+import os
 
 from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_store
@@ -131,6 +132,9 @@ def main():
     try:
         with open(p["users_file"], encoding="utf-8") as f:
             users = json.load(f)
+        if module.check_mode and not os.path.exists(p["store"]):
+            # nothing is written in check mode, not even an empty store
+            module.exit_json(changed=p["state"] == "present", tokens=[])
         store = door_store.Store(p["store"])
     except (OSError, ValueError) as exc:
         module.fail_json(
@@ -156,7 +160,7 @@ def token(module, store, users, p) -> dict:
         return {"changed": False, "record": found}
     if module.check_mode:
         return {"changed": True}
-    text, record = store.make_token(p["user"], p["name"], p["scopes"], p["days"])
+    text, record = store.make_token(p["user"], p["name"], p["scopes"], p["days"], users[p["user"]].get("hash", ""))
     return {"changed": True, "token": text, "record": record}
 
 

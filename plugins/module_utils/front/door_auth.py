@@ -205,6 +205,9 @@ class Door:
             record = users.get(token["user"]) if token else None
             if not token or not isinstance(record, dict) or record.get("role") not in ROLES:
                 return None
+            # made for this user as they are now: not for one removed and made again, or given a new password
+            if not hmac.compare_digest(token["owner"], door_store.fingerprint(record.get("hash", ""))):
+                return None
             return {
                 "user": token["user"],
                 "role": record["role"],
@@ -261,6 +264,9 @@ class Door:
         if who is None:
             self.log(f"refused user=- path='/turn-credentials' from={client} (no valid session)")
             return 401, None
+        if not may_open(who["role"], "", who["scopes"]):
+            self.log(f"refused {self._who(who)} path='/turn-credentials' from={client} (needs the read scope)")
+            return 403, None
         with open(self.turn["secret_file"], "rb") as f:
             secret = f.read().strip()
         now = int(self.clock())

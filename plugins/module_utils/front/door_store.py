@@ -10,7 +10,9 @@ restart of the service or a reboot of the host.
 
 A token is `isf_ID_SECRET`: ID names it in lists and the journal, SECRET (32 random bytes) is kept
 as its SHA-256 only and shown once, when it is made. Each has a name (one live token per user and
-name), scopes, an expiry, and can be revoked. A random secret of 256 bits needs no slow hash: no
+name), scopes, an expiry, and can be revoked; it remembers the password its user had when it was
+made, so a user removed and made again (another person, perhaps) or given a new password does not
+get the old tokens back. A random secret of 256 bits needs no slow hash: no
 guess list reaches it.
 
 The standard library alone: this file is copied beside the login service (door_auth.py) on the
@@ -42,7 +44,7 @@ _SCHEMA = (
     "CREATE INDEX IF NOT EXISTS sessions_user ON sessions (user)",
     "CREATE TABLE IF NOT EXISTS tokens (id TEXT PRIMARY KEY, user TEXT NOT NULL, name TEXT NOT NULL,"
     " scopes TEXT NOT NULL, digest TEXT NOT NULL, created INTEGER NOT NULL, expires INTEGER NOT NULL,"
-    " revoked INTEGER)",
+    " revoked INTEGER, owner TEXT NOT NULL)",
 )
 
 
@@ -155,9 +157,9 @@ class Store:
 
     # tokens
 
-    def make_token(self, user: str, name: str, scopes, days: int) -> tuple:
+    def make_token(self, user: str, name: str, scopes, days: int, password_hash: str) -> tuple:
         """(the token's text, shown once; its record). A live token of that user and name is
-        revoked first (a new one replaces it)."""
+        revoked first (a new one replaces it). password_hash: the user's now (see owner)."""
         ident, secret = secrets.token_hex(6), secrets.token_urlsafe(32)
         now = self._now()
         with self._db() as db:
@@ -165,8 +167,17 @@ class Store:
                 "UPDATE tokens SET revoked = ? WHERE user = ? AND name = ? AND revoked IS NULL", (now, user, name)
             )
             db.execute(
-                "INSERT INTO tokens VALUES (?, ?, ?, ?, ?, ?, ?, NULL)",
-                (ident, user, name, ",".join(scopes), digest(secret), now, now + int(days) * 86400),
+                "INSERT INTO tokens VALUES (?, ?, ?, ?, ?, ?, ?, NULL, ?)",
+                (
+                    ident,
+                    user,
+                    name,
+                    ",".join(scopes),
+                    digest(secret),
+                    now,
+                    now + int(days) * 86400,
+                    fingerprint(password_hash),
+                ),
             )
         return f"{PREFIX}{ident}_{secret}", self.find_token(user, name)
 
@@ -194,8 +205,8 @@ class Store:
         return [_public(r, now) for r in rows]
 
     def token(self, text: str):
-        """{id, user, name, scopes, expires} of a good token (its secret matches, not revoked, not
-        expired); else None."""
+        """{id, user, name, scopes, expires, owner} of a good token (its secret matches, not revoked,
+        not expired); else None. owner: the fingerprint of its user's password when it was made."""
         found = _TOKEN_RE.match(str(text or ""))
         if not found:
             return None
@@ -205,7 +216,7 @@ class Store:
         if row is None or not hmac.compare_digest(row["digest"], digest(secret)):
             return None
         record = _public(row, self._now())
-        return record if record["state"] == "active" else None
+        return dict(record, owner=row["owner"]) if record["state"] == "active" else None
 
 
 def _public(row, now: int) -> dict:

@@ -21,19 +21,24 @@ FastAPI differs between the two: 0.92 with pydantic 1, 0.115 with pydantic 2).
 from __future__ import annotations
 
 import html
+import http.client
 import json
 import re
+import select
+import socket
 import sys
 import threading
 import time
-import urllib.error
 import urllib.parse
-import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 VERSION = "1"
 MAX_TAIL = 200
+# a host's answer: read whole within the timeout, at most this big
+MAX_ANSWER = 16 * 1024 * 1024
+# a followed journal asks again who is reading this often: a logout or a revoked token ends it
+RECHECK_SECONDS = 10
 _HOST = r"(?P<host>[A-Za-z0-9._-]+)"
 _ROUTES = [
     ("health", re.compile(r"^/api/health$")),
@@ -89,14 +94,16 @@ class Fleet:
         self._at, self._hosts = None, []
 
     def _fetch(self, url: str) -> bytes:
-        with urllib.request.urlopen(url, timeout=self.timeout) as answer:  # noqa: S310 - the role's own http URL
-            return answer.read()
+        return get(url, self.timeout)
 
     def _read(self, backend: dict) -> dict:
         try:
             status = json.loads(self.fetch(backend["status_url"]))
+            if not isinstance(status, dict):
+                raise ValueError("the answer is not a JSON object")
             return {"name": backend["name"], "reachable": True, "error": status.get("error"), "status": status}
-        except (OSError, ValueError) as exc:
+        # whatever one host answers (or not), the others are still served
+        except Exception as exc:  # pylint: disable=broad-exception-caught
             return {"name": backend["name"], "reachable": False, "error": f"{type(exc).__name__}: {exc}", "status": {}}
 
     def hosts(self) -> list:
@@ -143,6 +150,12 @@ def openapi() -> dict:
     host = {"name": "host", "in": "path", "required": True, "schema": {"type": "string"}}
     n = {"name": "n", "in": "path", "required": True, "schema": {"type": "integer", "minimum": 0, "maximum": 99}}
     tail = {"name": "tail", "in": "query", "schema": {"type": "integer", "minimum": 1, "maximum": MAX_TAIL}}
+    follow = {
+        "name": "follow",
+        "in": "query",
+        "description": "1: then each new line as it comes, while the session or token lasts",
+        "schema": {"type": "integer", "enum": [1]},
+    }
     return {
         "openapi": "3.0.3",
         "info": {
@@ -167,7 +180,7 @@ def openapi() -> dict:
             "/api/hosts/{host}": {"get": op("One host and its instances", [host])},
             "/api/hosts/{host}/instances/{n}": {"get": op("One instance", [host, n])},
             "/api/hosts/{host}/instances/{n}/logs": {
-                "get": op("The instance's last journal lines, as text (operators)", [host, n, tail], "operator")
+                "get": op("The instance's last journal lines, as text (operators)", [host, n, tail, follow], "operator")
             },
         },
     }
@@ -196,15 +209,38 @@ def docs_page(doc: dict) -> str:
     )
 
 
+def get(url: str, timeout: float, headers=None, ok=(200,)) -> bytes:
+    """The body of an http:// GET, read whole within timeout seconds altogether (a host that
+    trickles its answer is cut off) and at most MAX_ANSWER bytes; OSError for anything else."""
+    address = urllib.parse.urlsplit(url)
+    deadline = time.monotonic() + timeout
+    conn = http.client.HTTPConnection(address.hostname, address.port or 80, timeout=timeout)
+    try:
+        conn.request("GET", address.path + (f"?{address.query}" if address.query else ""), headers=headers or {})
+        answer = conn.getresponse()
+        if answer.status not in ok:
+            raise OSError(f"HTTP {answer.status}")
+        body = b""
+        while chunk := answer.read1(65536):
+            body += chunk
+            if len(body) > MAX_ANSWER:
+                raise OSError(f"an answer over {MAX_ANSWER} bytes")
+            if time.monotonic() > deadline:
+                raise OSError(f"no whole answer within {timeout} s")
+        return body
+    except http.client.HTTPException as exc:
+        raise OSError(f"{type(exc).__name__}: {exc}") from exc
+    finally:
+        conn.close()
+
+
 def ask_identity(auth_url: str, cookie: str, authorization: str, timeout: float = 5.0):
     """{user, role, token, scopes} from the login service for these credentials; None without one."""
     headers = {k: v for k, v in (("Cookie", cookie), ("Authorization", authorization)) if v}
-    request = urllib.request.Request(f"{auth_url}/session", headers=headers)
     try:
-        with urllib.request.urlopen(request, timeout=timeout) as answer:  # noqa: S310 - 127.0.0.1
-            return json.loads(answer.read())
-    except urllib.error.HTTPError as exc:
-        if exc.code == 401:
+        return json.loads(get(f"{auth_url}/session", timeout, headers, ok=(200,)))
+    except OSError as exc:
+        if str(exc) == "HTTP 401":
             return None
         raise
 
@@ -214,13 +250,74 @@ def say(line: str) -> None:
     sys.stdout.flush()
 
 
+def drain(client, budget: list) -> bool:
+    """Whether a client whose socket is readable is still there: what it sends now (a request's
+    body) is read and dropped, so select() does not wake for it again; closed, or over its budget
+    (a one-item list of the bytes it may still send), it is gone."""
+    try:
+        data = client.recv(65536)
+    except OSError:
+        return False
+    budget[0] -= len(data)
+    return bool(data) and budget[0] >= 0
+
+
+class Follow:
+    """A host's followed journal (its status endpoint's /logs/N?follow=1), open and answering 200,
+    to be copied to a client while the one who asked may still read it."""
+
+    def __init__(self, status_url: str, n: int, timeout: float = 10.0):
+        address = urllib.parse.urlsplit(status_url)
+        self.sock = socket.create_connection((address.hostname, address.port), timeout=timeout)
+        self.sock.sendall(f"GET /logs/{n}?follow=1 HTTP/1.0\r\nHost: {address.netloc}\r\n\r\n".encode())
+        head = b""
+        while b"\r\n\r\n" not in head and len(head) < 65536:
+            chunk = self.sock.recv(4096)
+            if not chunk:
+                break
+            head += chunk
+        head, _sep, self.rest = head.partition(b"\r\n\r\n")
+        status = head.split(b"\r\n", 1)[0].decode("latin-1")
+        if not re.match(r"^HTTP/1\.[01] 200 ", status):
+            self.sock.close()
+            raise OSError(status or "no answer")
+
+    def copy(self, write, client, still_allowed, recheck: float = RECHECK_SECONDS, clock=time.monotonic) -> str:
+        """Copies until the host's stream ends, the client goes, or still_allowed() says no (asked
+        every recheck seconds); why it ended."""
+        why, asked, budget = "host ended", clock(), [65536]
+        try:
+            if self.rest:
+                write(self.rest)
+            while True:
+                ready, _w, _x = select.select([self.sock, client], [], [], 1.0)
+                if client in ready and not drain(client, budget):
+                    return "client gone"
+                if self.sock in ready:
+                    data = self.sock.recv(65536)
+                    if not data:
+                        return why
+                    write(data)
+                if clock() - asked >= recheck:
+                    asked = clock()
+                    if not still_allowed():
+                        write(b"\n[the session or token ended: the journal stops here]\n")
+                        return "access ended"
+        except OSError:
+            return "client gone"
+        finally:
+            self.sock.close()
+
+
 class Api:
     """The routes, over a Fleet and a way to ask who is calling."""
 
-    def __init__(self, fleet: Fleet, identify, logs=None, log=say):
-        """identify(cookie, authorization) -> identity or None; logs(status_url, n) -> the host's text."""
+    def __init__(self, fleet: Fleet, identify, logs=None, log=say, follow=Follow, recheck=RECHECK_SECONDS):
+        """identify(cookie, authorization) -> identity or None; logs(status_url, n) -> the host's text;
+        follow(status_url, n) -> a Follow."""
         self.fleet, self.identify, self.log = fleet, identify, log
-        self.logs = logs or (lambda url, n: fleet.fetch(url.removesuffix("/status") + f"/logs/{n}").decode())
+        self.follow, self.recheck = follow, recheck
+        self.logs = logs or (lambda url, n: get(url.removesuffix("/status") + f"/logs/{n}", fleet.timeout).decode())
         self.doc = openapi()
 
     def answer(self, method: str, target: str, cookie: str = "", authorization: str = "", client: str = "-"):
@@ -263,10 +360,28 @@ class Api:
             return _json(404, {"error": f"no instance {found['n']} on {found['host']}"})
         if route == "instance":
             return _json(200, inst)
-        tail = urllib.parse.parse_qs(url.query).get("tail", [str(MAX_TAIL)])[0]
+        query = urllib.parse.parse_qs(url.query)
+        tail = query.get("tail", [str(MAX_TAIL)])[0]
         if not tail.isdigit() or not 1 <= int(tail) <= MAX_TAIL:
             return _json(400, {"error": f"tail: {tail!r} is not 1-{MAX_TAIL}"})
         backend = next(b for b in self.fleet.config["hosts"] if b["name"] == found["host"])
+        if query.get("follow") == ["1"]:
+            try:
+                stream = self.follow(backend["status_url"], int(found["n"]))
+            except OSError as exc:
+                return _json(502, {"error": f"{found['host']} did not give the journal: {exc}"})
+
+            def still_allowed():
+                again = self.identify(cookie, authorization)
+                return bool(again) and again.get("role") == "operator" and "read" in (again.get("scopes") or [])
+
+            who_line = f"user={who.get('user')}" + (f" token={who['token']}" if who.get("token") else "")
+            self.log(f"follow {who_line} path={url.path!r} from={client}")
+            return (
+                200,
+                "text/plain; charset=utf-8",
+                lambda write, conn: stream.copy(write, conn, still_allowed, self.recheck),
+            )
         try:
             text = self.logs(backend["status_url"], int(found["n"]))
         except (OSError, ValueError) as exc:
@@ -309,6 +424,21 @@ def handler(api: Api):
                 code, kind, body = _json(500, {"error": "the API failed; its journal says why"})
             self.send_response(code)
             self.send_header("Content-Type", kind)
+            if callable(body):  # a stream: its end is the connection's
+                self.send_header("Cache-Control", "no-store")
+                # nginx passes each line on at once
+                self.send_header("X-Accel-Buffering", "no")
+                self.end_headers()
+                self.wfile.flush()
+
+                def write(data):
+                    self.wfile.write(data)
+                    self.wfile.flush()
+
+                why = body(write, self.connection)
+                api.log(f"follow ended path={self.path!r} ({why})")
+                self.close_connection = True
+                return
             self.send_header("Content-Length", str(len(body)))
             self.send_header("Cache-Control", "no-store")
             if kind.startswith("text/html"):

@@ -404,9 +404,9 @@ def nginx_conf(p: dict, managed: str) -> str:
         # the origin a browser reached the door at: the login form's POST must come from it
         "      proxy_set_header X-Fleet-Origin https://$http_host;",
         "    }",
-        f"    location = /logout {{ proxy_pass {auth}; }}",
+        f"    location = /logout {{ proxy_pass {auth}; proxy_set_header X-Real-IP $remote_addr; }}",
         # who is logged in (the dashboard shows direct addresses to operators): the service reads the session
-        f"    location = /session {{ proxy_pass {auth}; }}",
+        f"    location = /session {{ proxy_pass {auth}; proxy_set_header X-Real-IP $remote_addr; }}",
         # the relay's credentials: the login service reads the session itself (401 without one)
         *(
             [
@@ -437,18 +437,30 @@ def nginx_conf(p: dict, managed: str) -> str:
         "      default_type application/json;",
         '      return 401 \'{"error": "log in, or send an API token (Authorization: Bearer isf_...)"}\\n\';',
         "    }",
+        "    location @fleet_api_forbidden {",
+        "      default_type application/json;",
+        '      return 403 \'{"error": "not for your role, or beyond the scopes of your token"}\\n\';',
+        "    }",
         "    location /api/ {",
         *guarded(login="@fleet_api_login"),
+        "      error_page 403 = @fleet_api_forbidden;",
         f"      proxy_pass {api};",
         "      proxy_set_header X-Real-IP $remote_addr;",
         "    }",
         # no login: that it answers, and its own description
-        *(f"    location = /api/{path} {{ proxy_pass {api}; }}" for path in ("health", "openapi.json", "docs")),
-        # an instance's journal: operators (nginx's match of the path asks for the role)
+        *(
+            f"    location = /api/{path} {{ proxy_pass {api}; proxy_set_header X-Real-IP $remote_addr; }}"
+            for path in ("health", "openapi.json", "docs")
+        ),
+        # an instance's journal: operators (nginx's match of the path asks for the role); followed, a quiet
+        # journal is no reason to end it (the API ends it when the session or token does)
         "    location ~ ^/api/hosts/[^/]+/instances/[0-9]+/logs$ {",
         *guarded("/fleet-auth-operator", "@fleet_api_login"),
+        "      error_page 403 = @fleet_api_forbidden;",
         f"      proxy_pass {api};",
         "      proxy_set_header X-Real-IP $remote_addr;",
+        "      proxy_buffering off;",
+        "      proxy_read_timeout 1h;",
         "    }",
     ]
     for backend in (b for b in p.get("backends") or [] if b.get("status_url")):

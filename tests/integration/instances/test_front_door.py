@@ -5,9 +5,13 @@ The requests come from this machine (the controller), as a browser outside the h
 them, through Python's own HTTP client with the CA the role made (nothing trusts it otherwise).
 """
 
+import contextlib
 import json
 import os
+import socket
+import ssl
 import subprocess
+import time
 import urllib.error
 import urllib.request
 
@@ -220,7 +224,26 @@ def check_sessions_and_tokens(host, address, status_path, operator, tmp):
     check_the_api(host, address, bearer)
     listed = ok(tokens(host, tmp))
     assert "olga/ci (" in listed.stdout and " read active until " in listed.stdout, listed.stdout[-2000:]
-    ok(tokens(host, tmp, front_door_token_state="absent", front_door_token_user="olga", front_door_token_name="ci"))
+    # an instance's journal followed through the door with the token, until the token is revoked
+    name = testbed.name(host)
+    context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
+    with context.wrap_socket(socket.create_connection((address, 443), timeout=30), server_hostname=address) as tls:
+        tls.sendall(
+            f"GET /api/hosts/{name}/instances/1/logs?follow=1 HTTP/1.1\r\nHost: {address}\r\n"
+            f"Authorization: Bearer {token}\r\nConnection: close\r\n\r\n".encode()
+        )
+        got = b""
+        while got.count(b"\n") < 25:  # the head, then journalctl's last 20 lines at once
+            got += tls.recv(65536)
+        assert got.startswith(b"HTTP/1.1 200 "), got[:300]
+        ok(tokens(host, tmp, front_door_token_state="absent", front_door_token_user="olga", front_door_token_name="ci"))
+        revoked = time.monotonic()
+        with contextlib.suppress(ssl.SSLError):  # nginx may end TLS without its close_notify
+            while chunk := tls.recv(65536):
+                got += chunk
+        # the API asks again every 10 s
+        assert time.monotonic() - revoked < 15 and b"[the session or token ended" in got, got[-500:]
+    in_journal(host, UNITS[3], f"follow user=olga token=ci path='/api/hosts/{name}/instances/1/logs'")
     assert request(address, "GET", status_path, headers=bearer)[0].status == 401
     in_journal(host, UNITS[1], f"refused user=- path='{status_path}' from=")
 

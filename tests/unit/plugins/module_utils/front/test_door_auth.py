@@ -53,8 +53,8 @@ def test_a_hash_the_service_cannot_use_is_named(stored, problem):
 USERS = {"olga": {"role": "operator", "hash": PASSLIB_DEFAULT}, "vic": {"role": "viewer", "hash": PASSLIB_DEFAULT}}
 
 
-def door(tmp_path, users=USERS, **kwargs):
-    (tmp_path / "users.json").write_text(json.dumps(users))
+def door(tmp_path, users=None, **kwargs):
+    (tmp_path / "users.json").write_text(json.dumps(USERS if users is None else users))
     return door_auth.Door(str(tmp_path / "users.json"), str(tmp_path / "door.db"), 1, **kwargs)
 
 
@@ -97,7 +97,7 @@ def test_a_token_acts_as_its_user_within_its_scopes_until_revoked_or_expired(tmp
     now = [1000.0]
     lines = []
     d = door(tmp_path, log=lines.append, clock=lambda: now[0])
-    text, record = d.store.make_token("olga", "ci", ["read", "act"], 2)
+    text, record = d.store.make_token("olga", "ci", ["read", "act"], 2, PASSLIB_DEFAULT)
     assert text.startswith("isf_") and record["state"] == "active" and record["expires"] == 1000 + 2 * 86400
     bearer = f"Bearer {text}"
     assert d.check("", "/api/fleet", "10.0.0.9", "", bearer)[0] == 204
@@ -121,13 +121,17 @@ def test_a_token_acts_as_its_user_within_its_scopes_until_revoked_or_expired(tmp
     assert d.check("", "/", "x", "act", bearer)[0] == 403 and d.check("", "/", "x", "", bearer)[0] == 204
     users_now(tmp_path, {})
     assert d.check("", "/", "x", "", bearer)[0] == 401
+    # made again (another person, perhaps) or given a new password: the old tokens stay dead
+    users_now(tmp_path, {"olga": {"role": "operator", "hash": PASSLIB}})
+    assert d.check("", "/", "x", "", bearer)[0] == 401
     users_now(tmp_path, USERS)
+    assert d.check("", "/", "x", "", bearer)[0] == 204
     # revoked, or a new token of that name: the old one ends
-    newer, _r = d.store.make_token("olga", "ci", ["read"], 1)
+    newer, _r = d.store.make_token("olga", "ci", ["read"], 1, PASSLIB_DEFAULT)
     assert d.check("", "/", "x", "", bearer)[0] == 401 and d.check("", "/", "x", "", f"Bearer {newer}")[0] == 204
     assert d.store.revoke("olga", "ci") and not d.store.revoke("olga", "ci")
     assert d.check("", "/", "x", "", f"Bearer {newer}")[0] == 401
-    short, _r = d.store.make_token("vic", "look", ["read"], 1)
+    short, _r = d.store.make_token("vic", "look", ["read"], 1, PASSLIB_DEFAULT)
     now[0] += 86400
     assert d.check("", "/", "x", "", f"Bearer {short}")[0] == 401
     states = [(t["name"], t["state"]) for t in d.store.tokens()]
@@ -158,7 +162,7 @@ def test_a_token_asked_for_wrongly_is_named(user, role, name, scopes, days, prob
 def test_the_store_is_root_s_alone_and_keeps_no_secret(tmp_path):
     store = door_store.Store(str(tmp_path / "door.db"))
     assert (tmp_path / "door.db").stat().st_mode & 0o777 == 0o600
-    text, _r = store.make_token("olga", "ci", ["read"], 1)
+    text, _r = store.make_token("olga", "ci", ["read"], 1, PASSLIB_DEFAULT)
     secret, _e = store.open_session("olga", "operator", PASSLIB_DEFAULT, 1, "x")
     data = (tmp_path / "door.db").read_bytes()
     assert text.rsplit("_", 1)[1].encode() not in data and secret.encode() not in data
@@ -258,7 +262,7 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     assert call(port, "GET", "/auth", headers=session)[0].status == 401
     assert call(port, "GET", "/session", headers=session)[0].status == 401
     # a token: its user and name for nginx's log
-    text, _r = door_store.Store(str(tmp_path / "door.db")).make_token("olga", "ci", ["read"], 1)
+    text, _r = door_store.Store(str(tmp_path / "door.db")).make_token("olga", "ci", ["read"], 1, PASSLIB_DEFAULT)
     response, _body = call(port, "GET", "/auth", headers={"Authorization": f"Bearer {text}"})
     assert response.status == 204 and (response.getheader("X-Fleet-User"), response.getheader("X-Fleet-Token")) == (
         "olga",
@@ -327,6 +331,10 @@ def test_a_logged_in_user_gets_relay_credentials_written_down_and_nobody_else(tm
             "ttl": 600,
         }
         assert lines[-1] == "turn credentials user=vic from=127.0.0.1 until=1795000600"
+        # a token must be allowed to read to get them
+        acting, _r = door.store.make_token("olga", "act", ["act"], 1, PASSLIB_DEFAULT)
+        response, _b = call(port, "GET", "/turn-credentials", headers={"Authorization": f"Bearer {acting}"})
+        assert response.status == 403 and lines[-1].startswith("refused user=olga token=act path='/turn-credentials'")
         # never past the session's end (an hour after the login here)
         door.turn = dict(turn, seconds=7200)
         now[0] += 1800

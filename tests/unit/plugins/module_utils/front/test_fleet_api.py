@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import http.client
 import json
+import socket
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
@@ -41,6 +43,18 @@ class HostStatus(BaseHTTPRequestHandler):
         if self.path == "/status":
             HostStatus.reads += 1
             body, kind = json.dumps(STATUS).encode(), "application/json"
+        elif self.path == "/logs/1?follow=1":
+            self.send_response(200)
+            self.send_header("Content-Type", "text/plain")
+            self.end_headers()
+            for i in range(600):
+                try:
+                    self.wfile.write(f"new {i}\n".encode())
+                    self.wfile.flush()
+                except OSError:
+                    return
+                time.sleep(0.1)
+            return
         elif self.path == "/logs/1":
             body, kind = "".join(f"line {i}\n" for i in range(300)).encode(), "text/plain"
         else:
@@ -80,6 +94,7 @@ def api(tmp_path):
         fleet_api.Fleet(config, ttl=60, timeout=2),
         lambda cookie, authorization: fleet_api.ask_identity(auth_url, cookie, authorization),
         log=lines.append,
+        recheck=0.5,
     )
     server = serve(fleet_api.handler(service))
     operator = f"{door_auth.COOKIE}=" + door.login("olga", "s3cret", "x")
@@ -108,12 +123,12 @@ def test_the_fleet_is_read_by_a_session_or_a_token_and_direct_addresses_go_to_op
     fleet = json.loads(body)
     first, second = fleet["hosts"]
     assert (first["name"], first["reachable"], second["name"], second["reachable"]) == ("gpu-1", True, "gpu-2", False)
-    assert second["error"].startswith("URLError") and second["instances"] == []
+    assert second["error"].startswith("ConnectionRefusedError") and second["instances"] == []
     ready, starting = first["instances"]
     assert ready["entrance"] == "https://fleet.lab/viewers/gpu-1/0/" and ready["ready"] and ready["holder"] is None
     assert starting["holder"] == {"kind": "test_run", "id": "nightly-7"} and starting["entrance"] is None
     assert "urls" not in ready
-    token, _r = door.store.make_token("olga", "ci", ["read"], 1)
+    token, _r = door.store.make_token("olga", "ci", ["read"], 1, HASH)
     by_token = json.loads(call(port, "/api/fleet", token=token)[2])
     assert by_token["user"] == "olga" and by_token["hosts"][0]["instances"][0]["urls"] == {"signal": "10.0.0.5:49100"}
     # one read of the host however many ask within ttl
@@ -124,7 +139,7 @@ def test_the_fleet_is_read_by_a_session_or_a_token_and_direct_addresses_go_to_op
     assert call(port, "/api/hosts/gpu-9", viewer)[0] == 404
     assert call(port, "/api/hosts/gpu-1/instances/7", viewer)[0] == 404
     # a token that may not read reads nothing
-    acting, _r = door.store.make_token("olga", "act-only", ["act"], 1)
+    acting, _r = door.store.make_token("olga", "act-only", ["act"], 1, HASH)
     assert call(port, "/api/fleet", token=acting)[0] == 403
 
 
@@ -147,7 +162,7 @@ def test_health_and_the_description_need_no_login_and_nothing_else_is_there(api)
     doc = json.loads(call(port, "/api/openapi.json")[2])
     assert doc["openapi"] == "3.0.3" and "/api/hosts/{host}/instances/{n}/logs" in doc["paths"]
     # every route the service answers is in the document, and each documented path answers
-    assert {p for p in doc["paths"]} == {
+    assert set(doc["paths"]) == {
         "/api/health", "/api/openapi.json", "/api/docs", "/api/fleet", "/api/config", "/api/hosts/{host}",
         "/api/hosts/{host}/instances/{n}", "/api/hosts/{host}/instances/{n}/logs",
     }  # fmt: skip
@@ -157,3 +172,72 @@ def test_health_and_the_description_need_no_login_and_nothing_else_is_there(api)
     assert call(port, "/api/fleet", operator, method="POST")[0] == 405
     config = json.loads(call(port, "/api/config", operator)[2])
     assert config["hosts"] == ["gpu-1", "gpu-2"] and "status_urls" in config and "users" not in config
+
+
+def test_a_followed_journal_streams_until_the_token_reading_it_is_revoked(api):
+    port, door, _operator, viewer, lines = api
+    token, _r = door.store.make_token("olga", "tail", ["read"], 1, HASH)
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as client:
+        request = f"GET /api/hosts/gpu-1/instances/1/logs?follow=1 HTTP/1.0\r\nAuthorization: Bearer {token}\r\n\r\n"
+        client.sendall(request.encode())
+        got = b""
+        while got.count(b"new ") < 3:
+            got += client.recv(4096)
+        assert got.startswith(b"HTTP/1.0 200 ") and b"new 0\nnew 1\n" in got and b"X-Accel-Buffering: no" in got
+        assert door.store.revoke("olga", "tail")
+        revoked = time.monotonic()
+        while chunk := client.recv(4096):
+            got += chunk
+        # ended at the next check (every 0.5 s here, 10 s on a door), said in the stream and the journal
+        assert time.monotonic() - revoked < 3
+        assert got.endswith(b"[the session or token ended: the journal stops here]\n")
+    assert "follow user=olga token=tail path='/api/hosts/gpu-1/instances/1/logs' from=127.0.0.1" in lines
+    assert any(line.endswith("(access ended)") for line in lines), lines
+    # a viewer follows nothing
+    assert call(port, "/api/hosts/gpu-1/instances/1/logs?follow=1", viewer)[0] == 403
+
+
+class Garbage(BaseHTTPRequestHandler):
+    """A host that answers what is no HTTP, or trickles its answer."""
+
+    def handle(self):
+        line = self.rfile.readline()
+        if b"trickle" in self.server.kind:
+            self.wfile.write(b"HTTP/1.0 200 OK\r\nContent-Length: 100\r\n\r\n")
+            for _n in range(100):
+                try:
+                    self.wfile.write(b" ")
+                    self.wfile.flush()
+                except OSError:
+                    return
+                time.sleep(0.1)
+        elif line:
+            self.wfile.write(b"SPEAKING NO HTTP\r\n\r\n")
+
+
+@pytest.mark.parametrize("kind", [b"garbage", b"trickle"])
+def test_a_host_that_answers_badly_or_slowly_is_one_unreachable_host(kind):
+    bad = ThreadingHTTPServer(("127.0.0.1", 0), Garbage)
+    bad.kind = kind
+    threading.Thread(target=bad.serve_forever, daemon=True).start()
+    good = serve(HostStatus)
+    fleet = fleet_api.Fleet(
+        {
+            "hosts": [
+                {"name": "bad", "status_url": f"http://127.0.0.1:{bad.server_address[1]}/status"},
+                {"name": "gpu-1", "status_url": f"http://127.0.0.1:{good.server_address[1]}/status"},
+            ]
+        },
+        timeout=1,
+    )
+    try:
+        began = time.monotonic()
+        first, second = fleet.hosts()
+        # the whole answer within the timeout, however it trickles (not 1 s per read)
+        assert time.monotonic() - began < 2.5
+        assert (first["reachable"], second["reachable"]) == (False, True), first
+        assert first["error"].startswith("OSError"), first["error"]
+    finally:
+        for s in (bad, good):
+            s.shutdown()
+            s.server_close()

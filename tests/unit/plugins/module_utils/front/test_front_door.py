@@ -154,13 +154,14 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
         b.split("{")[0] for b in conf.split("location ")[1:] if "auth_request /fleet-auth" not in b.split("}")[0]
     ]
     open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "= /session"]
-    open_ones += ["= /api/docs", "= /api/health", "= /api/openapi.json", "@fleet_api_login", "@fleet_login"]
+    open_ones += ["= /api/docs", "= /api/health", "= /api/openapi.json", "@fleet_api_forbidden", "@fleet_api_login"]
+    open_ones.append("@fleet_login")
     assert sorted(u.strip() for u in unguarded) == sorted(open_ones)
     # the API: a program gets 401 (JSON), not the login page; the journal is an operator's
     api = conf.split("    location /api/ {", 1)[1].split("}", 1)[0]
     assert "error_page 401 = @fleet_api_login;" in api and "proxy_pass http://127.0.0.1:9481;" in api
     logs = conf.split("    location ~ ^/api/hosts/[^/]+/instances/[0-9]+/logs$ {", 1)[1].split("}", 1)[0]
-    assert "auth_request /fleet-auth-operator;" in logs
+    assert "auth_request /fleet-auth-operator;" in logs and "proxy_buffering off;" in logs
     assert "fleet_viewer" not in conf and "location = /viewers/" not in conf
     other = front_door.nginx_conf(dict(GOOD, port=8443, http_port=0, ipv6=False), "managed")
     assert "return 301" not in other and "listen 8443 ssl;" in other and "[::]" not in other
@@ -350,7 +351,10 @@ def test_the_door_says_its_address_certificate_relay_and_each_instance_s_entranc
     six = dict(GOOD, server_name="fd00::1", turn=True, turn_port=5349, turn_min_port=1, turn_max_port=2)
     assert json.loads(front_door.door_json(six))["relay"]["url"] == "turns:[fd00::1]:5349?transport=tcp"
     # who is logged in: asked of the login service, which reads the session itself
-    assert "location = /session { proxy_pass http://127.0.0.1:9480; }" in front_door.nginx_conf(GOOD, "managed")
+    assert (
+        "location = /session { proxy_pass http://127.0.0.1:9480; proxy_set_header X-Real-IP $remote_addr; }"
+        in front_door.nginx_conf(GOOD, "managed")
+    )
 
 
 def test_an_instance_s_logs_go_through_the_door_to_operators_alone():

@@ -5,6 +5,8 @@ from __future__ import annotations
 import contextlib
 import json
 import socket
+import subprocess
+import sys
 import threading
 import time
 import urllib.error
@@ -15,12 +17,12 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import stat
 
 
 @contextlib.contextmanager
-def serving(read, allow=("127.0.0.0/8",), ttl=60.0, logs=None, logs_allow=()):
+def serving(read, allow=("127.0.0.0/8",), ttl=60.0, logs=None, logs_allow=(), follow=None):
     networks, errors = status_server.parse_networks(allow)
     logs_networks, logs_errors = status_server.parse_networks(logs_allow)
     assert errors == logs_errors == []
     cache = status_server.Cache(read, ttl)
-    srv = status_server.server("127.0.0.1", 0, cache, networks, logs=logs, logs_networks=logs_networks)
+    srv = status_server.server("127.0.0.1", 0, cache, networks, logs=logs, logs_networks=logs_networks, follow=follow)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     try:
         yield f"http://127.0.0.1:{srv.server_address[1]}", cache
@@ -171,3 +173,84 @@ def test_the_journal_is_asked_for_the_unit_s_last_lines_as_plain_text():
     ]
     _n, errors = status_server.parse_networks(["x"], "isaac_sim_status_server_logs_allow")
     assert errors[0].startswith("isaac_sim_status_server_logs_allow: 'x' is not a network. Fix:")
+
+
+# a journal that grows: a line now, one every 0.2 s after (as journalctl -f prints them)
+GROWING = "import sys, time\nfor i in range(1000):\n    print(f'line {i}', flush=True)\n    time.sleep(0.2)\n"
+
+
+def test_a_followed_journal_streams_new_lines_and_its_process_ends_with_the_client():
+    procs = []
+
+    def follow(instance):
+        procs.append(subprocess.Popen([sys.executable, "-c", GROWING], stdout=subprocess.PIPE))
+        return procs[-1]
+
+    with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["127.0.0.1/32"], follow=follow) as (url, _c):
+        port = int(url.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as client:
+            client.sendall(b"GET /logs/2?follow=1 HTTP/1.0\r\n\r\n")
+            got = b""
+            while got.count(b"line ") < 3:
+                got += client.recv(4096)
+            assert got.startswith(b"HTTP/1.0 200 ") and b"line 0\nline 1\n" in got
+        # the client went: the journal's process ends within the poll (1 s), not at the next line or the hour
+        procs[0].wait(timeout=5)
+    # not for the networks the logs are not for
+    with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["10.9.9.9/32"], follow=follow) as (url, _c):
+        assert call(url + "/logs/1?follow=1")[0] == 403
+
+
+def test_followers_are_bounded():
+    started = []
+
+    def follow(instance):
+        started.append(subprocess.Popen([sys.executable, "-c", GROWING], stdout=subprocess.PIPE))
+        return started[-1]
+
+    with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["127.0.0.1/32"], follow=follow) as (url, _c):
+        port = int(url.rsplit(":", 1)[1])
+        clients = []
+        for _n in range(status_server.FOLLOWERS):
+            client = socket.create_connection(("127.0.0.1", port), timeout=10)
+            client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+            assert client.recv(64).startswith(b"HTTP/1.0 200")
+            clients.append(client)
+        code, _h, body = call(url + "/logs/0?follow=1")
+        assert code == 503 and b"busy" in body
+        for client in clients:
+            client.close()
+        for proc in started:
+            proc.wait(timeout=5)
+        # their places are free again
+        client = socket.create_connection(("127.0.0.1", port), timeout=10)
+        client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+        assert client.recv(64).startswith(b"HTTP/1.0 200")
+        client.close()
+    assert status_server.journal_argv("u", 20, follow=True)[-1] == "-f"
+
+
+BURST = "import sys, time\nprint('\\n'.join(f'old {i}' for i in range(20)), flush=True)\ntime.sleep(60)\n"
+
+
+def test_a_burst_of_lines_reaches_the_client_at_once_and_a_client_that_keeps_sending_is_cut():
+    procs = []
+
+    def follow(instance):
+        procs.append(subprocess.Popen([sys.executable, "-c", BURST], stdout=subprocess.PIPE))
+        return procs[-1]
+
+    with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["127.0.0.1/32"], follow=follow) as (url, _c):
+        port = int(url.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port), timeout=3) as client:
+            client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+            got = b""
+            while b"old 19" not in got:
+                got += client.recv(65536)  # journalctl's last lines together: all of them, not one
+        procs[0].wait(timeout=5)
+        with socket.create_connection(("127.0.0.1", port), timeout=3) as client:
+            client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+            client.recv(64)
+            with contextlib.suppress(OSError):
+                client.sendall(b"x" * 200000)
+            procs[1].wait(timeout=5)
