@@ -289,6 +289,42 @@ class Door:
         secret, _expires = self.store.open_session(user, record["role"], record.get("hash", ""), self.hours, client)
         return secret
 
+    def own_tokens(self, cookie_header: str, authorization: str = ""):
+        """(status, {user, role, scopes, tokens}) for the console's token page: a person's own
+        tokens, with a session only (a token does not manage tokens)."""
+        who = self.identify(cookie_header, authorization)
+        if who is None:
+            return 401, None
+        if who["token"]:
+            return 403, {"error": "a token does not manage tokens; log in"}
+        mine = [t for t in self.store.tokens() if t["user"] == who["user"]]
+        return 200, {
+            "user": who["user"],
+            "role": who["role"],
+            "scopes": list(door_store.ROLE_SCOPES[who["role"]]),
+            "tokens": mine,
+        }
+
+    def token_change(self, cookie_header: str, body: dict, client: str, revoke: bool = False):
+        """(status, answer) for a person making (or revoking) a token of their own from the console."""
+        code, mine = self.own_tokens(cookie_header)
+        if code != 200:
+            return code, mine
+        user, name = mine["user"], body.get("name")
+        if revoke:
+            if not isinstance(name, str) or not self.store.revoke(user, name):
+                return 404, {"error": f"no live token {name!r} of {user}"}
+            self.log(f"token revoked user={user} name={name} from={client}")
+            return 200, {"revoked": name}
+        scopes, days = body.get("scopes") or ["read"], body.get("days", 30)
+        errors = door_store.token_errors(user, mine["role"], name, scopes, days)
+        if errors:
+            return 400, {"errors": errors}
+        record = self.users().get(user) or {}
+        text, made = self.store.make_token(user, name, scopes, days, record.get("hash", ""))
+        self.log(f"token made user={user} name={name} scopes={','.join(scopes)} days={days} from={client}")
+        return 201, {"token": text, "record": made}
+
     def logout(self, cookie_header: str, client: str) -> None:
         """Ends the session the cookie names, here, so the cookie opens nothing anywhere after."""
         user = self.store.end_session(cookie_value(cookie_header))
@@ -365,6 +401,9 @@ def handler(door: Door, form_action: str = ""):
                 )
                 body = json.dumps(answer).encode() if answer else b""
                 self._send(code, body, kind="application/json")
+            elif url.path == "/tokens":
+                code, answer = door.own_tokens(self.headers.get("Cookie", ""), self.headers.get("Authorization", ""))
+                self._send(code, json.dumps(answer).encode() if answer else b"", kind="application/json")
             elif url.path == "/login":
                 self._page(200, urllib.parse.parse_qs(url.query).get("next", ["/"])[0])
             elif url.path == "/logout":
@@ -379,23 +418,30 @@ def handler(door: Door, form_action: str = ""):
             else:
                 self._send(404)
 
+        def _another_site(self) -> bool:
+            """A request another site's page sent (CSRF): browsers say where it came from, in
+            Sec-Fetch-Site or (older ones, and every POST of a page) in Origin, which must be the
+            front door's own as nginx saw the browser reach it (X-Fleet-Origin); no Origin: no browser."""
+            origin, own = self.headers.get("Origin"), self.headers.get("X-Fleet-Origin")
+            return self.headers.get("Sec-Fetch-Site") in ("cross-site", "same-site") or (
+                origin is not None and (not own or origin.rstrip("/").lower() != own.rstrip("/").lower())
+            )
+
         def _post(self):
-            if urllib.parse.urlsplit(self.path).path != "/login":
+            path = urllib.parse.urlsplit(self.path).path
+            if path not in ("/login", "/tokens", "/tokens/revoke"):
                 self._send(404)
                 return
             length = self.headers.get("Content-Length") or "0"
             if not length.isdigit() or int(length) > 8192:
                 self._send(413 if length.isdigit() else 400)
                 return
-            # a form another site's page sends (login CSRF) is refused; browsers say where it came from,
-            # in Sec-Fetch-Site or (older ones, and every POST of a page) in Origin, which must be the
-            # front door's own as nginx saw the browser reach it (X-Fleet-Origin); no Origin: no browser
-            origin, own = self.headers.get("Origin"), self.headers.get("X-Fleet-Origin")
-            if self.headers.get("Sec-Fetch-Site") in ("cross-site", "same-site") or (
-                origin is not None and (not own or origin.rstrip("/").lower() != own.rstrip("/").lower())
-            ):
-                door.log(f"login refused from={self._client()} (a form of another site)")
+            if self._another_site():
+                door.log(f"{path.strip('/').split('/')[0]} refused from={self._client()} (a form of another site)")
                 self._send(403)
+                return
+            if path != "/login":
+                self._tokens(path, self.rfile.read(int(length)))
                 return
             form = urllib.parse.parse_qs(self.rfile.read(int(length)).decode("utf-8", "replace"))
             user, password = form.get("user", [""])[0], form.get("password", [""])[0]
@@ -413,6 +459,23 @@ def handler(door: Door, form_action: str = ""):
             max_age = int(door.hours * 3600)
             cookie = f"{COOKIE}={token}; Path=/; Max-Age={max_age}; Secure; HttpOnly; SameSite=Lax"
             self._send(303, headers=[("Location", safe_next(target)), ("Set-Cookie", cookie)])
+
+        def _tokens(self, path: str, raw: bytes):
+            # JSON only: a form another site could post without asking is no JSON
+            if (self.headers.get("Content-Type") or "").split(";")[0].strip() != "application/json":
+                self._send(415, b'{"error": "send JSON"}', kind="application/json")
+                return
+            try:
+                body = json.loads(raw or b"{}")
+            except ValueError:
+                body = None
+            if not isinstance(body, dict):
+                self._send(400, b'{"error": "a JSON object, please"}', kind="application/json")
+                return
+            code, answer = door.token_change(
+                self.headers.get("Cookie", ""), body, self._client(), revoke=path == "/tokens/revoke"
+            )
+            self._send(code, json.dumps(answer).encode() if answer else b"", kind="application/json")
 
         def log_message(self, *args):
             pass  # the lines that matter are Door's

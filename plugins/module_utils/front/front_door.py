@@ -407,6 +407,19 @@ def nginx_conf(p: dict, managed: str) -> str:
         f"    location = /logout {{ proxy_pass {auth}; proxy_set_header X-Real-IP $remote_addr; }}",
         # who is logged in (the dashboard shows direct addresses to operators): the service reads the session
         f"    location = /session {{ proxy_pass {auth}; proxy_set_header X-Real-IP $remote_addr; }}",
+        # a person's own API tokens (the console's tokens page): the login service reads the session itself
+        # and refuses another site's page by the origin a browser reached the door at
+        *(
+            line
+            for path in ("/tokens", "/tokens/revoke")
+            for line in (
+                f"    location = {path} {{",
+                f"      proxy_pass {auth};",
+                "      proxy_set_header X-Real-IP $remote_addr;",
+                "      proxy_set_header X-Fleet-Origin https://$http_host;",
+                "    }",
+            )
+        ),
         # the relay's credentials: the login service reads the session itself (401 without one)
         *(
             [
@@ -575,6 +588,99 @@ def _entry(p: dict, viewer: dict) -> str:
     return f"https://{_bracketed(p['server_name'])}:{viewer['port']}/"
 
 
+# A person's own API tokens, behind the login: made (shown once), listed and revoked through the
+# login service's /tokens; a viewer is offered the read scope alone.
+TOKENS_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>Isaac Sim fleet: your API tokens</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>body{font-family:system-ui,sans-serif;max-width:48em;margin:2em auto}td,th{padding:.2em .6em;text-align:left}
+#made{background:#f6f8fa;padding:.6em;word-break:break-all}.error{color:#b00020}</style></head>
+<body><h1>Your API tokens</h1>
+<p>A token lets a program act as you, within its scopes: send it as
+<code>Authorization: Bearer TOKEN</code>. It is shown once, when made.</p>
+<form id="make"><label>Name <input name="name" required pattern="[A-Za-z0-9._@\\-]{1,64}"></label>
+<fieldset id="scopes"><legend>Scopes</legend></fieldset>
+<label>Days <input name="days" type="number" min="1" max="365" value="30" required></label>
+<button type="submit">Make a token</button></form>
+<p id="said" class="error" hidden></p><p id="made" hidden></p>
+<table><thead><tr><th>Name</th><th>Scopes</th><th>State</th><th>Until</th><th></th></tr></thead>
+<tbody id="tokens"></tbody></table>
+<p><a href="/">The front door</a> \u00b7 <a href="/logout">Log out</a></p>
+<script>
+(function () {
+  "use strict";
+  var said = document.getElementById("said"), made = document.getElementById("made");
+  function show(text) { said.textContent = text; said.hidden = !text; }
+  function send(path, body) {
+    var asked = {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(body)};
+    return fetch(path, asked).then(function (r) {
+      return r.json().catch(function () { return {}; }).then(function (a) { return [r.status, a]; });
+    });
+  }
+  function list() {
+    return fetch("/tokens", {cache: "no-store"}).then(function (r) {
+      if (!r.ok) { throw new Error("HTTP " + r.status); }
+      return r.json();
+    }).then(function (mine) {
+      var box = document.getElementById("scopes");
+      if (box.querySelectorAll("input").length === 0) {
+        mine.scopes.forEach(function (s) {
+          var label = document.createElement("label"), input = document.createElement("input");
+          input.type = "checkbox"; input.name = "scope"; input.value = s; input.checked = s === "read";
+          label.appendChild(input); label.appendChild(document.createTextNode(" " + s + " "));
+          box.appendChild(label);
+        });
+      }
+      var body = document.getElementById("tokens");
+      body.textContent = "";
+      mine.tokens.forEach(function (t) {
+        var tr = document.createElement("tr");
+        tr.dataset.name = t.name;
+        [t.name, t.scopes.join(", "), t.state, new Date(t.expires * 1000).toISOString().slice(0, 16).replace("T", " ")]
+          .forEach(function (v) { var td = document.createElement("td"); td.textContent = v; tr.appendChild(td); });
+        var td = document.createElement("td");
+        if (t.state === "active") {
+          var b = document.createElement("button");
+          b.type = "button"; b.className = "revoke"; b.textContent = "revoke";
+          b.addEventListener("click", function () {
+            send("/tokens/revoke", {name: t.name}).then(function (res) {
+              show(res[0] === 200 ? "" : res[1].error);
+              list();
+            });
+          });
+          td.appendChild(b);
+        }
+        tr.appendChild(td);
+        body.appendChild(tr);
+      });
+      document.body.dataset.ready = "yes";
+    }).catch(function (e) { show("Your tokens could not be read: " + e.message); });
+  }
+  document.getElementById("make").addEventListener("submit", function (ev) {
+    ev.preventDefault();
+    var form = ev.target;
+    var checked = form.querySelectorAll("input[name=scope]:checked");
+    var scopes = Array.prototype.map.call(checked, function (i) { return i.value; });
+    // (form.name is the form's own name, not its input's)
+    var name = form.querySelector("input[name=name]").value;
+    var days = Number(form.querySelector("input[name=days]").value);
+    send("/tokens", {name: name, scopes: scopes, days: days}).then(function (res) {
+      if (res[0] === 201) {
+        show("");
+        made.textContent = res[1].token;
+        made.hidden = false;
+      } else {
+        show((res[1].errors || [res[1].error || "HTTP " + res[0]]).join(" "));
+      }
+      list();
+    });
+  });
+  list();
+})();
+</script></body></html>
+"""
+
+
 def index_page(p: dict) -> str:
     shown = viewers(p)
     rows = "".join(
@@ -596,6 +702,7 @@ def index_page(p: dict) -> str:
         "<body><h1>Isaac Sim fleet</h1>"
         '<p><a href="/dashboard.html">The dashboard</a> (written here by playbooks/status.yml)</p>'
         f"<p>Each host's status:</p><ul>{rows}</ul>"
+        '<p><a href="/tokens.html">Your API tokens</a> \u00b7 <a href="/api/docs">the fleet\'s API</a></p>'
         '<p><a href="/logout">Log out</a></p></body></html>\n'
     )
 
@@ -747,6 +854,7 @@ def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = 
             f"{CONFIG_DIR}/door.crt": {"content": cert, "mode": "0644"},
             f"{CONFIG_DIR}/door.key": {"content": key, "mode": "0600"},
             f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
+            f"{CONFIG_DIR}/www/tokens.html": {"content": TOKENS_PAGE, "mode": "0644"},
             f"{CONFIG_DIR}/www/front-door.json": {"content": door_json(p), "mode": "0644"},
             **(
                 {f"{CONFIG_DIR}/client-ca.crt": {"content": p["client_ca"], "mode": "0644"}}

@@ -91,6 +91,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         wait_for(lambda: driver.find_element("tag name", "body").get_attribute("data-role") == "viewer", timeout=10)
         direct = "css selector", ".instance-card [data-kind]:not([data-kind=entrance]):not([data-kind=logs])"
         assert driver.find_elements(*direct) == []
+        assert driver.find_elements("css selector", "button.follow") == []
         assert console_errors(driver) == []
         driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
         driver.get(f"https://{address}/logout")
@@ -106,7 +107,46 @@ def dashboard_in_chromium(host, address, tmp_path):
         assert sorted(hrefs) == [
             f"https://{address}/operator/hosts/{testbed.name(host)}/logs/{i}" for i in range(INSTANCES)
         ]
+        # and followed live in the page, through the fleet's API; stopped by the same button
+        card = driver.find_element("css selector", '.instance-card[data-instance="1"]')
+        card.find_element("css selector", "button.follow").click()
+        wait_for(lambda: card.get_attribute("data-following") == "yes", timeout=10, what="the journal to be followed")
+        journal = card.find_element("css selector", "pre.journal")
+        wait_for(lambda: len(journal.text.splitlines()) >= 5, timeout=20, what="the journal's lines in the page")
+        last = journal.text.splitlines()[-1]
+        assert last in sh(host, "journalctl -u isaac-sim@1.service -o short-iso --no-pager -q -n 400").stdout
+        card.find_element("css selector", "button.follow").click()
+        wait_for(lambda: card.get_attribute("data-following") == "no", timeout=10, what="the journal to stop")
+        assert console_errors(driver) == []
+        tokens_in_the_console(driver, host, address)
     in_journal(host, UNITS[1], "login refused user=vic")
+
+
+def tokens_in_the_console(driver, host, address):
+    """A person makes a token of their own in the console, shown once, which a program then uses;
+    revoked in the page, it opens nothing."""
+    driver.get(f"https://{address}/tokens.html")
+    wait_for(lambda: driver.find_element("tag name", "body").get_attribute("data-ready") == "yes", timeout=15)
+    driver.find_element("css selector", "input[name=name]").send_keys("browser")
+    driver.find_element("css selector", "input[name=scope][value=act]").click()
+    driver.find_element("css selector", "#make button[type=submit]").click()
+    made = driver.find_element("id", "made")
+    wait_for(lambda: made.text.startswith("isf_"), timeout=10, what="the token, shown once")
+    token = made.text.strip()
+    status_path = f"/hosts/{testbed.name(host)}/status"
+    assert request(address, "GET", status_path, headers={"Authorization": f"Bearer {token}"})[0].status == 200
+    row = '#tokens tr[data-name="browser"]'
+    assert "read, act" in driver.find_element("css selector", row).text
+    driver.find_element("css selector", f"{row} button.revoke").click()
+
+    def state() -> str:
+        # the page draws its list again after the revocation: read the row as it is now, in one call
+        return driver.execute_script(f"var r = document.querySelector('{row}'); return r ? r.textContent : '';")
+
+    wait_for(lambda: "revoked" in state(), timeout=10, what="the revocation")
+    assert request(address, "GET", status_path, headers={"Authorization": f"Bearer {token}"})[0].status == 401
+    in_journal(host, UNITS[1], "token made user=olga name=browser scopes=read,act days=30 from=")
+    assert console_errors(driver) == []
 
 
 def check_client_certificates(host, address, pki):

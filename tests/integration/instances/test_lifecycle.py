@@ -81,7 +81,15 @@ def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_
     first = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 10}, playbook="playbooks/rolling_restart.yml")
     third = None
     try:
-        testbed.wait_for(lambda: sh(host, f"cat {lock}", check=False).stdout, timeout=120, what="the first run's lock")
+        # held by the rolling restart itself (the lock names its ansible-playbook's pid): a lock file alone may be
+        # another's, left by a run that ended earlier, which the deploy below would take first (seen in CI)
+        def held_by_first() -> bool:
+            try:
+                return json.loads(sh(host, f"cat {lock}", check=False).stdout or "{}").get("pid") == first.pid
+            except ValueError:
+                return False
+
+        testbed.wait_for(held_by_first, timeout=120, what="the rolling restart's hold on the lock")
         # a deploy with other settings meanwhile: refused before it plans, naming the first run
         second = testbed.run_playbook(host, {"isaac_sim_env": {"STANDIN_CRASH_AFTER": "0"}})
         out = " ".join((second.stdout + second.stderr).split())

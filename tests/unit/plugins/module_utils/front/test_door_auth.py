@@ -345,3 +345,43 @@ def test_a_logged_in_user_gets_relay_credentials_written_down_and_nobody_else(tm
         server.server_close()
     # a service without a relay has no such path
     assert door_auth.Door(str(users), str(tmp_path / "door.db"), 1).turn is None
+
+
+def post_json(port, path, body, headers=None):
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    conn.request("POST", path, body=json.dumps(body), headers={"Content-Type": "application/json", **(headers or {})})
+    response = conn.getresponse()
+    data = response.read()
+    conn.close()
+    return response.status, json.loads(data) if data else None
+
+
+def test_a_person_makes_and_revokes_tokens_of_their_own_from_the_console(service):
+    port, lines, tmp_path = service
+    session = call(port, "POST", "/login", {"user": "vic", "password": "s3cret"})[0].getheader("Set-Cookie")
+    own = {"Cookie": session.split(";", 1)[0], "X-Fleet-Origin": "https://fleet.lab", "Origin": "https://fleet.lab"}
+    status, made = post_json(port, "/tokens", {"name": "laptop", "scopes": ["read"], "days": 7}, own)
+    assert status == 201 and made["token"].startswith("isf_") and made["record"]["user"] == "vic"
+    assert lines[-1] == "token made user=vic name=laptop scopes=read days=7 from=127.0.0.1"
+    bearer = {"Authorization": f"Bearer {made['token']}", "X-Original-URI": "/"}
+    assert call(port, "GET", "/auth", headers=bearer)[0].status == 204
+    # listed for its own person only, never its secret; a token manages no tokens
+    response, body = call(port, "GET", "/tokens", headers={"Cookie": own["Cookie"]})
+    listed = json.loads(body)
+    assert response.status == 200 and [t["name"] for t in listed["tokens"]] == ["laptop"]
+    assert listed["scopes"] == ["read"] and "token" not in listed["tokens"][0]
+    assert call(port, "GET", "/tokens", headers=bearer)[0].status == 403
+    assert post_json(port, "/tokens", {"name": "x"}, {"Authorization": bearer["Authorization"]})[0] == 401
+    # a viewer asks for more than a viewer may hold: refused, each problem named
+    status, refused = post_json(port, "/tokens", {"name": "ops", "scopes": ["act"], "days": 400}, own)
+    assert status == 400 and [e.split(":")[0] for e in refused["errors"]] == ["scopes", "days"]
+    # another site's page, a form (no JSON) or no session: refused before anything is made
+    assert post_json(port, "/tokens", {"name": "evil"}, dict(own, Origin="https://evil.example"))[0] == 403
+    assert post_json(port, "/tokens", {"name": "evil"}, dict(own, **{"Sec-Fetch-Site": "cross-site"}))[0] == 403
+    assert call(port, "POST", "/tokens", {"name": "evil"}, {"Cookie": own["Cookie"]})[0].status == 415
+    assert post_json(port, "/tokens", {"name": "evil"})[0] == 401
+    assert [t["name"] for t in json.loads(call(port, "GET", "/tokens", headers=own)[1])["tokens"]] == ["laptop"]
+    status, _a = post_json(port, "/tokens/revoke", {"name": "laptop"}, own)
+    assert status == 200 and lines[-1] == "token revoked user=vic name=laptop from=127.0.0.1"
+    assert call(port, "GET", "/auth", headers=bearer)[0].status == 401
+    assert post_json(port, "/tokens/revoke", {"name": "laptop"}, own)[0] == 404

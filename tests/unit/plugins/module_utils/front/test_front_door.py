@@ -155,6 +155,7 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
     ]
     open_ones = ["= /favicon.ico", "= /fleet-auth", "= /fleet-auth-operator", "= /login", "= /logout", "= /session"]
     open_ones += ["= /api/docs", "= /api/health", "= /api/openapi.json", "@fleet_api_forbidden", "@fleet_api_login"]
+    open_ones += ["= /tokens", "= /tokens/revoke"]
     open_ones.append("@fleet_login")
     assert sorted(u.strip() for u in unguarded) == sorted(open_ones)
     # the API: a program gets 401 (JSON), not the login page; the journal is an operator's
