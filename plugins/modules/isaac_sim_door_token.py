@@ -152,16 +152,17 @@ def token(module, store, users, p) -> dict:
             store.revoke(p["user"], p["name"])
             found = dict(found, state="revoked")
         return {"changed": live, **({"record": found} if found else {})}
-    role = (users.get(p["user"]) or {}).get("role") if isinstance(users.get(p["user"]), dict) else None
-    errors = door_store.token_errors(p["user"], role, p["name"], p["scopes"], p["days"])
+    record = users.get(p["user"])
+    record = record if isinstance(record, dict) else {}
+    errors = door_store.token_errors(p["user"], record.get("role"), p["name"], p["scopes"], p["days"])
     if errors:
         module.fail_json(msg=" ".join(p["variable_prefix"] + e for e in errors))
     if found is not None and found["state"] == "active" and not p["rotate"]:
         return {"changed": False, "record": found}
     if module.check_mode:
         return {"changed": True}
-    text, record = store.make_token(p["user"], p["name"], p["scopes"], p["days"], users[p["user"]].get("hash", ""))
-    return {"changed": True, "token": text, "record": record}
+    text, made = store.make_token(p["user"], p["name"], p["scopes"], p["days"], record.get("hash", ""))
+    return {"changed": True, "token": text, "record": made}
 
 
 if __name__ == "__main__":

@@ -31,7 +31,6 @@ import hmac
 import html
 import json
 import os
-import re
 import sys
 import time
 import urllib.parse
@@ -53,7 +52,6 @@ NEEDS = {
     "act": ("operator", "act"),
     "operate": ("operator", "operate"),
 }
-_NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
 MIN_ROUNDS = 10000
 
 
@@ -151,7 +149,7 @@ def bearer(header: str) -> str:
 
 def shown(name) -> str:
     """A user name as the journal gets it (never a forged line)."""
-    return name if isinstance(name, str) and _NAME_RE.match(name) else "<invalid>"
+    return name if isinstance(name, str) and door_store.NAME_RE.match(name) else "<invalid>"
 
 
 LOGIN_PAGE = """<!doctype html>
@@ -289,14 +287,22 @@ class Door:
         secret, _expires = self.store.open_session(user, record["role"], record.get("hash", ""), self.hours, client)
         return secret
 
-    def own_tokens(self, cookie_header: str, authorization: str = ""):
-        """(status, {user, role, scopes, tokens}) for the console's token page: a person's own
-        tokens, with a session only (a token does not manage tokens)."""
+    def _person(self, cookie_header: str, authorization: str = ""):
+        """(200, identity) of a person logged in; (401, None) without a session, (403, why) for a
+        token: a token does not manage tokens."""
         who = self.identify(cookie_header, authorization)
         if who is None:
             return 401, None
         if who["token"]:
             return 403, {"error": "a token does not manage tokens; log in"}
+        return 200, who
+
+    def own_tokens(self, cookie_header: str, authorization: str = ""):
+        """(status, {user, role, scopes, tokens}) for the console's token page: a person's own
+        tokens, with a session only."""
+        code, who = self._person(cookie_header, authorization)
+        if code != 200:
+            return code, who
         mine = [t for t in self.store.tokens() if t["user"] == who["user"]]
         return 200, {
             "user": who["user"],
@@ -307,17 +313,17 @@ class Door:
 
     def token_change(self, cookie_header: str, body: dict, client: str, revoke: bool = False):
         """(status, answer) for a person making (or revoking) a token of their own from the console."""
-        code, mine = self.own_tokens(cookie_header)
+        code, who = self._person(cookie_header)
         if code != 200:
-            return code, mine
-        user, name = mine["user"], body.get("name")
+            return code, who
+        user, name = who["user"], body.get("name")
         if revoke:
             if not isinstance(name, str) or not self.store.revoke(user, name):
                 return 404, {"error": f"no live token {name!r} of {user}"}
             self.log(f"token revoked user={user} name={name} from={client}")
             return 200, {"revoked": name}
         scopes, days = body.get("scopes") or ["read"], body.get("days", 30)
-        errors = door_store.token_errors(user, mine["role"], name, scopes, days)
+        errors = door_store.token_errors(user, who["role"], name, scopes, days)
         if errors:
             return 400, {"errors": errors}
         record = self.users().get(user) or {}

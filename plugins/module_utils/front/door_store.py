@@ -36,12 +36,12 @@ SCOPES = ("read", "act", "operate")
 ROLE_SCOPES = {"viewer": ("read",), "operator": SCOPES}
 PREFIX = "isf_"
 MAX_DAYS = 365
-_NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
+# a user's or a token's name, as the journal may show it (never a forged line)
+NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
 _TOKEN_RE = re.compile(r"^isf_([0-9a-f]{12})_([A-Za-z0-9_-]{43})$")
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS sessions (digest TEXT PRIMARY KEY, user TEXT NOT NULL, role TEXT NOT NULL,"
     " fingerprint TEXT NOT NULL, created INTEGER NOT NULL, expires INTEGER NOT NULL, client TEXT NOT NULL)",
-    "CREATE INDEX IF NOT EXISTS sessions_user ON sessions (user)",
     "CREATE TABLE IF NOT EXISTS tokens (id TEXT PRIMARY KEY, user TEXT NOT NULL, name TEXT NOT NULL,"
     " scopes TEXT NOT NULL, digest TEXT NOT NULL, created INTEGER NOT NULL, expires INTEGER NOT NULL,"
     " revoked INTEGER, owner TEXT NOT NULL)",
@@ -60,7 +60,7 @@ def fingerprint(password_hash: str) -> str:
 def token_errors(user: str, role, name: str, scopes, days) -> list:
     """What is wrong with a token asked for, each naming the option and the fix."""
     errors = []
-    if not isinstance(name, str) or not _NAME_RE.match(name):
+    if not isinstance(name, str) or not NAME_RE.match(name):
         errors.append(f"name: {name!r} is not a token name. Fix: 1-64 of A-Z a-z 0-9 . _ @ -, e.g. ci-restarts.")
     if role is None:
         errors.append(f"user: {user!r} is not a user of this front door. Fix: one of front_door_users.")

@@ -338,12 +338,10 @@ class Api:
         if who is None:
             return _json(401, {"error": "log in, or send an API token (Authorization: Bearer isf_...)"})
         operator = who.get("role") == "operator"
-        if "read" not in (who.get("scopes") or []):
-            self.log(f"refused user={who.get('user')} path={url.path!r} from={client} (no read scope)")
-            return _json(403, {"error": "this token may not read; make one with the read scope"})
-        if NEEDS.get(route) == "operator" and not operator:
-            self.log(f"refused user={who.get('user')} path={url.path!r} from={client} (role {who.get('role')})")
-            return _json(403, {"error": "operators only"})
+        refused = refusal(who, route)
+        if refused:
+            self.log(f"refused {who_line(who)} path={url.path!r} from={client} ({refused[0]})")
+            return _json(403, {"error": refused[1]})
         if route == "fleet":
             hosts = [self.fleet.host_view(h, operator) for h in self.fleet.hosts()]
             return _json(200, {"hosts": hosts, "user": who.get("user"), "role": who.get("role")})
@@ -373,10 +371,9 @@ class Api:
 
             def still_allowed():
                 again = self.identify(cookie, authorization)
-                return bool(again) and again.get("role") == "operator" and "read" in (again.get("scopes") or [])
+                return again is not None and refusal(again, route) is None
 
-            who_line = f"user={who.get('user')}" + (f" token={who['token']}" if who.get("token") else "")
-            self.log(f"follow {who_line} path={url.path!r} from={client}")
+            self.log(f"follow {who_line(who)} path={url.path!r} from={client}")
             return (
                 200,
                 "text/plain; charset=utf-8",
@@ -401,6 +398,19 @@ class Api:
         if operator:
             out["status_urls"] = {b["name"]: b["status_url"] for b in c.get("hosts") or []}
         return out
+
+
+def refusal(who: dict, route: str):
+    """(why, for the journal; the answer's error) where who may not have the route; else None."""
+    if "read" not in (who.get("scopes") or []):
+        return "no read scope", "this token may not read; make one with the read scope"
+    if NEEDS.get(route) == "operator" and who.get("role") != "operator":
+        return f"role {who.get('role')}", "operators only"
+    return None
+
+
+def who_line(who: dict) -> str:
+    return f"user={who.get('user')}" + (f" token={who['token']}" if who.get("token") else "")
 
 
 def _json(code: int, body) -> tuple:
