@@ -177,19 +177,35 @@ def test_the_journal_is_asked_for_the_unit_s_last_lines_as_plain_text():
 
 # a journal that grows: a line now, one every 0.2 s after (as journalctl -f prints them)
 GROWING = "import sys, time\nfor i in range(1000):\n    print(f'line {i}', flush=True)\n    time.sleep(0.2)\n"
+# journalctl -f's start: its last lines in one write, then quiet (once the server waits on the pipe)
+BURST = (
+    "import os, time\ntime.sleep(0.3)\n"
+    "os.write(1, ''.join(f'old {i}\\n' for i in range(20)).encode())\ntime.sleep(60)\n"
+)
 
 
-def test_a_followed_journal_streams_new_lines_and_its_process_ends_with_the_client():
+def journals(script: str):
+    """(follow, the processes it started): each followed journal a Python process running script."""
     procs = []
 
     def follow(instance):
-        procs.append(subprocess.Popen([sys.executable, "-c", GROWING], stdout=subprocess.PIPE))
+        procs.append(subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE))
         return procs[-1]
 
+    return follow, procs
+
+
+def following(url: str, n: int, timeout: float = 10) -> socket.socket:
+    """A client that asked the server at url to follow instance n's journal."""
+    client = socket.create_connection(("127.0.0.1", int(url.rsplit(":", 1)[1])), timeout=timeout)
+    client.sendall(f"GET /logs/{n}?follow=1 HTTP/1.0\r\n\r\n".encode())
+    return client
+
+
+def test_a_followed_journal_streams_new_lines_and_its_process_ends_with_the_client():
+    follow, procs = journals(GROWING)
     with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["127.0.0.1/32"], follow=follow) as (url, _c):
-        port = int(url.rsplit(":", 1)[1])
-        with socket.create_connection(("127.0.0.1", port), timeout=10) as client:
-            client.sendall(b"GET /logs/2?follow=1 HTTP/1.0\r\n\r\n")
+        with following(url, 2) as client:
             got = b""
             while got.count(b"line ") < 3:
                 got += client.recv(4096)
@@ -202,18 +218,11 @@ def test_a_followed_journal_streams_new_lines_and_its_process_ends_with_the_clie
 
 
 def test_followers_are_bounded():
-    started = []
-
-    def follow(instance):
-        started.append(subprocess.Popen([sys.executable, "-c", GROWING], stdout=subprocess.PIPE))
-        return started[-1]
-
+    follow, started = journals(GROWING)
     with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["127.0.0.1/32"], follow=follow) as (url, _c):
-        port = int(url.rsplit(":", 1)[1])
         clients = []
         for _n in range(status_server.FOLLOWERS):
-            client = socket.create_connection(("127.0.0.1", port), timeout=10)
-            client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+            client = following(url, 0)
             assert client.recv(64).startswith(b"HTTP/1.0 200")
             clients.append(client)
         code, _h, body = call(url + "/logs/0?follow=1")
@@ -223,33 +232,20 @@ def test_followers_are_bounded():
         for proc in started:
             proc.wait(timeout=5)
         # their places are free again
-        client = socket.create_connection(("127.0.0.1", port), timeout=10)
-        client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
-        assert client.recv(64).startswith(b"HTTP/1.0 200")
-        client.close()
+        with following(url, 0) as client:
+            assert client.recv(64).startswith(b"HTTP/1.0 200")
     assert status_server.journal_argv("u", 20, follow=True)[-1] == "-f"
 
 
-BURST = "import sys, time\nprint('\\n'.join(f'old {i}' for i in range(20)), flush=True)\ntime.sleep(60)\n"
-
-
 def test_a_burst_of_lines_reaches_the_client_at_once_and_a_client_that_keeps_sending_is_cut():
-    procs = []
-
-    def follow(instance):
-        procs.append(subprocess.Popen([sys.executable, "-c", BURST], stdout=subprocess.PIPE))
-        return procs[-1]
-
+    follow, procs = journals(BURST)
     with serving(lambda: {"ok": 1}, logs=lambda n: b"", logs_allow=["127.0.0.1/32"], follow=follow) as (url, _c):
-        port = int(url.rsplit(":", 1)[1])
-        with socket.create_connection(("127.0.0.1", port), timeout=3) as client:
-            client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+        with following(url, 0, timeout=3) as client:
             got = b""
             while b"old 19" not in got:
                 got += client.recv(65536)  # journalctl's last lines together: all of them, not one
         procs[0].wait(timeout=5)
-        with socket.create_connection(("127.0.0.1", port), timeout=3) as client:
-            client.sendall(b"GET /logs/0?follow=1 HTTP/1.0\r\n\r\n")
+        with following(url, 0, timeout=3) as client:
             client.recv(64)
             with contextlib.suppress(OSError):
                 client.sendall(b"x" * 200000)
