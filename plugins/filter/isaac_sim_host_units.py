@@ -8,7 +8,7 @@ from ansible.errors import AnsibleFilterError
 
 DOCUMENTATION = r"""
 name: isaac_sim_host_units
-short_description: The systemd units of a host service of isaacsim.fleet (status endpoint, metrics exporter)
+short_description: The systemd units of a host service of isaacsim.fleet (status endpoint, metrics, action agent)
 version_added: "0.3.0"
 description:
   - Renders the unit files of one of the host services that are not instances, from the collection's layout,
@@ -20,12 +20,13 @@ options:
       - The service's settings. C(status) - C(name), C(address), C(port), C(allow), C(logs_allow), C(origins),
         C(gpu_source).
         C(metrics) - C(textfile_dir), C(interval), C(gpu_source).
+        C(agent) - C(name), C(port), C(allow), C(soak), C(data_root).
     type: dict
     required: true
   service:
     description: Which host service.
     type: str
-    choices: [status, metrics]
+    choices: [status, metrics, agent]
     required: true
 """
 
@@ -43,6 +44,7 @@ _value:
 _NEEDS = {
     "status": ("name", "address", "port", "gpu_source"),
     "metrics": ("textfile_dir", "interval", "gpu_source"),
+    "agent": ("name", "port", "allow", "soak", "data_root"),
 }
 
 
@@ -58,6 +60,8 @@ def isaac_sim_host_units(settings: dict, service: str) -> dict:
         raise AnsibleFilterError(f"isaac_sim_host_units({service!r}): settings lack {', '.join(missing)}")
     if service == "status":
         return {layout.STATUS_UNIT: unit_files.render_status_unit(settings)}
+    if service == "agent":
+        return {layout.AGENT_UNIT: unit_files.render_agent_unit(settings)}
     return unit_files.render_metrics_units(settings)
 
 

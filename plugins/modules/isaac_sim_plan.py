@@ -180,6 +180,13 @@ options:
         and C(origins). Its port is checked against the instances' blocks and the host's listening sockets.
     type: dict
     default: {enabled: false}
+  agent:
+    description:
+      - The host's action agent, the front door's way to act on instances (mutual TLS) - C(enabled), C(port),
+        C(allow) (the networks the front door reaches it from; the firewall lets only these reach its port) and
+        C(soak) (seconds a restarted instance soaks). Its port is checked as the status endpoint's.
+    type: dict
+    default: {enabled: false}
   hub_cache:
     description:
       - NVIDIA's Hub Workstation Cache, one per host for its 6.x instances - C(enabled), C(image), C(dir) (empty -
@@ -447,6 +454,7 @@ ARGUMENT_SPEC = dict(
     profile=dict(type="str", default="streaming"),
     instance_profiles=dict(type="dict", default={}),
     status_server=dict(type="dict", default={"enabled": False}),
+    agent=dict(type="dict", default={"enabled": False}),
     hub_cache=dict(type="dict", default={"enabled": False}),
     firewall=dict(type="bool", default=True),
     allowed_networks=dict(type="list", elements="str", default=[]),

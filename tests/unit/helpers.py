@@ -165,3 +165,36 @@ def lock_files(where: Path, monkeypatch) -> Path:
     monkeypatch.setattr(runlock, "GUARD", str(where / ".isaac-sim.guard"))
     monkeypatch.setattr(runlock, "RECORD", str(where / "isaac-sim.rollout.json"))
     return where / "isaac-sim.json"
+
+
+def _openssl(cwd: Path, *args) -> None:
+    import subprocess
+
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
+
+
+def issue(cwd: Path, ca: str, name: str, usage: str, san: str = "", serial: int = 1, stem: str = "") -> None:
+    """STEM.key and STEM.crt (stem: the name) in cwd for the subject name, issued by the CA of the files
+    ca.key and ca.crt (paths from cwd)."""
+    stem = stem or name
+    (cwd / f"{stem}.ext").write_text(f"extendedKeyUsage = {usage}\n" + (f"subjectAltName = {san}\n" if san else ""))
+    _openssl(cwd, "req", "-new", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={name}", "-keyout", f"{stem}.key",
+             "-out", f"{stem}.csr")  # fmt: skip
+    _openssl(cwd, "x509", "-req", "-days", "2", "-in", f"{stem}.csr", "-CA", f"{ca}.crt", "-CAkey", f"{ca}.key",
+             "-set_serial", str(serial), "-extfile", f"{stem}.ext", "-out", f"{stem}.crt")  # fmt: skip
+
+
+def make_pki(d: Path, door_name: str) -> Path:
+    """The collection's CA (ca), another CA (other); issued by ca: host gpu-1's agent's server certificate
+    for 127.0.0.1 (agent.crt, named "gpu-1 agent" as the role names it), the front door's client
+    certificate (door_name), a client certificate of another name; issued by other: a client certificate
+    of the door's own name (in other-door/)."""
+    for ca in ("ca", "other"):
+        _openssl(d, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", f"/CN={ca} CA",
+                 "-keyout", f"{ca}.key", "-out", f"{ca}.crt")  # fmt: skip
+    issue(d, "ca", "gpu-1 agent", "serverAuth", "IP:127.0.0.1", 1, stem="agent")
+    issue(d, "ca", door_name, "clientAuth", "", 2)
+    issue(d, "ca", "someone else", "clientAuth", "", 3)
+    (d / "other-door").mkdir()
+    issue(d / "other-door", "../other", door_name, "clientAuth", "", 4)
+    return d

@@ -94,6 +94,26 @@ def docker_client(localhost=False) -> tuple:
     )
 
 
+def agent() -> tuple:
+    """The host's action agent: the day-2 actions of the one lifecycle, as root (systemctl over D-Bus,
+    Docker's socket, the env files root owns). It writes the instances' env files (a remove), the
+    host's reserved ports (sysctl, with the last instance removed: CAP_NET_ADMIN, as for nft), the
+    host's lock under /run, its own state, and nothing else; no capability but CAP_NET_ADMIN."""
+    return (
+        *(entry for entry in _COMMON if entry[0] != "ProtectKernelTunables"),
+        ("CapabilityBoundingSet", "CAP_NET_ADMIN"),
+        ("ProtectHome", "yes"),
+        ("PrivateTmp", "yes"),
+        ("PrivateDevices", "yes"),
+        ("ProtectKernelModules", "yes"),
+        ("RestrictAddressFamilies", "AF_UNIX AF_NETLINK AF_INET AF_INET6"),
+        ("ReadWritePaths", f"{layout.CONFIG_DIR} /etc/sysctl.d /run /proc/sys/net/ipv4"),
+        ("StateDirectory", layout.AGENT_STATE_DIR[len("/var/lib/") :]),
+        ("StateDirectoryMode", "0700"),
+        ("UMask", "0077"),
+    )
+
+
 def firewall() -> tuple:
     """isaac-sim-firewall.service: nft loads and deletes the collection's tables (netlink and
     CAP_NET_ADMIN), reading its rules file. Runs early at boot (DefaultDependencies=no): nothing

@@ -65,6 +65,40 @@ STATUS_UNIT = "isaac-sim-status.service"
 STATUS_SCRIPT = "isaac-sim-status-server"
 STATUS_ENV = "status.env"
 K_STATUS_URL = "ISAAC_SIM_STATUS_URL"
+# the host's action agent: the front door's one way to act on instances (mutual TLS, a fixed list of
+# actions through the one lifecycle); its code is a copy of the collection's module_utils tree
+AGENT_UNIT = "isaac-sim-agent.service"
+AGENT_LIB = "/usr/local/lib/isaac-sim/agent"
+AGENT_TLS_DIR = f"{CONFIG_DIR}/agent"
+AGENT_ENV = "agent.env"
+K_AGENT_URL = "ISAAC_SIM_AGENT_URL"
+AGENT_STATE_DIR = "/var/lib/isaac-sim-agent"
+# the agent's code, under AGENT_LIB/ansible_collections/isaacsim/fleet/plugins/module_utils: agent.py and what
+# it imports, no more (tests/unit/plugins/module_utils/instance/test_agent.py holds the list to the imports)
+AGENT_CODE = (
+    "common/__init__.py",
+    "common/sandbox.py",
+    "common/units.py",
+    "host/__init__.py",
+    "host/dirs.py",
+    "hostlib/__init__.py",
+    "hostlib/docker_socket.py",
+    "hostlib/layout.py",
+    "hostlib/site_firewall.py",
+    "instance/__init__.py",
+    "instance/agent.py",
+    "instance/firewall.py",
+    "instance/hostprobe.py",
+    "instance/lifecycle.py",
+    "instance/lifecycle_call.py",
+    "instance/network.py",
+    "instance/reserved_ports.py",
+    "instance/runlock.py",
+    "instance/unit_files.py",
+)
+AGENT_PACKAGE = "ansible_collections/isaacsim/fleet/plugins/module_utils"
+# a drained host takes no new claim (a test run's, a session's); what runs there goes on
+DRAINED = f"{CONFIG_DIR}/drained.json"
 # the metrics exporter for node_exporter's textfile collector (a host service: a timer and its oneshot)
 METRICS_UNIT = "isaac-sim-metrics.service"
 METRICS_TIMER = "isaac-sim-metrics.timer"
@@ -262,6 +296,14 @@ def as_dict(data_root: str = DATA_ROOT) -> dict:
         "status_script": STATUS_SCRIPT,
         "status_env": f"{CONFIG_DIR}/{STATUS_ENV}",
         "k_status_url": K_STATUS_URL,
+        "agent_unit": AGENT_UNIT,
+        "agent_lib": AGENT_LIB,
+        "agent_tls_dir": AGENT_TLS_DIR,
+        "agent_code": list(AGENT_CODE),
+        "agent_package": f"{AGENT_LIB}/{AGENT_PACKAGE}",
+        "agent_env": f"{CONFIG_DIR}/{AGENT_ENV}",
+        "k_agent_url": K_AGENT_URL,
+        "drained": DRAINED,
         "metrics_unit": METRICS_UNIT,
         "metrics_timer": METRICS_TIMER,
         "metrics_script": METRICS_SCRIPT,

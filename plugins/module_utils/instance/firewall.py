@@ -40,6 +40,8 @@ VAR = "isaac_sim_allowed_networks"
 BY_PORT = "isaac_sim_allowed_networks_by_port"
 # the host services' port kinds (the instances' are the release's and the companions' port names)
 HOST_KINDS = ("status", "hub_cache")
+# the action agent's port: its networks are isaac_sim_agent_allow's, never a site's default
+AGENT_KIND = "agent"
 HOST_CHAIN = "host"
 # traffic that never comes from another machine: the host itself, and containers on this host's
 # Docker bridges (a test run reaching the instance it borrowed)
@@ -155,6 +157,8 @@ def entries(plan: dict) -> list:
         out.append([HOST_CHAIN, "tcp", status["port"], "status", ""])
     if (plan.get("hub_cache") or {}).get("enabled"):
         out.append([HOST_CHAIN, "tcp", layout.HUB_PORT, "hub_cache", ""])
+    if (plan.get("agent") or {}).get("enabled"):
+        out.append([HOST_CHAIN, "tcp", plan["agent"]["port"], AGENT_KIND, ""])
     return _unique(out)
 
 
@@ -175,9 +179,13 @@ def model(fw: dict, plan: dict) -> dict | None:
         return None
     parent = (plan.get("network") or {}).get("parent") or ""
     rows = entries(plan)
+    by_kind = dict(fw["by_kind"])
+    if (plan.get("agent") or {}).get("enabled"):
+        # the front door's addresses alone (isaac_sim_agent_allow), whatever the other ports allow
+        by_kind[AGENT_KIND] = plan["agent"]["allow"]
     return {
         "default": fw["default"],
-        "by_kind": fw["by_kind"],
+        "by_kind": by_kind,
         "ports": rows,
         "parents": {row[4]: parent for row in rows if row[4]},
         "site": fw.get("site", "add"),

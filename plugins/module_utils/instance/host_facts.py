@@ -224,6 +224,7 @@ def _images(probe: Probe, p: dict, host: dict, docker) -> None:
 def _units(probe: Probe, p: dict, host: dict) -> None:
     host["metrics_timer"] = os.path.exists(os.path.join(p["systemd_dir"], layout.METRICS_TIMER))
     host["status_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.STATUS_UNIT))
+    host["agent_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.AGENT_UNIT))
     host["hub_unit"] = os.path.exists(os.path.join(p["systemd_dir"], layout.HUB_UNIT))
     # the firewall's nft: installed by the role only where missing (no package manager call on a re-run)
     host["nft"] = probe.which("nft") is not None

@@ -28,6 +28,7 @@ import glob
 import os
 import re
 import shutil
+import subprocess
 import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
@@ -66,9 +67,21 @@ def _no_docker(name):
 
 def bind(module) -> Host:
     """The real host, for a module running on it."""
+    return bind_local(lambda argv: module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:]))
 
-    def run(argv):
-        return module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:])
+
+def run_process(argv) -> tuple:
+    """(rc, stdout, stderr) of a command run without a shell, for a process that is not a module
+    (the host's action agent); a command not found is rc 127, as a shell says it."""
+    path = shutil.which(argv[0]) or shutil.which(argv[0], path="/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin")
+    if not path:
+        return 127, "", f"{argv[0]}: not found"
+    done = subprocess.run([path] + list(argv[1:]), capture_output=True, text=True, check=False)
+    return done.returncode, done.stdout, done.stderr
+
+
+def bind_local(run=run_process) -> Host:
+    """The real host, its commands run by run(argv) -> (rc, stdout, stderr)."""
 
     def read(path):
         try:

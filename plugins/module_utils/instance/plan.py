@@ -345,6 +345,51 @@ def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
     }, errors
 
 
+def _agent(cfg, taken, held, status) -> tuple[dict, list]:
+    """(the host's action agent as the role installs it, errors). Off: {"enabled": False}."""
+    want = cfg.get("agent") or {}
+    if not want.get("enabled"):
+        return {"enabled": False}, []
+    errors = []
+    port = as_int(want.get("port"))
+    if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
+        errors.append(
+            f"isaac_sim_agent_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
+            "Fix: choose one, e.g. 8291."
+        )
+    elif port in taken or (status.get("enabled") and port == status.get("port")):
+        what = taken.get(port) or "the status endpoint"
+        errors.append(f"isaac_sim_agent_port: {port} is also {what}'s port. Fix: choose another port.")
+    elif _foreign(held, port):
+        errors.append(
+            f"isaac_sim_agent_port: {port}/tcp is already held on this host by {_foreign(held, port)}. "
+            "Fix: stop it, or choose another port."
+        )
+    networks, net_errors = status_server.parse_networks(want.get("allow"), "isaac_sim_agent_allow")
+    errors += net_errors
+    if not networks and not net_errors:
+        errors.append(
+            "isaac_sim_agent_allow: empty, so the front door could not reach the agent. Fix: the front door's "
+            "address, e.g. [10.20.0.5/32], or set isaac_sim_agent_enabled: false."
+        )
+    try:
+        soak = float(want.get("soak", 0))
+    except (TypeError, ValueError):
+        soak = -1.0
+    if isinstance(want.get("soak"), bool) or soak < 0:
+        errors.append(f"isaac_sim_rollout_soak: {want.get('soak')!r} is not a number of seconds. Fix: e.g. 30.")
+    shown = cfg.get("public_address") or ""
+    host = f"[{shown}]" if ":" in str(shown) else shown
+    return {
+        "enabled": True,
+        "port": port,
+        "allow": [str(n) for n in networks],
+        "soak": soak,
+        "address": shown,
+        "url": f"https://{host}:{port}",
+    }, errors
+
+
 # where a shared cache must never go: it is chowned to the container user
 _SYSTEM_DIRS = {
     "/",
@@ -710,6 +755,8 @@ def build(cfg: dict, host: dict) -> dict:
         taken[layout.HUB_PORT] = "the Hub cache"
     status, status_errors = _status_endpoint(cfg, taken, held)
     errors += status_errors
+    agent, agent_errors = _agent(cfg, taken, held, status)
+    errors += agent_errors
     # the kinds a site may give networks of their own: any release's, the companions', the host services'
     kinds = {k for r in RELEASES.values() for k in r["ports"]} | set(firewall.HOST_KINDS)
     kinds |= {str(n) for spec in comp_specs if isinstance(spec, dict) for n in (spec.get("ports") or {})}
@@ -768,6 +815,7 @@ def build(cfg: dict, host: dict) -> dict:
         # one unit template per companion name, with the timeouts it is started and stopped with
         "companion_units": companion_units,
         "status_server": status,
+        "agent": agent,
         "hub_cache": hub,
         "network": net,
         # on the host's network, no outgoing connection may take one of them (reserved_ports.py)

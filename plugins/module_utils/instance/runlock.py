@@ -27,7 +27,8 @@ RECORD = "/run/lock/isaac-sim.rollout.json"
 # a lifecycle call's controller renews the lock every few seconds while it waits (the action
 # plugin isaac_sim_lifecycle); silent this long, the controller is taken for gone
 HEARTBEAT_LIMIT_S = 30
-HOLDER_KEYS = ("id", "user", "controller", "pid", "started", "play")
+# agent: the action id where the holder is the host's action agent (agent.py), not a playbook run
+HOLDER_KEYS = ("id", "user", "controller", "pid", "started", "play", "agent")
 
 
 def request_options(holder_required: bool) -> dict:
@@ -46,6 +47,11 @@ def holder_text(holder: dict, now: float) -> str:
     since = float(holder.get("since") or 0)
     stamp = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(since))
     minutes = max(0, int(now - since)) // 60
+    if holder.get("agent"):
+        return (
+            f"{holder.get('user') or '?'} through the fleet API (action {holder['agent']}: "
+            f"{holder.get('play') or '?'}) since {stamp} ({minutes} min ago)"
+        )
     play = f", play {holder['play']!r}" if holder.get("play") else ""
     return (
         f"{holder.get('user') or '?'} on {holder.get('controller') or '?'} "

@@ -268,6 +268,9 @@ def render_hub_dropin(managed: str) -> str:
     return units.render([("Unit", [("Wants", layout.HUB_UNIT), ("After", layout.HUB_UNIT)])], header=[managed])
 
 
+AGENT_MODULE = "ansible_collections.isaacsim.fleet.plugins.module_utils.instance.agent"
+
+
 def render_status_unit(server: dict, managed: str = layout.MANAGED) -> str:
     """The host's read-only status endpoint. server: name (the inventory's), address, port, allow
     (networks), logs_allow (networks given the instances' logs), origins, gpu_source."""
@@ -292,6 +295,37 @@ def render_status_unit(server: dict, managed: str = layout.MANAGED) -> str:
     ]
     unit = [
         ("Description", "Isaac Sim status of this host, read-only, for the fleet dashboard"),
+        ("After", "network-online.target docker.service"),
+        ("Wants", "network-online.target"),
+    ]
+    return units.render(
+        [("Unit", unit), ("Service", service), ("Install", [("WantedBy", "multi-user.target")])],
+        header=[managed],
+    )
+
+
+def render_agent_unit(agent: dict, managed: str = layout.MANAGED) -> str:
+    """The host's action agent (instance/agent.py), run from its copy of the collection's
+    module_utils. agent: name (the inventory's), port, allow (the front door's networks), soak,
+    data_root."""
+    argv = [
+        f"/usr/bin/python3 -m {AGENT_MODULE} --name {shlex.quote(agent['name'])} --port {agent['port']}",
+        *(f"--allow {net}" for net in agent["allow"]),
+        f"--soak {agent['soak']} --data-root {shlex.quote(agent['data_root'])}",
+    ]
+    service = [
+        ("Environment", f"PYTHONPATH={layout.AGENT_LIB}"),
+        ("ExecStart", " ".join(argv)),
+        ("Restart", "always"),
+        ("RestartSec", 5),
+        # an action in hand ends with the process; systemd finishes the instance's own job
+        ("KillMode", "mixed"),
+        *sandbox.agent(),
+        ("MemoryMax", "256M"),
+        ("TasksMax", 64),
+    ]
+    unit = [
+        ("Description", "Isaac Sim action agent of this host: the front door's actions, through the lifecycle"),
         ("After", "network-online.target docker.service"),
         ("Wants", "network-online.target"),
     ]

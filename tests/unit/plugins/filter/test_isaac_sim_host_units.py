@@ -54,6 +54,20 @@ def test_metrics_are_a_oneshot_and_its_timer_writing_into_the_textfile_directory
     assert "[Install]" not in service and timer[-1] == "WantedBy=timers.target"
 
 
+def test_the_agent_runs_from_its_copy_of_the_code_for_the_front_door_s_networks():
+    agent = {"name": "gpu host 1", "port": 8291, "allow": ["10.0.0.9/32"], "soak": 30.0, "data_root": "/data/isaac"}
+    units = isaac_sim_host_units(agent, "agent")
+    text = lines(units[layout.AGENT_UNIT])
+    assert f"Environment=PYTHONPATH={layout.AGENT_LIB}" in text
+    [start] = [line for line in text if line.startswith("ExecStart=")]
+    assert start == (
+        "ExecStart=/usr/bin/python3 -m ansible_collections.isaacsim.fleet.plugins.module_utils.instance.agent"
+        " --name 'gpu host 1' --port 8291 --allow 10.0.0.9/32 --soak 30.0 --data-root /data/isaac"
+    )
+    for key, value in sandbox.agent():
+        assert f"{key}={value}" in text
+
+
 @pytest.mark.parametrize(
     "settings, service, message",
     [

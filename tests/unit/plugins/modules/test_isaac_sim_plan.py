@@ -149,6 +149,7 @@ def test_a_good_configuration_is_planned_with_what_the_host_has(host, capsys):
         "companion_images_missing_named": [],
         "metrics_timer": True,
         "status_unit": False,
+        "agent_unit": False,
         "hub_unit": False,
         "nft": False,
         # no host service asked about (host_services): none read

@@ -17,6 +17,7 @@ PROFILES = {
     "docker": sandbox.docker_client(),
     "docker-localhost": sandbox.docker_client(localhost=True),
     "firewall": sandbox.firewall(),
+    "agent": sandbox.agent(),
 }
 
 
@@ -37,7 +38,7 @@ def test_a_profile_sets_each_key_once_and_takes_every_capability_it_does_not_nam
     assert twice == []
     v = values(profile)
     assert v["NoNewPrivileges"] == "yes" and v["ProtectSystem"] == "strict" and v["AmbientCapabilities"] == ""
-    assert v["CapabilityBoundingSet"] == ("CAP_NET_ADMIN" if name == "firewall" else "")
+    assert v["CapabilityBoundingSet"] == ("CAP_NET_ADMIN" if name in ("firewall", "agent") else "")
 
 
 def test_a_docker_client_reaches_docker_and_netlink_only_and_writes_only_the_run_directory():
@@ -74,6 +75,16 @@ def test_the_firewall_keeps_what_loading_rules_at_boot_needs():
     assert v["RestrictAddressFamilies"] == "AF_NETLINK"
 
 
+def test_the_agent_writes_only_the_instances_files_the_lock_and_its_own_state():
+    v = values(sandbox.agent())
+    # a remove takes an env file out and, with the last instance, the host's reserved ports (sysctl)
+    assert v["ReadWritePaths"].split() == [layout.CONFIG_DIR, "/etc/sysctl.d", "/run", "/proc/sys/net/ipv4"]
+    assert "ProtectKernelTunables" not in v and v["ProtectHome"] == "yes" and v["PrivateDevices"] == "yes"
+    assert f"/var/lib/{v['StateDirectory']}" == layout.AGENT_STATE_DIR and v["StateDirectoryMode"] == "0700"
+    # systemctl (D-Bus), Docker's socket, nft (netlink), and its own TLS port
+    assert v["RestrictAddressFamilies"] == "AF_UNIX AF_NETLINK AF_INET AF_INET6"
+
+
 def _units() -> dict:
     p = plan.build(plan_config(image="reg/isaac-sim:6.0.1", instance_count=1), {"memory_bytes": 64 * 1024**3})
     companion = {"name": "viewer", "ready_timeout": 60, "stop_timeout": 10}
@@ -93,10 +104,16 @@ def _units() -> dict:
         "status": (unit_files.render_status_unit(status), PROFILES["reader"]),
         "metrics": (metrics, PROFILES["metrics"]),
         "firewall": (firewall.unit("m"), PROFILES["firewall"]),
+        "agent": (
+            unit_files.render_agent_unit(
+                {"name": "h", "port": 8291, "allow": ["10.0.0.9/32"], "soak": 0, "data_root": "/var/lib/isaac-sim"}
+            ),
+            PROFILES["agent"],
+        ),
     }
 
 
-@pytest.mark.parametrize("kind", ["instance", "companion", "test run", "hub", "status", "metrics", "firewall"])
+@pytest.mark.parametrize("kind", ["instance", "companion", "test run", "hub", "status", "metrics", "firewall", "agent"])
 def test_every_unit_the_collection_writes_runs_in_its_profile(kind):
     text, profile = _units()[kind]
     service = text.split("[Service]\n", 1)[1].split("\n[", 1)[0].splitlines()

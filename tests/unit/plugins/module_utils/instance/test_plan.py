@@ -357,6 +357,43 @@ def test_the_status_endpoint_listens_on_every_address_and_says_its_url_at_the_pu
     assert plan.build(cfg(), HOST)["status_server"] == {"enabled": False}
 
 
+AGENT = {"enabled": True, "port": 8291, "allow": ["10.0.0.9"], "soak": "30"}
+
+
+def test_the_action_agent_answers_the_front_door_alone_at_the_public_address():
+    result = plan.build(cfg(agent=AGENT, status_server=STATUS), HOST)
+    assert result["agent"] == {
+        "enabled": True,
+        "port": 8291,
+        "allow": ["10.0.0.9/32"],
+        "soak": 30.0,
+        "address": "10.0.0.5",
+        "url": "https://10.0.0.5:8291",
+    }
+    # the firewall lets the front door's address alone reach it, whatever the other ports allow
+    fw = result["firewall"]
+    assert ["host", "tcp", 8291, "agent", ""] in fw["ports"] and fw["by_kind"]["agent"] == ["10.0.0.9/32"]
+    assert fw["default"] == ["10.0.0.0/8"]
+    assert plan.build(cfg(), HOST)["agent"] == {"enabled": False}
+    assert "agent" not in plan.build(cfg(), HOST)["firewall"]["by_kind"]
+
+
+@pytest.mark.parametrize(
+    "settings, wanted",
+    [
+        ({"allow": []}, "isaac_sim_agent_allow: empty, so the front door could not reach the agent"),
+        ({"allow": ["door"]}, "isaac_sim_agent_allow: 'door' is not a network"),
+        ({"port": 8290}, "isaac_sim_agent_port: 8290 is also the status endpoint's port"),
+        ({"port": 49101}, "isaac_sim_agent_port: 49101 is also instance 1 signal's port"),
+        ({"port": 99}, "isaac_sim_agent_port: 99 is not a port in 1024-65535"),
+        ({"soak": "long"}, "isaac_sim_rollout_soak: 'long' is not a number of seconds"),
+    ],
+)
+def test_bad_agent_settings_are_refused_before_any_change(settings, wanted):
+    text = "\n".join(errors_of(cfg(agent=dict(AGENT, **settings), status_server=STATUS), HOST))
+    assert wanted in text and "Fix:" in text, text
+
+
 @pytest.mark.parametrize(
     "settings, host, wanted",
     [

@@ -1,0 +1,666 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""The host's action agent (isaac-sim-agent.service): the front door's one way to act on this
+host's instances, so the door holds no SSH key to the fleet and a host offers no shell.
+
+It answers over TLS and only a client that shows a certificate of the collection's CA whose
+name is the front door's (CLIENT_NAME, for client authentication) from an allowed network.
+It offers a fixed list of actions: start, stop, restart and remove instances (the day-2 actions
+of lifecycle_call.py, the same code a deploy runs) and drain or undrain the host.
+
+An action is acknowledged at once (202 and its id) and runs here, in this process, whoever
+asked and whatever becomes of them: it holds the host's lock (runlock.py) as a playbook run
+does, so a deploy and an action exclude each other (409 naming the holder), and it renews the
+lock while it works. It never takes the host below N-1 serving instances unless the request
+confirms it (the door lets operators alone confirm). Its progress is a list of events, kept on
+disk with its outcome, so the door (or the door back after a crash) can read and follow it.
+
+The standard library only, like the status endpoint: a host needs nothing from PyPI.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ipaddress
+import json
+import os
+import re
+import secrets
+import socket
+import ssl
+import subprocess
+import sys
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
+    hostprobe,
+    lifecycle,
+    lifecycle_call,
+    runlock,
+)
+
+# the subject of the front door's client certificate (roles/front_door issues it from the CA)
+CLIENT_NAME = "isaacsim.fleet front door"
+INSTANCE_ACTIONS = tuple(lifecycle_call.DAY2)
+HOST_ACTIONS = ("drain", "undrain")
+# actions that take serving instances out of service while they run
+TAKES_DOWN = ("stop", "restart", "remove")
+MAX_BODY = 4096
+# clients served at once (a followed action holds one until it ends); the unit allows 64 tasks
+MAX_CLIENTS = 32
+# the lock is renewed this often while an action runs (runlock.HEARTBEAT_LIMIT_S is its limit)
+RENEW_S = 5.0
+# actions kept on disk, newest first
+KEEP = 100
+ACTION_ID_RE = re.compile(r"^[a-f0-9]{16}$")
+NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
+# host: the host the door means (this agent refuses a request for another, whatever its certificate said)
+_FIELDS = {"host": str, "action": str, "ids": list, "confirm": bool, "user": str, "token": str}
+_NEEDED = ("host", "action", "user")
+
+
+class RefusedError(Exception):
+    """A request the agent will not act on: its HTTP status and the answer's fields."""
+
+    def __init__(self, code: int, error: str, **fields):
+        super().__init__(error)
+        self.code, self.body = code, dict(error=error, **fields)
+
+
+def parse_request(body: bytes) -> dict:
+    """The request of an action, checked field by field; RefusedError(400) naming the field."""
+    if len(body) > MAX_BODY:
+        raise RefusedError(413, f"the request is over {MAX_BODY} bytes")
+    try:
+        req = json.loads(body or b"{}")
+    except (ValueError, RecursionError) as exc:
+        raise RefusedError(400, f"the body is not JSON: {exc}") from exc
+    if not isinstance(req, dict):
+        raise RefusedError(400, "the body is not a JSON object")
+    unknown = sorted(set(req) - set(_FIELDS))
+    if unknown:
+        raise RefusedError(400, f"{unknown[0]}: not a field of an action; the fields are {', '.join(_FIELDS)}")
+    for name in _NEEDED:
+        if name not in req:
+            raise RefusedError(400, f"{name}: missing")
+    for name, kind in _FIELDS.items():
+        if name in req and (not isinstance(req[name], kind) or (kind is int and isinstance(req[name], bool))):
+            raise RefusedError(400, f"{name}: {req[name]!r} is not a {kind.__name__}")
+    if req["action"] not in INSTANCE_ACTIONS + HOST_ACTIONS:
+        raise RefusedError(400, f"action: {req['action']!r} is not one of {', '.join(INSTANCE_ACTIONS + HOST_ACTIONS)}")
+    if not NAME_RE.match(req["user"]) or (req.get("token") and not NAME_RE.match(req["token"])):
+        raise RefusedError(400, "user, token: names of 1-64 letters, digits and ._@-")
+    ids = req.get("ids", [])
+    if req["action"] in HOST_ACTIONS:
+        if ids:
+            raise RefusedError(400, f"ids: {req['action']} is the host's; it takes no instances")
+    elif not ids or any(not isinstance(i, int) or isinstance(i, bool) or not 0 <= i <= 99 for i in ids):
+        raise RefusedError(400, f"ids: {ids!r} is not a list of instance numbers 0-99")
+    elif len(set(ids)) != len(ids):
+        raise RefusedError(400, f"ids: {ids!r} names an instance twice")
+    return {
+        "host": req["host"],
+        "action": req["action"],
+        "ids": list(ids),
+        "confirm": bool(req.get("confirm")),
+        "user": req["user"],
+        "token": req.get("token") or "",
+    }
+
+
+def below_n1(action: str, ids, states: dict) -> str:
+    """Why `action` on `ids` would leave fewer than N-1 of the host's N instances serving while it
+    runs ("" when it would not). A restart takes one at a time; a stop or a remove takes all of
+    them; a start takes none."""
+    if action not in TAKES_DOWN:
+        return ""
+    serving = {i for i, s in states.items() if lifecycle.serving(s)}
+    targets = [i for i in ids if i in serving]
+    if not targets:
+        return ""
+    least = len(serving) - (1 if action == "restart" else len(targets))
+    n = len(states)
+    if least >= max(1, n - 1):
+        return ""
+    down = sorted(set(states) - serving)
+    said = f" ({', '.join(layout.container(i) for i in down)} not serving)" if down else ""
+    # a host of one instance (N-1 = 0) is never emptied without a word either
+    rule = f"below N-1 = {n - 1}" if least < n - 1 else "none at all"
+    return (
+        f"{action} of {', '.join(layout.container(i) for i in ids)} would leave {least} of this host's {n} "
+        f"instances serving{said}, {rule}"
+    )
+
+
+def _unit_step(argv) -> tuple:
+    """(verb, units) of a systemctl command that starts, stops or restarts instances; else (None, [])."""
+    if len(argv) >= 3 and argv[0] == "systemctl" and argv[1] in ("start", "restart", "stop"):
+        units = [u for u in argv[2:] if layout.UNIT_RE.match(u) or layout.COMPANION_UNIT_RE.match(u)]
+        return argv[1], units
+    return None, []
+
+
+class Agent:
+    """The actions of one host: taken, run in a thread each, kept on disk.
+
+    host(): the lifecycle's Host (lifecycle.bind_local() on the real host, a scripted one in the
+    tests); lock, guard, record: runlock's files; journal(line, unit): a line in the host's journal,
+    in the named unit's own journal too."""
+
+    def __init__(
+        self,
+        name: str,
+        state_dir: str,
+        host=lifecycle.bind_local,
+        soak_seconds: float = 0.0,
+        data_root: str = layout.DATA_ROOT,
+        lock: str = runlock.LOCK,
+        guard: str = runlock.GUARD,
+        record: str = runlock.RECORD,
+        drained: str = layout.DRAINED,
+        journal=None,
+        renew_s: float = RENEW_S,
+    ):
+        self.name, self.state_dir, self.host = name, state_dir, host
+        self.soak, self.data_root = soak_seconds, data_root
+        self.lock, self.guard, self.record, self.drained = lock, guard, record, drained
+        self.journal = journal or say
+        self.renew_s = renew_s
+        self.actions_dir = os.path.join(state_dir, "actions")
+        os.makedirs(self.actions_dir, mode=0o700, exist_ok=True)
+        self._cv = threading.Condition()
+        self._pruning = threading.Lock()
+        self._live = {}
+        self._threads = []
+        self._recover()
+
+    # --- what is kept
+
+    def _path(self, action_id: str) -> str:
+        return os.path.join(self.actions_dir, f"{action_id}.json")
+
+    def _save(self, rec: dict) -> None:
+        path = self._path(rec["id"])
+        tmp = f"{path}.{threading.get_ident()}.tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(rec, fh, sort_keys=True)
+        os.replace(tmp, path)
+
+    def _load(self, action_id: str):
+        try:
+            with open(self._path(action_id), encoding="utf-8") as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return None
+
+    def _recover(self) -> None:
+        """Actions this process did not see end (the agent stopped or was killed while one ran): said
+        so, and the lock such an action held given back, so the host is not held by nobody."""
+        for entry in os.listdir(self.actions_dir):
+            rec = self._load(entry[:-5]) if entry.endswith(".json") else None
+            if rec and rec.get("state") in ("accepted", "running"):
+                self._event(
+                    rec,
+                    "the agent stopped while this action ran; systemd finished or failed what it "
+                    "was doing; the instances' journals say which",
+                    state="interrupted",
+                    save=False,
+                )
+                rec["ended_at"] = time.time()
+                self._save(rec)
+                runlock.release({"id": rec["id"]}, self.lock, self.guard)
+        # a hold an agent process took and did not give back (killed before its action was even written
+        # down): that process is gone, so is its action
+        holder = runlock.read(self.lock)
+        if isinstance(holder, dict) and holder.get("agent") and not self._alive(holder):
+            runlock.release({"id": holder.get("id")}, self.lock, self.guard)
+        self._prune()
+
+    @staticmethod
+    def _alive(holder: dict) -> bool:
+        """Whether the agent process that took this hold still runs (its pid, and that pid's start time)."""
+        pid = holder.get("pid")
+        return bool(pid) and runlock.start_time(pid) == holder.get("started") != ""
+
+    def _newest(self) -> list:
+        """The actions' files, newest first (one removed meanwhile is left out)."""
+        found = []
+        for entry in os.listdir(self.actions_dir):
+            if entry.endswith(".json"):
+                with contextlib.suppress(FileNotFoundError):
+                    found.append((os.path.getmtime(os.path.join(self.actions_dir, entry)), entry))
+        return [entry for _mtime, entry in sorted(found, reverse=True)]
+
+    def _prune(self) -> None:
+        with self._pruning:
+            for entry in self._newest()[KEEP:]:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(os.path.join(self.actions_dir, entry))
+
+    def get(self, action_id: str):
+        if not ACTION_ID_RE.match(action_id or ""):
+            return None
+        with self._cv:
+            if action_id in self._live:
+                return json.loads(json.dumps(self._live[action_id]))
+        return self._load(action_id)
+
+    def recent(self, limit: int = 20) -> list:
+        """The last actions, newest first, without their events."""
+        out = []
+        for entry in self._newest()[:limit]:
+            rec = self.get(entry[:-5])
+            if rec:
+                out.append({k: v for k, v in rec.items() if k != "events"})
+        return out
+
+    def events(self, action_id: str, start: int = 0, wait: float = 1.0):
+        """(new events since `start`, whether the action has ended), waiting up to `wait` s for one."""
+        with self._cv:
+            rec = self._live.get(action_id)
+            if rec is not None and len(rec["events"]) <= start and rec["state"] in ("accepted", "running"):
+                self._cv.wait(wait)
+                rec = self._live.get(action_id)
+            if rec is not None:  # both read at once: the last event never goes without its end
+                return list(rec["events"][start:]), rec["state"] not in ("accepted", "running")
+        # not in hand: no thread of this process runs it, whatever its file last said
+        rec = self._load(action_id) or {"events": []}
+        return rec["events"][start:], True
+
+    def _event(self, rec: dict, text: str, progress=None, state=None, save=True, **extra) -> None:
+        with self._cv:
+            if progress is not None:
+                rec["progress"] = progress
+            if state:
+                rec["state"] = state
+            rec["events"].append(
+                dict(at=round(time.time(), 3), text=text, progress=rec["progress"], state=rec["state"], **extra)
+            )
+            self._cv.notify_all()
+        if save:
+            self._save(rec)
+
+    # --- taking and running
+
+    def drained_by(self):
+        try:
+            with open(self.drained, encoding="utf-8") as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return None
+
+    def submit(self, req: dict) -> tuple:
+        """(HTTP status, answer) for a checked request (parse_request): 202 and the action once it is
+        taken and holds the host; RefusedError otherwise, with nothing on the host changed."""
+        if req["host"] != self.name:
+            raise RefusedError(421, f"host: this is {self.name}, not {req['host']}; nothing was done")
+        action_id = secrets.token_hex(8)
+        who = req["user"] + (f" (token {req['token']})" if req["token"] else "")
+        what = f"{req['action']} " + (", ".join(layout.container(i) for i in req["ids"]) or self.name)
+        rec = {
+            "id": action_id,
+            "host": self.name,
+            "action": req["action"],
+            "ids": req["ids"],
+            "user": req["user"],
+            "token": req["token"],
+            "confirmed": req["confirm"],
+            "what": what,
+            "state": "accepted",
+            "progress": 0,
+            "accepted_at": round(time.time(), 3),
+            "ended_at": None,
+            "result": None,
+            "events": [],
+        }
+        if req["action"] in HOST_ACTIONS:
+            return self._drain(rec, who)
+        me = {
+            "id": action_id,
+            "user": who,
+            "controller": f"the fleet API (isaac-sim-agent on {self.name})",
+            "pid": os.getpid(),
+            "started": runlock.start_time(os.getpid()),
+            "play": what,
+            "agent": action_id,
+        }
+        taken, holder, _note = runlock.acquire(me, time.time(), 0, path=self.lock, guard=self.guard, record_path="")
+        if not taken:
+            held = runlock.holder_text(holder or {}, time.time())
+            self.journal(f"refused action {what} by {who}: the host is held by {held}")
+            raise RefusedError(
+                409, f"{self.name} is held by {held}; nothing was done. Try again once it ends.", holder=held
+            )
+        try:
+            host = self.host()
+            configured = hostprobe.existing_instances(
+                layout.CONFIG_DIR, os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants"), host.find
+            )
+            missing = [i for i in req["ids"] if i not in configured]
+            if missing:
+                raise RefusedError(
+                    404,
+                    f"ids: {', '.join(layout.container(i) for i in missing)} not on {self.name}, which runs "
+                    f"{', '.join(layout.container(i) for i in configured) or 'none'}",
+                )
+            below = below_n1(req["action"], req["ids"], lifecycle.states(host, configured))
+            if below and not req["confirm"]:
+                self.journal(f"refused action {what} by {who}: {below}; not confirmed")
+                raise RefusedError(
+                    412,
+                    f"{below}. Nothing was done; an operator may confirm it (confirm: true).",
+                    needs_confirm=True,
+                    why=below,
+                )
+            self._event(rec, f"accepted: {what} by {who}" + (f"; confirmed: {below}" if below else ""), progress=0)
+            with self._cv:
+                self._live[action_id] = rec
+                answer = {k: v for k, v in rec.items() if k != "events"}
+            worker = threading.Thread(
+                target=self._run, args=(rec, me, host, who), name=f"action-{action_id}", daemon=True
+            )
+            worker.start()
+        except BaseException as exc:
+            runlock.release(me, self.lock, self.guard)
+            with self._cv:
+                taken = self._live.pop(action_id, None)
+            if taken is not None:  # written down as accepted: say it ended there
+                rec["ended_at"] = round(time.time(), 3)
+                rec["result"] = {"ok": False, "message": f"not started: {type(exc).__name__}: {exc}"}
+                with contextlib.suppress(OSError):
+                    self._event(rec, rec["result"]["message"], progress=100, state="failed")
+            raise
+        self._threads = [t for t in self._threads if t.is_alive()] + [worker]
+        self.journal(f"action {action_id} accepted: {what} by {who}" + (" (confirmed below N-1)" if below else ""))
+        return 202, answer
+
+    def _drain(self, rec: dict, who: str) -> tuple:
+        if rec["action"] == "drain":
+            tmp = f"{self.drained}.{threading.get_ident()}.tmp"
+            with open(tmp, "w", encoding="utf-8") as fh:
+                json.dump({"by": who, "at": time.time()}, fh)
+            os.replace(tmp, self.drained)
+            text = "drained: no new claim here; what runs goes on"
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.drained)
+            text = "undrained: claims are taken here again"
+        rec.update(ended_at=round(time.time(), 3), result={"ok": True, "message": text})
+        self._event(rec, text, progress=100, state="succeeded")
+        self.journal(f"action {rec['id']} {rec['action']} of {self.name} by {who}: succeeded")
+        self._prune()
+        return 200, {k: v for k, v in rec.items() if k != "events"}
+
+    def _run(self, rec: dict, me: dict, host, who: str) -> None:
+        stop = threading.Event()
+        renewer = threading.Thread(target=self._renew, args=(me, stop), daemon=True)
+        steps = {"n": 0}
+        total = max(1, len(rec["ids"]))
+        run = host.run
+
+        def watched(argv):
+            verb, units = _unit_step(argv)
+            mine = [u for u in units if layout.UNIT_RE.match(u)]
+            if mine:
+                names = ", ".join(layout.container(layout.instance_id(layout.UNIT_RE, u)) for u in mine)
+                self._event(rec, f"{verb}: {names}" + (" (waits for its ready line)" if verb != "stop" else ""))
+            began = time.monotonic()
+            rc, out, err = run(argv)
+            if mine:
+                steps["n"] = min(total, steps["n"] + len(mine))
+                took = round(time.monotonic() - began, 1)
+                said = "done" if rc == 0 else f"failed (exit {rc}): {(err or out).strip()[-300:]}"
+                self._event(rec, f"{verb} of {names} {said} in {took} s", progress=10 + 80 * steps["n"] // total)
+            return rc, out, err
+
+        host.run = watched
+        p = {
+            "action": rec["action"],
+            "ids": rec["ids"],
+            "soak_seconds": self.soak,
+            "purge": False,
+            "data_root": self.data_root,
+            "managed": layout.MANAGED,
+            "controller_run": me["id"],
+        }
+        try:
+            renewer.start()
+            self._event(rec, f"holds {self.name}; the lifecycle runs", progress=10, state="running")
+            out = lifecycle_call.call(host, p, lock=self.lock, record=self.record)
+            rec["result"] = {"ok": True, "message": f"{rec['what']}: done", "done": out["done"]}
+            ended = "succeeded"
+        except lifecycle_call.LifecycleError as exc:
+            rec["result"] = {"ok": False, "message": exc.msg, **{k: v for k, v in exc.fields.items() if k != "diff"}}
+            ended = "failed"
+        except Exception as exc:  # pylint: disable=broad-exception-caught
+            rec["result"] = {"ok": False, "message": f"{type(exc).__name__}: {exc}"}
+            ended = "failed"
+        finally:
+            stop.set()
+            if renewer.is_alive():
+                renewer.join()
+            runlock.release(me, self.lock, self.guard)
+        rec["ended_at"] = round(time.time(), 3)
+        kept = True
+        try:
+            self._event(rec, rec["result"]["message"], progress=100, state=ended)
+        except OSError as exc:  # the outcome could not be written down (a full disk): said, and kept in memory
+            self.journal(f"action {rec['id']}: could not keep its outcome: {exc}")
+            kept = False
+        line = f"action {rec['id']} {rec['what']} by {who}: {ended}" + (
+            "" if ended == "succeeded" else f": {rec['result']['message']}"
+        )
+        for i in rec["ids"]:  # in the instance's own journal too, beside the lifecycle's lines
+            self.journal(line, layout.unit(i))
+        if not rec["ids"]:
+            self.journal(line)
+        if kept:
+            with self._cv:
+                self._live.pop(rec["id"], None)
+        self._prune()
+
+    def _renew(self, me: dict, stop: threading.Event) -> None:
+        while not stop.wait(self.renew_s):
+            runlock.renew(me, time.time(), self.lock, self.guard)
+
+    def wait(self, timeout: float = 30.0) -> None:
+        """Until every action taken has ended (the tests)."""
+        for worker in list(self._threads):
+            worker.join(timeout)
+
+
+def say(line: str, unit: str = "") -> None:
+    """A line in the agent's journal; with `unit`, in that unit's journal too (journalctl -u shows a
+    root process's entries that name it as OBJECT_SYSTEMD_UNIT)."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+    if unit:
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            subprocess.run(
+                ["logger", "--journald"],
+                input=f"MESSAGE=isaac-sim-agent: {line}\nSYSLOG_IDENTIFIER=isaac-sim-agent\n"
+                f"OBJECT_SYSTEMD_UNIT={unit}\nPRIORITY=5\n",
+                text=True,
+                check=False,
+                timeout=5,
+            )
+
+
+# --- the channel: TLS, the front door's certificate alone, from allowed networks
+
+
+def tls_context(cert: str, key: str, ca: str) -> ssl.SSLContext:
+    """The server side: TLS 1.2 or later, a client certificate of the CA required."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    ctx.verify_mode = ssl.CERT_REQUIRED
+    ctx.load_verify_locations(cafile=ca)
+    ctx.load_cert_chain(cert, key)
+    return ctx
+
+
+def peer_name(cert: dict) -> str:
+    """The common name of a verified peer certificate (ssl's getpeercert())."""
+    for rdn in (cert or {}).get("subject", ()):
+        for key, value in rdn:
+            if key == "commonName":
+                return value
+    return ""
+
+
+def allowed(address: str, networks) -> bool:
+    try:
+        ip = ipaddress.ip_address(address.split("%", 1)[0])
+    except ValueError:
+        return False
+    if ip.version == 6 and ip.ipv4_mapped:
+        ip = ip.ipv4_mapped
+    return any(ip in net for net in networks)
+
+
+class Server(ThreadingHTTPServer):
+    daemon_threads = True
+    # a client that does not finish its handshake holds only its own thread, this long
+    handshake_s = 10.0
+
+    def __init__(self, address, handler, ctx: ssl.SSLContext, networks, client_name=CLIENT_NAME, log=say):
+        self.ctx, self.networks, self.client_name, self.log = ctx, networks, client_name, log
+        self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
+        # a thread per client, within the unit's TasksMax: more at once are closed at once
+        self.slots = threading.BoundedSemaphore(MAX_CLIENTS)
+        super().__init__(address, handler)
+
+    def process_request(self, request, client_address):
+        if not self.slots.acquire(blocking=False):
+            self.log(f"refused {client_address[0]}: {MAX_CLIENTS} clients at once already")
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self.slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
+
+    def finish_request(self, request, client_address):
+        """In the request's own thread: the network, the handshake and the certificate's name checked
+        before a byte of HTTP is read."""
+        if not allowed(client_address[0], self.networks):
+            self.log(f"refused {client_address[0]}: not in the allowed networks")
+            return
+        try:
+            request.settimeout(self.handshake_s)
+            conn = self.ctx.wrap_socket(request, server_side=True)
+        except (OSError, ssl.SSLError) as exc:
+            self.log(f"refused {client_address[0]}: TLS: {exc}")
+            return
+        name = peer_name(conn.getpeercert())
+        if name != self.client_name:
+            self.log(f"refused {client_address[0]}: certificate of {name!r}, not the front door's")
+            conn.close()
+            return
+        self.RequestHandlerClass(conn, client_address, self)
+
+
+def handler(agent: Agent):
+    class Handler(BaseHTTPRequestHandler):
+        server_version = "isaac-sim-agent"
+        sys_version = ""
+        timeout = 30
+
+        def _send(self, code: int, body: dict) -> None:
+            data = (json.dumps(body, sort_keys=True) + "\n").encode()
+            self.send_response(code)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def do_GET(self):  # noqa: N802 - http.server's naming
+            path, _sep, query = self.path.partition("?")
+            if path == "/health":
+                return self._send(200, {"status": "ok", "host": agent.name, "drained": agent.drained_by()})
+            if path == "/actions":
+                return self._send(200, {"actions": agent.recent(), "drained": agent.drained_by()})
+            m = re.match(r"^/actions/([a-f0-9]{16})(/events)?$", path)
+            rec = agent.get(m.group(1)) if m else None
+            if rec is None:
+                return self._send(404, {"error": f"no such action: {path}"})
+            if not m.group(2):
+                return self._send(200, rec)
+            return self._stream(m.group(1), "follow=1" in query.split("&"))
+
+        def _stream(self, action_id: str, follow: bool) -> None:
+            """The action's events, one JSON line each; with follow, each new one as it comes until the
+            action ends (the connection's end is the stream's)."""
+            self.send_response(200)
+            self.send_header("Content-Type", "application/x-ndjson")
+            self.end_headers()
+            seen = 0
+            while True:
+                new, ended = agent.events(action_id, seen, wait=1.0 if follow else 0)
+                for event in new:
+                    self.wfile.write((json.dumps(event, sort_keys=True) + "\n").encode())
+                self.wfile.flush()
+                seen += len(new)
+                if ended or not follow:
+                    break
+            self.close_connection = True
+
+        def do_POST(self):  # noqa: N802
+            if self.path != "/actions":
+                return self._send(404, {"error": f"no such path: {self.path}"})
+            try:
+                length = int(self.headers.get("Content-Length") or 0)
+                if not 0 <= length <= MAX_BODY:
+                    raise RefusedError(413, f"the request is not 0-{MAX_BODY} bytes")
+                code, body = agent.submit(parse_request(self.rfile.read(length)))
+            except RefusedError as refused:
+                code, body = refused.code, refused.body
+            except ValueError:
+                code, body = 400, {"error": "Content-Length: not a number"}
+            except Exception as exc:  # pylint: disable=broad-exception-caught
+                agent.journal(f"error on POST /actions: {type(exc).__name__}: {exc}")
+                code, body = 500, {"error": "the agent failed; its journal says why (nothing was started)"}
+            return self._send(code, body)
+
+        def log_message(self, *args):
+            pass
+
+    return Handler
+
+
+def main(argv=None):
+    import argparse
+
+    parser = argparse.ArgumentParser(description="The host's action agent (isaacsim.fleet)")
+    parser.add_argument("--name", required=True, help="the host's name in the inventory")
+    parser.add_argument("--address", default="")
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--allow", action="append", default=[], help="a network the front door reaches it from")
+    parser.add_argument("--tls-dir", default=layout.AGENT_TLS_DIR, help="ca.crt, agent.crt and agent.key")
+    parser.add_argument("--state-dir", default=layout.AGENT_STATE_DIR)
+    parser.add_argument("--soak", type=float, default=0.0, help="seconds a restarted instance soaks")
+    parser.add_argument("--data-root", default=layout.DATA_ROOT)
+    args = parser.parse_args(argv)
+    networks = [ipaddress.ip_network(n, strict=False) for n in args.allow]
+    agent = Agent(args.name, args.state_dir, soak_seconds=args.soak, data_root=args.data_root)
+    ctx = tls_context(*(os.path.join(args.tls_dir, f) for f in ("agent.crt", "agent.key", "ca.crt")))
+    server = Server((args.address or "0.0.0.0", args.port), handler(agent), ctx, networks)
+    say(
+        f"isaac-sim-agent of {args.name} on {args.address or '0.0.0.0'}:{args.port}, for {CLIENT_NAME!r} from "
+        f"{', '.join(args.allow)}"
+    )
+    server.serve_forever()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,518 @@
+"""The host's action agent (module_utils/instance/agent.py): requests checked field by field, the
+N-1 rule, the host's lock shared with playbook runs, the action's events and outcome kept on
+disk, and the channel that answers the front door's certificate alone (real TLS on a real socket,
+certificates made with openssl)."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import socket
+import ssl
+import subprocess
+import threading
+import time
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import agent, runlock
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import make_pki
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import ScriptedHost
+
+
+def make(tmp_path, n=4, running=True, **over):
+    """An agent over a scripted host of n instances; its lock, record and state in tmp_path."""
+    h = ScriptedHost(n, running=running)
+    h.host.wall = time.time
+    lines = []
+    a = agent.Agent(
+        "gpu-1",
+        str(tmp_path / "state"),
+        host=lambda: h.host,
+        lock=str(tmp_path / "lock.json"),
+        guard=str(tmp_path / ".guard"),
+        record=str(tmp_path / "record.json"),
+        drained=str(tmp_path / "drained.json"),
+        journal=lambda line, unit="": lines.append((unit, line)),
+        renew_s=0.05,
+        **over,
+    )
+    return a, h, lines
+
+
+def req(action="restart", ids=(2,), **over) -> dict:
+    body = {"host": "gpu-1", "action": action, "ids": list(ids), "user": "alice"}
+    body.update(over)
+    return agent.parse_request(json.dumps(body).encode())
+
+
+@pytest.mark.parametrize(
+    ("body", "code", "words"),
+    [
+        (b"[1]", 400, "not a JSON object"),
+        (b"{", 400, "not JSON"),
+        (
+            json.dumps({"host": "h", "action": "restart", "ids": [1], "user": "a", "shell": "x"}).encode(),
+            400,
+            "shell: not a field",
+        ),
+        (json.dumps({"host": "h", "action": "restart", "ids": [1]}).encode(), 400, "user: missing"),
+        (
+            json.dumps({"host": "h", "action": "reboot", "ids": [1], "user": "a"}).encode(),
+            400,
+            "action: 'reboot' is not one of",
+        ),
+        (json.dumps({"host": "h", "action": "restart", "ids": [], "user": "a"}).encode(), 400, "ids: [] is not"),
+        (json.dumps({"host": "h", "action": "restart", "ids": [True], "user": "a"}).encode(), 400, "ids: [True]"),
+        (json.dumps({"host": "h", "action": "restart", "ids": [100], "user": "a"}).encode(), 400, "ids: [100]"),
+        (json.dumps({"host": "h", "action": "restart", "ids": [1, 1], "user": "a"}).encode(), 400, "twice"),
+        (
+            json.dumps({"host": "h", "action": "restart", "ids": "1", "user": "a"}).encode(),
+            400,
+            "ids: '1' is not a list",
+        ),
+        (json.dumps({"host": "h", "action": "drain", "ids": [1], "user": "a"}).encode(), 400, "takes no instances"),
+        (json.dumps({"host": "h", "action": "start", "ids": [1], "user": "a b"}).encode(), 400, "user, token"),
+        (
+            json.dumps({"host": "h", "action": "start", "ids": [1], "user": "a", "confirm": "yes"}).encode(),
+            400,
+            "confirm: 'yes'",
+        ),
+        (b"{" + b" " * agent.MAX_BODY + b"}", 413, "over 4096 bytes"),
+        (b"[" * 3000, 400, "not JSON"),
+    ],
+)
+def test_a_bad_request_is_refused_naming_its_field(body, code, words):
+    with pytest.raises(agent.RefusedError) as exc:
+        agent.parse_request(body)
+    assert exc.value.code == code and words in exc.value.body["error"]
+
+
+def test_a_request_meant_for_another_host_is_refused_whatever_reached_this_one(tmp_path):
+    """The door names the host it means: a host that said another's address gets nothing done."""
+    a, h, _lines = make(tmp_path)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(dict(req(), host="gpu-2"))
+    assert exc.value.code == 421 and exc.value.body["error"].startswith("host: this is gpu-1, not gpu-2")
+    assert runlock.read(a.lock) is None and not h.commands("restart")
+
+
+def state(active: bool) -> dict:
+    return {"ActiveState": "active" if active else "inactive"}
+
+
+def test_n_minus_1_counts_what_each_action_takes_down_while_it_runs():
+    all_up = {i: state(True) for i in range(4)}
+    one_down = {**all_up, 1: state(False)}
+    assert agent.below_n1("restart", [2], all_up) == ""
+    assert agent.below_n1("restart", [0, 2, 3], all_up) == ""  # one at a time
+    assert agent.below_n1("stop", [2], all_up) == ""
+    assert "would leave 2 of this host's 4 instances serving (isaac-sim-1 not serving), below N-1 = 3" in (
+        agent.below_n1("restart", [2], one_down)
+    )
+    assert agent.below_n1("stop", [2, 3], all_up).startswith("stop of isaac-sim-2, isaac-sim-3 would leave 2")
+    assert agent.below_n1("restart", [1], one_down) == ""  # not serving: taking it down costs nothing
+    assert agent.below_n1("start", [1], one_down) == ""
+    assert agent.below_n1("remove", [3], one_down) != ""
+    # one instance: N-1 is 0, and emptying the host still asks
+    assert agent.below_n1("stop", [0], {0: state(True)}).endswith(
+        "would leave 0 of this host's 1 instances serving, none at all"
+    )
+    assert agent.below_n1("start", [0], {0: state(False)}) == ""
+
+
+def test_a_restart_is_acknowledged_then_runs_through_the_lifecycle_and_says_how_it_went(tmp_path):
+    a, h, lines = make(tmp_path)
+    code, body = a.submit(req(token="ci"))
+    assert code == 202 and body["state"] == "accepted" and len(body["id"]) == 16
+    a.wait()
+    rec = a.get(body["id"])
+    assert rec["state"] == "succeeded" and rec["progress"] == 100 and rec["result"]["ok"]
+    texts = [e["text"] for e in rec["events"]]
+    assert texts[0] == "accepted: restart isaac-sim-2 by alice (token ci)"
+    assert "restart: isaac-sim-2 (waits for its ready line)" in texts
+    assert any(t.startswith("restart of isaac-sim-2 done in") for t in texts)
+    assert [e["progress"] for e in rec["events"]] == sorted(e["progress"] for e in rec["events"])
+    assert h.commands("restart") == ["systemctl restart isaac-sim@2.service"]
+    # the host is free again, and the action is a line in the instance's own journal
+    assert runlock.read(str(tmp_path / "lock.json")) is None
+    assert ("isaac-sim@2.service", f"action {body['id']} restart isaac-sim-2 by alice (token ci): succeeded") in lines
+    # kept on disk: a new agent (the service restarted) still tells it
+    again, _h, _l = make(tmp_path)
+    assert again.get(body["id"])["state"] == "succeeded"
+    assert [r["id"] for r in again.recent()] == [body["id"]]
+
+
+def test_an_action_on_a_host_a_deploy_holds_is_refused_naming_the_deploy_and_changes_nothing(tmp_path):
+    a, h, _lines = make(tmp_path)
+    deploy = {"id": "ctl:1:2", "user": "bob", "controller": "ctl", "pid": 1, "started": "2", "play": "Deploy"}
+    runlock.acquire(deploy, time.time(), 3600, path=a.lock, guard=a.guard, record_path="")
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req())
+    assert exc.value.code == 409
+    assert "gpu-1 is held by bob on ctl (ansible-playbook pid 1, play 'Deploy')" in exc.value.body["error"]
+    assert not h.commands("restart") and runlock.read(a.lock)["id"] == "ctl:1:2"
+
+
+def test_a_deploy_during_an_action_finds_the_host_held_by_it(tmp_path):
+    """While the action runs, the lock names it; a playbook run is told who holds the host."""
+    a, h, _lines = make(tmp_path)
+    seen = []
+    run = h.host.run
+
+    def slow(argv):
+        if argv[:2] == ["systemctl", "restart"]:
+            me = {"id": "ctl:9:9", "user": "bob", "controller": "ctl", "pid": 9, "started": "9"}
+            seen.append(runlock.acquire(me, time.time(), 3600, path=a.lock, guard=a.guard, record_path=""))
+        return run(argv)
+
+    h.host.run = slow
+    _code, body = a.submit(req())
+    a.wait()
+    taken, holder, _note = seen[0]
+    assert not taken and holder["agent"] == body["id"]
+    assert runlock.holder_text(holder, time.time()).startswith(
+        f"alice through the fleet API (action {body['id']}: restart isaac-sim-2)"
+    )
+
+
+def test_below_n_minus_1_needs_a_confirmation_and_nothing_runs_without_it(tmp_path):
+    a, h, lines = make(tmp_path)
+    h.units[1].update(ActiveState="inactive", SubState="dead")
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req())
+    assert exc.value.code == 412 and exc.value.body["needs_confirm"] is True
+    assert "below N-1 = 3" in exc.value.body["error"] and "confirm: true" in exc.value.body["error"]
+    assert not h.commands("restart") and runlock.read(a.lock) is None
+    assert "not confirmed" in lines[-1][1]
+    code, body = a.submit(req(confirm=True))
+    a.wait()
+    assert code == 202 and a.get(body["id"])["state"] == "succeeded"
+    assert "confirmed: restart of isaac-sim-2 would leave 2" in a.get(body["id"])["events"][0]["text"]
+
+
+def test_an_instance_the_host_does_not_run_is_404_and_the_host_is_free_again(tmp_path):
+    a, _h, _lines = make(tmp_path)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req(ids=[7]))
+    assert exc.value.code == 404 and "isaac-sim-7 not on gpu-1, which runs isaac-sim-0" in exc.value.body["error"]
+    assert runlock.read(a.lock) is None
+
+
+def test_a_failed_restart_is_reverted_by_the_lifecycle_and_reported(tmp_path):
+    a, h, lines = make(tmp_path)
+    # the instance never gets ready after its restart: the lifecycle reports it, the action says so
+    h.files["/etc/isaac-sim/instance-2.env"] = (
+        h.files["/etc/isaac-sim/instance-2.env"][0].replace("reg/isaac-sim:5.0.0", "reg/isaac-sim:never-ready"),
+        0o644,
+    )
+    _code, body = a.submit(req())
+    a.wait()
+    rec = a.get(body["id"])
+    assert rec["state"] == "failed" and not rec["result"]["ok"]
+    assert "isaac-sim-2: isaac-sim-2 was not ready within 20 s" in rec["result"]["message"]
+    assert rec["result"]["failed_instance"]["id"] == 2
+    assert runlock.read(a.lock) is None
+    assert lines[-1][1].endswith(rec["result"]["message"]) and ": failed: " in lines[-1][1]
+
+
+def test_stop_start_and_remove_go_through_the_lifecycle_too(tmp_path):
+    a, h, _lines = make(tmp_path)
+    for action in ("stop", "start", "remove"):
+        _code, body = a.submit(req(action, ids=[3]))
+        a.wait()
+        assert a.get(body["id"])["state"] == "succeeded", a.get(body["id"])
+    assert h.units[3]["UnitFileState"] == "disabled" and "/etc/isaac-sim/instance-3.env" not in h.files
+    # caches, logs and data stay: the agent never purges
+    assert not any(line.startswith("rm /var/lib") for line in h.log)
+
+
+def test_drain_and_undrain_are_kept_and_take_no_lock(tmp_path):
+    a, _h, lines = make(tmp_path)
+    code, body = a.submit(req("drain", ids=()))
+    assert code == 200 and body["state"] == "succeeded" and a.drained_by()["by"] == "alice"
+    a.submit(req("undrain", ids=()))
+    assert a.drained_by() is None and len(a.recent()) == 2
+    assert lines[-1][1].endswith("undrain of gpu-1 by alice: succeeded")
+
+
+def test_an_action_the_agent_did_not_see_end_is_said_interrupted_and_its_hold_given_back(tmp_path):
+    a, _h, _lines = make(tmp_path)
+    rec = {"id": "0123456789abcdef", "state": "running", "progress": 10, "events": [], "what": "restart isaac-sim-2"}
+    a._save(rec)
+    runlock.acquire({"id": rec["id"], "agent": rec["id"]}, time.time(), 0, path=a.lock, guard=a.guard, record_path="")
+    again, _h, _l = make(tmp_path)
+    got = again.get(rec["id"])
+    assert got["state"] == "interrupted" and "the agent stopped while this action ran" in got["events"][-1]["text"]
+    assert runlock.read(a.lock) is None
+
+
+def test_a_hold_left_by_an_agent_process_that_is_gone_is_given_back_at_the_next_start(tmp_path):
+    """Killed between taking the hold and writing its action down: no record says so, the hold's own
+    process does (its pid is gone, or is another process now)."""
+    a, _h, _lines = make(tmp_path)
+    gone = {"id": "fedcba9876543210", "agent": "fedcba9876543210", "pid": 2**22 + 7, "started": "1"}
+    runlock.acquire(gone, time.time(), 0, path=a.lock, guard=a.guard, record_path="")
+    make(tmp_path)
+    assert runlock.read(a.lock) is None
+    # a live one (this process, as the agent that runs now) is left as it is
+    mine = {"id": "0000000000000001", "agent": "0000000000000001", "pid": os.getpid(),
+            "started": runlock.start_time(os.getpid())}  # fmt: skip
+    runlock.acquire(mine, time.time(), 0, path=a.lock, guard=a.guard, record_path="")
+    make(tmp_path)
+    assert runlock.read(a.lock)["id"] == mine["id"]
+
+
+def test_an_action_that_cannot_start_gives_the_host_back_and_says_so(tmp_path, monkeypatch):
+    a, _h, _lines = make(tmp_path)
+
+    def no_thread(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(threading.Thread, "start", no_thread)
+    with pytest.raises(RuntimeError):
+        a.submit(req())
+    monkeypatch.undo()
+    assert runlock.read(a.lock) is None
+    [rec] = a.recent()
+    assert rec["state"] == "failed" and rec["result"]["message"].startswith("not started: RuntimeError")
+
+
+def test_an_outcome_that_cannot_be_written_still_ends_the_action_and_its_hold(tmp_path, monkeypatch):
+    a, _h, lines = make(tmp_path)
+    save = a._save
+
+    def full(rec):
+        if rec["state"] in ("succeeded", "failed"):
+            raise OSError(28, "No space left on device")
+        save(rec)
+
+    monkeypatch.setattr(a, "_save", full)
+    _code, body = a.submit(req())
+    a.wait()
+    assert runlock.read(a.lock) is None
+    # still told by this process, ended
+    assert a.get(body["id"])["state"] == "succeeded" and a.events(body["id"], 0, wait=0)[1] is True
+    assert any("could not keep its outcome" in line for _unit, line in lines)
+
+
+def test_events_are_followed_as_they_come_until_the_action_ends(tmp_path):
+    a, h, _lines = make(tmp_path)
+    gate = threading.Event()
+    run = h.host.run
+
+    def held(argv):
+        if argv[:2] == ["systemctl", "restart"]:
+            gate.wait(5)
+        return run(argv)
+
+    h.host.run = held
+    _code, body = a.submit(req())
+    first, ended = a.events(body["id"], 0, wait=0.2)
+    assert not ended and first[0]["state"] in ("accepted", "running")
+    gate.set()
+    seen, ended = len(first), False
+    deadline = time.monotonic() + 10
+    while not ended and time.monotonic() < deadline:
+        new, ended = a.events(body["id"], seen, wait=0.5)
+        seen += len(new)
+    assert ended and seen == len(a.get(body["id"])["events"])
+
+
+# --- the channel
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory):
+    return make_pki(tmp_path_factory.mktemp("pki"), agent.CLIENT_NAME)
+
+
+@pytest.fixture
+def channel(tmp_path, pki):
+    a, h, lines = make(tmp_path)
+    said = []
+    ctx = agent.tls_context(str(pki / "agent.crt"), str(pki / "agent.key"), str(pki / "ca.crt"))
+    server = agent.Server(
+        ("127.0.0.1", 0), agent.handler(a), ctx, [agent.ipaddress.ip_network("127.0.0.0/8")], log=said.append
+    )
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield server, a, h, said
+    server.shutdown()
+    server.server_close()
+
+
+def client(pki, cert=None):
+    ctx = ssl.create_default_context(cafile=str(pki / "ca.crt"))
+    if cert:
+        ctx.load_cert_chain(*cert)
+    return ctx
+
+
+def door(pki):
+    return str(pki / f"{agent.CLIENT_NAME}.crt"), str(pki / f"{agent.CLIENT_NAME}.key")
+
+
+def ask(server, ctx, method="GET", path="/health", body=None):
+    conn = http.client.HTTPSConnection("127.0.0.1", server.server_address[1], context=ctx, timeout=10)
+    try:
+        conn.request(method, path, body=json.dumps(body) if body is not None else None)
+        answer = conn.getresponse()
+        return answer.status, answer.read()
+    finally:
+        conn.close()
+
+
+def test_the_front_door_s_certificate_opens_the_channel(channel, pki):
+    server, a, _h, _said = channel
+    status, body = ask(server, client(pki, door(pki)))
+    assert status == 200 and json.loads(body)["host"] == "gpu-1"
+    status, body = ask(
+        server,
+        client(pki, door(pki)),
+        "POST",
+        "/actions",
+        {"host": "gpu-1", "action": "restart", "ids": [2], "user": "alice"},
+    )
+    assert status == 202
+    action_id = json.loads(body)["id"]
+    # the events, followed over the channel until the action ends
+    status, stream = ask(server, client(pki, door(pki)), path=f"/actions/{action_id}/events?follow=1")
+    events = [json.loads(line) for line in stream.decode().splitlines()]
+    assert status == 200 and events[-1]["state"] == "succeeded" and events[-1]["progress"] == 100
+    status, body = ask(
+        server, client(pki, door(pki)), "POST", "/actions", {"host": "gpu-1", "action": "restart", "ids": [2]}
+    )
+    assert status == 400 and json.loads(body)["error"] == "user: missing"
+
+
+@pytest.mark.parametrize(
+    ("who", "why"),
+    [
+        (None, "TLS"),
+        ("someone else", "certificate of 'someone else', not the front door's"),
+        ("other-door", "TLS"),
+    ],
+)
+def test_any_other_client_is_refused_before_a_byte_of_http(channel, pki, who, why):
+    server, _a, h, said = channel
+    cert = None
+    if who == "someone else":
+        cert = (str(pki / "someone else.crt"), str(pki / "someone else.key"))
+    elif who == "other-door":
+        cert = (
+            str(pki / "other-door" / f"{agent.CLIENT_NAME}.crt"),
+            str(pki / "other-door" / f"{agent.CLIENT_NAME}.key"),
+        )
+    with pytest.raises((ssl.SSLError, ConnectionError, http.client.HTTPException, OSError)):
+        ask(
+            server,
+            client(pki, cert),
+            "POST",
+            "/actions",
+            {"host": "gpu-1", "action": "stop", "ids": [0], "user": "mallory"},
+        )
+    deadline = time.monotonic() + 5
+    while not said and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert said and why in said[-1]
+    assert not h.commands("stop")
+
+
+def test_a_client_outside_the_allowed_networks_is_not_even_answered(tmp_path, pki):
+    a, _h, _lines = make(tmp_path)
+    said = []
+    ctx = agent.tls_context(str(pki / "agent.crt"), str(pki / "agent.key"), str(pki / "ca.crt"))
+    server = agent.Server(
+        ("127.0.0.1", 0), agent.handler(a), ctx, [agent.ipaddress.ip_network("10.9.0.0/24")], log=said.append
+    )
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with pytest.raises((ssl.SSLError, ConnectionError, OSError)):
+            ask(server, client(pki, door(pki)))
+        assert said == ["refused 127.0.0.1: not in the allowed networks"]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_client_that_never_finishes_its_handshake_holds_only_its_own_thread(channel, pki):
+    server, _a, _h, _said = channel
+    server.handshake_s = 0.5
+    idle = socket.create_connection(server.server_address[:2])
+    try:
+        status, _body = ask(server, client(pki, door(pki)))
+        assert status == 200
+    finally:
+        idle.close()
+
+
+def test_the_agent_s_code_is_what_it_imports_and_runs_from_its_copy_without_ansible(tmp_path):
+    """layout.AGENT_CODE is the closure of agent.py's imports (nothing missing on a host, nothing more
+    shipped), and a copy of those files alone, with the standard library alone (-S), starts."""
+    import ast
+    import shutil
+    import sys
+    from pathlib import Path
+
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
+    base = Path(agent.__file__).resolve().parents[1]
+    prefix = "ansible_collections.isaacsim.fleet.plugins.module_utils."
+    seen, todo = set(), ["instance/agent.py"]
+    while todo:
+        rel = todo.pop()
+        if rel in seen:
+            continue
+        seen.add(rel)
+        for node in ast.walk(ast.parse((base / rel).read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(prefix):
+                package = node.module[len(prefix) :].replace(".", "/")
+                for alias in node.names:
+                    todo.append(
+                        f"{package}/{alias.name}.py"
+                        if (base / package / f"{alias.name}.py").exists()
+                        else f"{package}.py"
+                    )
+    inits = {f"{rel.split('/')[0]}/__init__.py" for rel in seen}
+    assert sorted(seen | inits) == sorted(layout.AGENT_CODE)
+    copy = tmp_path / layout.AGENT_PACKAGE
+    for rel in layout.AGENT_CODE:
+        (copy / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(base / rel, copy / rel)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-S",
+            "-m",
+            "ansible_collections.isaacsim.fleet.plugins.module_utils.instance.agent",
+            "--help",
+        ],
+        env={"PYTHONPATH": str(tmp_path)},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0 and "The host's action agent" in done.stdout, done.stderr
+
+
+def test_more_clients_at_once_than_the_agent_serves_are_closed_and_the_next_one_is_served(channel, pki):
+    server, _a, _h, said = channel
+    held = [socket.create_connection(server.server_address[:2]) for _client in range(agent.MAX_CLIENTS)]
+    try:
+        late = socket.create_connection(server.server_address[:2])
+        late.settimeout(5)
+        assert late.recv(1) == b""  # closed at once
+        late.close()
+        assert any("clients at once already" in line for line in said)
+    finally:
+        for sock in held:
+            sock.close()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            if ask(server, client(pki, door(pki)))[0] == 200:
+                break
+        except OSError:
+            time.sleep(0.2)
+    else:
+        raise AssertionError("not served again once the others went")
