@@ -122,6 +122,11 @@ def cookie_value(header: str) -> str:
     return ""
 
 
+def csrf_token(secret: str) -> str:
+    """The session's CSRF token: derived from its secret, so it lives and ends with the session."""
+    return hashlib.sha256(b"isaacsim.fleet csrf:" + secret.encode()).hexdigest()[:32]
+
+
 def safe_next(target: str) -> str:
     """Where to go after login: a path on this front door only (never another site), printable
     ASCII (it goes into a Location header)."""
@@ -225,6 +230,9 @@ class Door:
             "token": None,
             "scopes": None,
             "expires": session["expires"],
+            # what the door's own pages send with a write (the fleet API's X-Fleet-CSRF): bound to this
+            # session, which another site's page can never read
+            "csrf": csrf_token(cookie_value(cookie_header)),
         }
 
     @staticmethod
@@ -253,7 +261,10 @@ class Door:
         if who is None:
             return 401, None
         scopes = who["scopes"] if who["scopes"] is not None else list(door_store.ROLE_SCOPES[who["role"]])
-        return 200, {"user": who["user"], "role": who["role"], "token": who["token"], "scopes": scopes}
+        answer = {"user": who["user"], "role": who["role"], "token": who["token"], "scopes": scopes}
+        if who.get("csrf"):
+            answer["csrf"] = who["csrf"]
+        return 200, answer
 
     def relay(self, cookie_header: str, client: str, authorization: str = ""):
         """(status, {iceServers, ttl}) for a logged-in user: short-lived TURN credentials, which

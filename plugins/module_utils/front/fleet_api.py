@@ -20,12 +20,14 @@ FastAPI differs between the two: 0.92 with pydantic 1, 0.115 with pydantic 2).
 
 from __future__ import annotations
 
+import hmac
 import html
 import http.client
 import json
 import re
 import select
 import socket
+import ssl
 import sys
 import threading
 import time
@@ -49,10 +51,42 @@ _ROUTES = [
     ("host", re.compile(rf"^/api/hosts/{_HOST}$")),
     ("instance", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})$")),
     ("logs", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/logs$")),
+    ("act", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/(?P<action>start|stop|restart|remove)$")),
+    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>drain|undrain)$")),
+    ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions$")),
+    ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})$")),
 ]
 # what each route needs: nothing (health, the API's own description), a session or token that may
 # read, or an operator's
-NEEDS = {"health": None, "openapi": None, "docs": None, "logs": "operator"}
+NEEDS = {
+    "health": None,
+    "openapi": None,
+    "docs": None,
+    "logs": "operator",
+    "act": "operator",
+    "host_act": "operator",
+    "actions": "operator",
+    "action": "operator",
+}
+# the methods of each route (GET where not named); DELETE of an instance is its remove
+METHODS = {"act": ("POST",), "host_act": ("POST",), "instance": ("GET", "DELETE")}
+# the scope a token needs for each action (a session holds its role's); confirming an action that takes
+# a host below N-1 serving instances needs operate
+ACTION_SCOPES = {
+    "start": "act",
+    "stop": "act",
+    "restart": "act",
+    "remove": "operate",
+    "drain": "operate",
+    "undrain": "operate",
+}
+MAX_BODY = 4096
+# seconds an action's request may take to be taken (the agent checks the host first)
+WRITE_TIMEOUT = 15.0
+# what a write's checks read of its request (another_site, the CSRF token)
+_WRITE_HEADERS = ("Origin", "X-Fleet-Origin", "Sec-Fetch-Site", "X-Fleet-CSRF")
+# writes per minute per person or token (a burst of that many, then one every 60/N s)
+WRITES_PER_MINUTE = 30
 
 
 def instance_view(host: str, inst: dict, entrance, operator: bool) -> dict:
@@ -142,10 +176,12 @@ def openapi() -> dict:
             answers["403"] = {"description": "Not an operator (or the token lacks that scope)"}
         if params:
             answers["404"] = {"description": "No such host or instance"}
+        extra = dict(extra or {})
+        answers.update({code: {"description": text} for code, text in extra.pop("responses_extra", {}).items()})
         out = {"summary": summary, "responses": answers, "parameters": list(params)}
         if need is None:
             out["security"] = []
-        return dict(out, **(extra or {}))
+        return dict(out, **extra)
 
     host = {"name": "host", "in": "path", "required": True, "schema": {"type": "string"}}
     n = {"name": "n", "in": "path", "required": True, "schema": {"type": "integer", "minimum": 0, "maximum": 99}}
@@ -155,6 +191,40 @@ def openapi() -> dict:
         "in": "query",
         "description": "1: then each new line as it comes, while the session or token lasts",
         "schema": {"type": "integer", "enum": [1]},
+    }
+    action_id = {
+        "name": "id",
+        "in": "path",
+        "required": True,
+        "schema": {"type": "string", "pattern": "^[a-f0-9]{16}$"},
+    }
+    write = {
+        "requestBody": {
+            "required": False,
+            "content": {
+                "application/json": {
+                    "schema": {
+                        "type": "object",
+                        "additionalProperties": False,
+                        "properties": {
+                            "confirm": {
+                                "type": "boolean",
+                                "description": "go on below N-1 serving instances (the operate scope)",
+                            }
+                        },
+                    }
+                }
+            },
+        },
+        "responses_extra": {
+            "202": "Taken: the action runs on the host",
+            "400": "A malformed body (the field is named)",
+            "409": "The host is held (a deploy, another action): the holder is named",
+            "412": "It would take the host below N-1 serving instances: confirm it",
+            "413": "A body over 4096 bytes",
+            "429": "Too many actions a minute",
+            "504": "The host's agent did not answer",
+        },
     }
     return {
         "openapi": "3.0.3",
@@ -178,7 +248,47 @@ def openapi() -> dict:
             "/api/fleet": {"get": op("Every host behind the door and its instances")},
             "/api/config": {"get": op("The front door's effective configuration (no secret)")},
             "/api/hosts/{host}": {"get": op("One host and its instances", [host])},
-            "/api/hosts/{host}/instances/{n}": {"get": op("One instance", [host, n])},
+            "/api/hosts/{host}/instances/{n}": {
+                "get": op("One instance", [host, n]),
+                "delete": op(
+                    "Remove the instance (its caches, logs and data stay): as .../remove", [host, n], "operator", write
+                ),  # fmt: skip
+            },
+            **{
+                f"/api/hosts/{{host}}/instances/{{n}}/{action}": {
+                    "post": op(
+                        f"{action.capitalize()} the instance through the host's lifecycle: 202 and the "
+                        f"action, then its events (needs the {scope} scope)",
+                        [host, n],
+                        "operator",
+                        write,
+                    )
+                }
+                for action, scope in ACTION_SCOPES.items()
+                if action not in ("drain", "undrain")
+            },  # fmt: skip
+            **{
+                f"/api/hosts/{{host}}/{action}": {
+                    "post": op(
+                        f"{action.capitalize()} the host: "
+                        + ("no new claim there, what runs goes on" if action == "drain" else "claims are taken again")
+                        + " (needs the operate scope)",
+                        [host],
+                        "operator",
+                        write,
+                    )
+                }
+                for action in ("drain", "undrain")
+            },  # fmt: skip
+            "/api/hosts/{host}/actions": {"get": op("The host's last actions (operators)", [host], "operator")},
+            "/api/hosts/{host}/actions/{id}": {
+                "get": op(
+                    "One action: its state, events and outcome; ?follow=1 its events as they come (one JSON "
+                    "line each) until it ends (operators)",
+                    [host, action_id, follow],
+                    "operator",
+                )
+            },  # fmt: skip
             "/api/hosts/{host}/instances/{n}/logs": {
                 "get": op("The instance's last journal lines, as text (operators)", [host, n, tail, follow], "operator")
             },
@@ -263,13 +373,23 @@ def drain(client, budget: list) -> bool:
 
 
 class Follow:
-    """A host's followed journal (its status endpoint's /logs/N?follow=1), open and answering 200,
-    to be copied to a client while the one who asked may still read it."""
+    """A stream a host gives until it ends, open and answering 200, to be copied to a client while
+    the one who asked may still read it: an instance's followed journal (the status endpoint's
+    /logs/N?follow=1) or an action's events (the agent's, over its TLS channel: ctx)."""
 
-    def __init__(self, status_url: str, n: int, timeout: float = 10.0):
-        address = urllib.parse.urlsplit(status_url)
+    def __init__(self, url: str, path: str, timeout: float = 10.0, ctx=None, check=None):
+        """check(sock): raises OSError for a peer that is not the one meant (before a byte is sent)."""
+        address = urllib.parse.urlsplit(url)
         self.sock = socket.create_connection((address.hostname, address.port), timeout=timeout)
-        self.sock.sendall(f"GET /logs/{n}?follow=1 HTTP/1.0\r\nHost: {address.netloc}\r\n\r\n".encode())
+        try:
+            if ctx is not None:
+                self.sock = ctx.wrap_socket(self.sock, server_hostname=address.hostname)
+            if check is not None:
+                check(self.sock)
+        except OSError:
+            self.sock.close()
+            raise
+        self.sock.sendall(f"GET {path} HTTP/1.0\r\nHost: {address.netloc}\r\n\r\n".encode())
         head = b""
         while b"\r\n\r\n" not in head and len(head) < 65536:
             chunk = self.sock.recv(4096)
@@ -281,6 +401,7 @@ class Follow:
         if not re.match(r"^HTTP/1\.[01] 200 ", status):
             self.sock.close()
             raise OSError(status or "no answer")
+        self.ended = b"\n[the session or token ended: the journal stops here]\n"
 
     def copy(self, write, client, still_allowed, recheck: float = RECHECK_SECONDS, clock=time.monotonic) -> str:
         """Copies until the host's stream ends, the client goes, or still_allowed() says no (asked
@@ -290,18 +411,24 @@ class Follow:
             if self.rest:
                 write(self.rest)
             while True:
-                ready, _w, _x = select.select([self.sock, client], [], [], 1.0)
+                pending = isinstance(self.sock, ssl.SSLSocket) and self.sock.pending()
+                ready, _w, _x = select.select([self.sock, client], [], [], 0 if pending else 1.0)
+                if pending:
+                    ready = [*ready, self.sock]
                 if client in ready and not drain(client, budget):
                     return "client gone"
                 if self.sock in ready:
-                    data = self.sock.recv(65536)
+                    try:
+                        data = self.sock.recv(65536)
+                    except ssl.SSLWantReadError:  # a TLS record not whole yet
+                        continue
                     if not data:
                         return why
                     write(data)
                 if clock() - asked >= recheck:
                     asked = clock()
                     if not still_allowed():
-                        write(b"\n[the session or token ended: the journal stops here]\n")
+                        write(self.ended)
                         return "access ended"
         except OSError:
             return "client gone"
@@ -309,25 +436,168 @@ class Follow:
             self.sock.close()
 
 
+class Agents:
+    """The hosts' action agents (module_utils/instance/agent.py), over their channel: TLS with the
+    door's client certificate, each host's certificate checked against the collection's CA and the
+    address the door reaches it at. tls: {ca, cert, key} files; None: no agent is reachable."""
+
+    def __init__(self, config: dict, tls=None, timeout: float = 5.0):
+        self.config, self.timeout, self.ctx = config, timeout, None
+        if tls:
+            self.ctx = ssl.create_default_context(cafile=tls["ca"])
+            self.ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+            self.ctx.load_cert_chain(tls["cert"], tls["key"])
+
+    def url(self, host: str) -> str:
+        backend = next((b for b in self.config.get("hosts") or [] if b["name"] == host), None) or {}
+        return backend.get("agent_url") or "" if self.ctx else ""
+
+    def check(self, host: str, sock) -> None:
+        """The peer is this host's agent: a certificate of the CA (TLS checked it, and its address) issued to
+        the host by that name, so a host that says another's address is never taken for it."""
+        name = peer_name(sock.getpeercert())
+        if name != f"{host} agent":
+            raise OSError(f"the agent at {self.url(host)} presented the certificate of {name!r}, not {host}'s")
+
+    def ask(self, host: str, method: str, path: str, body=None) -> tuple:
+        """(status, answer) of the host's agent; OSError when it does not connect within the timeout, or
+        (an action, which may take a moment to be taken) answer within WRITE_TIMEOUT."""
+        address = urllib.parse.urlsplit(self.url(host))
+        conn = http.client.HTTPSConnection(address.hostname, address.port, context=self.ctx, timeout=self.timeout)
+        try:
+            conn.connect()
+            self.check(host, conn.sock)
+            if method == "POST":
+                conn.sock.settimeout(WRITE_TIMEOUT)
+            data = json.dumps(body).encode() if body is not None else None
+            conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
+            answer = conn.getresponse()
+            text = answer.read(MAX_ANSWER + 1)
+            if len(text) > MAX_ANSWER:
+                raise OSError(f"an answer over {MAX_ANSWER} bytes")
+            try:
+                return answer.status, json.loads(text)
+            except ValueError as exc:
+                raise OSError(f"an answer that is not JSON (HTTP {answer.status})") from exc
+        except http.client.HTTPException as exc:
+            raise OSError(f"{type(exc).__name__}: {exc}") from exc
+        finally:
+            conn.close()
+
+    def events(self, host: str, action_id: str, follow):
+        """The action's events as they come (a Follow over the channel)."""
+        stream = follow(
+            self.url(host),
+            f"/actions/{action_id}/events?follow=1",
+            self.timeout,
+            self.ctx,
+            lambda s: self.check(host, s),
+        )
+        stream.ended = b'{"text": "the session or token ended: the events stop here"}\n'
+        return stream
+
+
+class Limiter:
+    """Per person or token: `per_minute` writes in a burst, then one every 60/per_minute s."""
+
+    def __init__(self, per_minute: int = WRITES_PER_MINUTE, clock=time.monotonic):
+        self.per_minute, self.clock = per_minute, clock
+        self._lock = threading.Lock()
+        self._buckets = {}
+
+    def allow(self, key: str) -> bool:
+        with self._lock:
+            now = self.clock()
+            level, at = self._buckets.get(key, (float(self.per_minute), now))
+            level = min(float(self.per_minute), level + (now - at) * self.per_minute / 60.0)
+            if level < 1.0:
+                self._buckets[key] = (level, now)
+                return False
+            self._buckets[key] = (level - 1.0, now)
+            return True
+
+
+def action_body(raw: bytes) -> dict:
+    """The body of an action request: empty, or a JSON object whose one field is confirm (a bool);
+    (status, error) as ValueError's args otherwise."""
+    if len(raw) > MAX_BODY:
+        raise ValueError(413, f"the body is over {MAX_BODY} bytes")
+    if not raw.strip():
+        return {"confirm": False}
+    try:
+        body = json.loads(raw)
+    except (ValueError, RecursionError) as exc:
+        raise ValueError(400, f"the body is not JSON: {type(exc).__name__}") from exc
+    if not isinstance(body, dict):
+        raise ValueError(400, "the body is not a JSON object")
+    unknown = sorted(set(body) - {"confirm"})
+    if unknown:
+        raise ValueError(400, f"{unknown[0]}: not a field of an action; the one field is confirm")
+    if not isinstance(body.get("confirm", False), bool):
+        raise ValueError(400, f"confirm: {body['confirm']!r} is not true or false")
+    return {"confirm": body.get("confirm", False)}
+
+
+def peer_name(cert: dict) -> str:
+    """The common name of a verified peer certificate (ssl's getpeercert())."""
+    for rdn in (cert or {}).get("subject", ()):
+        for key, value in rdn:
+            if key == "commonName":
+                return value
+    return ""
+
+
+def another_site(headers: dict) -> bool:
+    """A request another site's page sent: Sec-Fetch-Site says so, or an Origin that is not the
+    door's own as nginx saw the browser reach it (X-Fleet-Origin)."""
+    origin, own = headers.get("Origin"), headers.get("X-Fleet-Origin")
+    return headers.get("Sec-Fetch-Site") in ("cross-site", "same-site") or (
+        origin is not None and (not own or origin.rstrip("/").lower() != own.rstrip("/").lower())
+    )
+
+
 class Api:
     """The routes, over a Fleet and a way to ask who is calling."""
 
-    def __init__(self, fleet: Fleet, identify, logs=None, log=say, follow=Follow, recheck=RECHECK_SECONDS):
+    def __init__(
+        self,
+        fleet: Fleet,
+        identify,
+        logs=None,
+        log=say,
+        follow=Follow,
+        recheck=RECHECK_SECONDS,
+        agents=None,
+        limiter=None,
+    ):
         """identify(cookie, authorization) -> identity or None; logs(status_url, n) -> the host's text;
-        follow(status_url, n) -> a Follow."""
+        follow(url, path, ctx=None) -> a Follow; agents: the Agents the actions go through."""
         self.fleet, self.identify, self.log = fleet, identify, log
         self.follow, self.recheck = follow, recheck
+        self.agents = agents or Agents(fleet.config)
+        self.limiter = limiter or Limiter()
         self.logs = logs or (lambda url, n: get(url.removesuffix("/status") + f"/logs/{n}", fleet.timeout).decode())
         self.doc = openapi()
 
-    def answer(self, method: str, target: str, cookie: str = "", authorization: str = "", client: str = "-"):
-        """(status, content type, body bytes)."""
+    def answer(
+        self,
+        method: str,
+        target: str,
+        cookie: str = "",
+        authorization: str = "",
+        client: str = "-",
+        body: bytes = b"",
+        headers=None,
+    ):
+        """(status, content type, body bytes, or a stream: a callable of write and the client's socket).
+        headers: the request's (Origin, X-Fleet-Origin, Sec-Fetch-Site, X-Fleet-CSRF) for a write."""
         url = urllib.parse.urlsplit(target)
         route, found = next(((r, m) for r, rx in _ROUTES if (m := rx.match(url.path))), (None, None))
         if route is None:
             return _json(404, {"error": f"no such path: {url.path}. See /api/docs."})
-        if method != "GET":
-            return _json(405, {"error": f"{method} is not allowed here; this API only reads for now."})
+        if method not in METHODS.get(route, ("GET",)):
+            allowed = ", ".join(METHODS.get(route, ("GET",)))
+            return _json(405, {"error": f"{method} is not allowed on {url.path}; {allowed} is"})
         if route == "health":
             return _json(200, {"status": "ok", "version": VERSION})
         if route == "openapi":
@@ -342,6 +612,8 @@ class Api:
         if refused:
             self.log(f"refused {who_line(who)} path={url.path!r} from={client} ({refused[0]})")
             return _json(403, {"error": refused[1]})
+        if method != "GET" or route in ("actions", "action"):
+            return self.act(method, route, found, who, client, body, headers or {}, url, (cookie, authorization))
         if route == "fleet":
             hosts = [self.fleet.host_view(h, operator) for h in self.fleet.hosts()]
             return _json(200, {"hosts": hosts, "user": who.get("user"), "role": who.get("role")})
@@ -365,7 +637,7 @@ class Api:
         backend = next(b for b in self.fleet.config["hosts"] if b["name"] == found["host"])
         if query.get("follow") == ["1"]:
             try:
-                stream = self.follow(backend["status_url"], int(found["n"]))
+                stream = self.follow(backend["status_url"], f"/logs/{int(found['n'])}?follow=1")
             except OSError as exc:
                 return _json(502, {"error": f"{found['host']} did not give the journal: {exc}"})
 
@@ -385,6 +657,90 @@ class Api:
             return _json(502, {"error": f"{found['host']} did not give the journal: {exc}"})
         lines = text.splitlines()[-int(tail) :]
         return 200, "text/plain; charset=utf-8", ("\n".join(lines) + "\n").encode()
+
+    def act(self, method: str, route: str, found, who: dict, client: str, raw: bytes, headers: dict, url, creds):
+        """An action on an instance or a host, or what became of one: through the host's agent."""
+        host = found["host"]
+        if not any(b["name"] == host for b in self.fleet.config.get("hosts") or []):
+            return _json(404, {"error": f"no host {host} behind this front door"})
+        if not self.agents.url(host):
+            return _json(
+                409,
+                {
+                    "error": f"{host} runs no action agent the door can reach. Fix: deploy it with "
+                    "isaac_sim_agent_enabled: true, then run playbooks/front_door.yml again."
+                },
+            )
+        if route in ("actions", "action"):
+            return self.read_action(route, found, url, creds)
+        action = "remove" if method == "DELETE" else found["action"]
+        scopes = who.get("scopes")
+        held = set(scopes) if scopes is not None else set(ACTION_SCOPES.values())
+        if ACTION_SCOPES[action] not in held:
+            self.log(
+                f"refused {who_line(who)} {action} on {host} from={client} (needs the {ACTION_SCOPES[action]} scope)"
+            )
+            return _json(403, {"error": f"{action} needs a token with the {ACTION_SCOPES[action]} scope"})
+        if not who.get("token"):
+            # a person's browser: the door's own page, which read the session's CSRF token from /session
+            csrf = (headers.get("X-Fleet-CSRF") or "").encode("utf-8", "replace")
+            if another_site(headers) or not who.get("csrf") or not hmac.compare_digest(csrf, who["csrf"].encode()):
+                self.log(f"refused {who_line(who)} {action} on {host} from={client} (another site, or no CSRF token)")
+                return _json(
+                    403, {"error": "a write from a browser needs the door's own page (Origin and X-Fleet-CSRF)"}
+                )
+        try:
+            body = action_body(raw)
+        except ValueError as exc:
+            code, error = exc.args
+            return _json(code, {"error": error})
+        if body["confirm"] and "operate" not in held:
+            return _json(403, {"error": "confirm: going below N-1 serving instances needs the operate scope"})
+        key = f"token:{who['user']}/{who['token']}" if who.get("token") else f"user:{who['user']}"
+        if not self.limiter.allow(key):
+            self.log(f"refused {who_line(who)} {action} on {host} from={client} (rate limit)")
+            return _json(429, {"error": f"more than {self.limiter.per_minute} actions a minute; wait a little"})
+        request = {"host": host, "action": action, "user": who["user"], "confirm": body["confirm"]}
+        if who.get("token"):
+            request["token"] = who["token"]
+        if "n" in found.groupdict() and found["n"] is not None:
+            request["ids"] = [int(found["n"])]
+        target = f"{host}/{found['n']}" if request.get("ids") else host
+        try:
+            code, answer = self.agents.ask(host, "POST", "/actions", request)
+        except OSError as exc:
+            self.log(f"action {who_line(who)} {action} {target} from={client}: {host} did not answer ({exc})")
+            return _json(
+                504,
+                {
+                    "error": f"{host}'s agent did not answer: {exc}. The action may have been taken: see "
+                    f"/api/hosts/{host}/actions before asking again."
+                },
+            )
+        said = answer.get("id") or answer.get("error")
+        self.log(f"action {who_line(who)} {action} {target} from={client}: {code} {said}")
+        if code in (200, 202) and answer.get("id"):
+            answer["url"] = f"/api/hosts/{host}/actions/{answer['id']}"
+            answer["events"] = answer["url"] + "?follow=1"
+        return _json(code, answer)
+
+    def read_action(self, route: str, found, url, creds):
+        """The host's last actions, one action, or (follow=1) its events as they come."""
+        host = found["host"]
+        path = "/actions" if route == "actions" else f"/actions/{found['id']}"
+        try:
+            code, answer = self.agents.ask(host, "GET", path)
+            if route == "actions" or code != 200 or urllib.parse.parse_qs(url.query).get("follow") != ["1"]:
+                return _json(code, answer)
+            stream = self.agents.events(host, found["id"], self.follow)
+        except OSError as exc:
+            return _json(504, {"error": f"{host}'s agent did not answer within {self.agents.timeout:g} s: {exc}"})
+
+        def still_allowed():
+            again = self.identify(*creds)
+            return again is not None and refusal(again, route) is None
+
+        return 200, "application/x-ndjson", lambda write, conn: stream.copy(write, conn, still_allowed, self.recheck)
 
     def config_view(self, operator: bool) -> dict:
         c = self.fleet.config
@@ -426,9 +782,24 @@ def handler(api: Api):
         def _serve(self, method: str):
             client = self.headers.get("X-Real-IP") or self.client_address[0]
             try:
-                code, kind, body = api.answer(
-                    method, self.path, self.headers.get("Cookie", ""), self.headers.get("Authorization", ""), client
-                )
+                try:
+                    length = int(self.headers.get("Content-Length") or 0)
+                except ValueError:
+                    length = MAX_BODY + 1
+                if not 0 <= length <= MAX_BODY:
+                    code, kind, body = _json(413, {"error": f"the body is not 0-{MAX_BODY} bytes"})
+                    self.close_connection = True
+                else:
+                    raw = self.rfile.read(length) if length > 0 else b""
+                    code, kind, body = api.answer(
+                        method,
+                        self.path,
+                        self.headers.get("Cookie", ""),
+                        self.headers.get("Authorization", ""),
+                        client,
+                        raw,
+                        {k: self.headers.get(k) for k in _WRITE_HEADERS if self.headers.get(k) is not None},
+                    )
             except Exception as error:  # pylint: disable=broad-exception-caught
                 api.log(f"error path={self.path!r} from={client}: {type(error).__name__}: {error}")
                 code, kind, body = _json(500, {"error": "the API failed; its journal says why"})
@@ -479,11 +850,22 @@ def main(argv=None):
     parser.add_argument("--config", required=True, help="the door's api.json (the role writes it)")
     parser.add_argument("--auth", required=True, help="the login service's URL (http://127.0.0.1:PORT)")
     parser.add_argument("--ttl", type=float, default=2.0, help="seconds a host's status read is reused")
+    parser.add_argument("--agent-tls", default="", help="a directory of ca.crt, client.crt, client.key")
     args = parser.parse_args(argv)
     with open(args.config, encoding="utf-8") as f:
         config = json.load(f)
     fleet = Fleet(config, ttl=args.ttl)
-    api = Api(fleet, lambda cookie, authorization: ask_identity(args.auth, cookie, authorization))
+    tls = None
+    if args.agent_tls:
+        tls = {
+            k: f"{args.agent_tls}/{name}"
+            for k, name in (("ca", "ca.crt"), ("cert", "client.crt"), ("key", "client.key"))
+        }
+    api = Api(
+        fleet,
+        lambda cookie, authorization: ask_identity(args.auth, cookie, authorization),
+        agents=Agents(config, tls),
+    )
     ThreadingHTTPServer(("127.0.0.1", args.port), handler(api)).serve_forever()
 
 

@@ -52,6 +52,9 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
 # instance's web viewer and signalling listen (each goes into nginx's configuration as it is)
 _ADDRESS = r"(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}"
 _STATUS_URL_RE = re.compile(rf"^http://{_ADDRESS}/status$")
+_AGENT_URL_RE = re.compile(rf"^https://{_ADDRESS}$")
+# the door's client certificate for the hosts' action agents, and the CA it checks them against
+AGENT_TLS_DIR = f"{CONFIG_DIR}/agent"
 _PAGE_RE = re.compile(rf"^http://({_ADDRESS})/$")
 _SIGNAL_RE = re.compile(rf"^({_ADDRESS})$")
 # door ports per host behind it: one per instance number
@@ -115,6 +118,11 @@ def check(p: dict) -> list:
             errors.append(
                 f"front_door_hosts: {backend['name']} says its status endpoint is at {backend.get('status_url')!r}, "
                 "not http://ADDRESS:PORT/status. Fix: its isaac_sim_status_server_address, or redeploy it."
+            )
+        elif backend.get("agent_url") and not _AGENT_URL_RE.fullmatch(str(backend["agent_url"])):
+            errors.append(
+                f"front_door_hosts: {backend['name']} says its action agent is at {backend.get('agent_url')!r}, "
+                "not https://ADDRESS:PORT. Fix: its isaac_sim_public_address, or redeploy it."
             )
     errors += _viewer_errors(p, ports)
     if p.get("turn"):
@@ -459,6 +467,9 @@ def nginx_conf(p: dict, managed: str) -> str:
         "      error_page 403 = @fleet_api_forbidden;",
         f"      proxy_pass {api};",
         "      proxy_set_header X-Real-IP $remote_addr;",
+        # a browser's write is checked against the door's own origin, as the browser reached it
+        "      proxy_set_header X-Fleet-Origin https://$http_host;",
+        "      client_max_body_size 4k;",
         "    }",
         # no login: that it answers, and its own description
         *(
@@ -468,6 +479,15 @@ def nginx_conf(p: dict, managed: str) -> str:
         # an instance's journal: operators (nginx's match of the path asks for the role); followed, a quiet
         # journal is no reason to end it (the API ends it when the session or token does)
         "    location ~ ^/api/hosts/[^/]+/instances/[0-9]+/logs$ {",
+        *guarded("/fleet-auth-operator", "@fleet_api_login"),
+        "      error_page 403 = @fleet_api_forbidden;",
+        f"      proxy_pass {api};",
+        "      proxy_set_header X-Real-IP $remote_addr;",
+        "      proxy_buffering off;",
+        "      proxy_read_timeout 1h;",
+        "    }",
+        # an action's events, followed: an instance may take minutes to be ready, with no event between
+        "    location ~ ^/api/hosts/[^/]+/actions/[a-f0-9]+$ {",
         *guarded("/fleet-auth-operator", "@fleet_api_login"),
         "      error_page 403 = @fleet_api_forbidden;",
         f"      proxy_pass {api};",
@@ -799,7 +819,8 @@ def api_unit(p: dict, managed: str) -> str:
                     (
                         "ExecStart",
                         f"{PYTHON} {API_SCRIPT} --port {p['api_port']} --config {CONFIG_DIR}/api.json "
-                        f"--auth http://127.0.0.1:{p['auth_port']}",
+                        f"--auth http://127.0.0.1:{p['auth_port']}"
+                        + (f" --agent-tls {AGENT_TLS_DIR}" if p.get("agent_client_cert") else ""),
                     ),
                     ("Restart", "on-failure"),
                     ("RestartSec", 2),
@@ -825,7 +846,9 @@ def api_json(p: dict) -> str:
         "entrances": door["entrances"],
         "session_hours": p["session_hours"],
         "hosts": [
-            {"name": b["name"], "status_url": b["status_url"]} for b in p.get("backends") or [] if b.get("status_url")
+            {"name": b["name"], "status_url": b["status_url"], "agent_url": b.get("agent_url") or ""}
+            for b in p.get("backends") or []
+            if b.get("status_url")
         ],
     }
     return json.dumps(body, indent=2, sort_keys=True) + "\n"
@@ -847,6 +870,15 @@ def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = 
             f"/etc/systemd/system/{API_UNIT}": {"content": api_unit(p, managed), "mode": "0644"},
             API_SCRIPT: {"content": code["api"], "mode": "0644"},
             f"{CONFIG_DIR}/api.json": {"content": api_json(p), "mode": "0644"},
+            **(
+                {
+                    f"{AGENT_TLS_DIR}/ca.crt": {"content": p["agent_ca"], "mode": "0644"},
+                    f"{AGENT_TLS_DIR}/client.crt": {"content": p["agent_client_cert"], "mode": "0644"},
+                    f"{AGENT_TLS_DIR}/client.key": {"content": p["agent_client_key"], "mode": "0600"},
+                }
+                if p.get("agent_client_cert")
+                else {}
+            ),
         },
         UNIT: {
             f"/etc/systemd/system/{UNIT}": {"content": nginx_unit(managed), "mode": "0644"},

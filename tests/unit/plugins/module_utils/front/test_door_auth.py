@@ -248,7 +248,15 @@ def test_the_service_logs_in_decides_and_writes_each_refusal_down(service):
     # who is logged in, for the pages behind the door; nothing for a request without a session
     response, body = call(port, "GET", "/session", headers=session)
     assert response.status == 200
-    assert json.loads(body) == {"user": "vic", "role": "viewer", "token": None, "scopes": ["read"]}
+    secret = session["Cookie"].split("=", 1)[1]
+    assert json.loads(body) == {
+        "user": "vic",
+        "role": "viewer",
+        "token": None,
+        "scopes": ["read"],
+        # the session's CSRF token, for the door's own pages (the fleet API's writes)
+        "csrf": door_auth.csrf_token(secret),
+    }
     assert call(port, "GET", "/session")[0].status == 401
     assert call(port, "GET", "/session", headers={"Cookie": session["Cookie"][:-2] + "xx"})[0].status == 401
     # what a path needs is nginx's location's to say (need=), whatever the raw path looks like

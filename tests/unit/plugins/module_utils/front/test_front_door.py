@@ -174,7 +174,24 @@ def test_files_keep_secrets_root_s_and_list_the_login_service_first():
     api = files[front_door.API_UNIT]
     assert api["/usr/local/libexec/isaac-sim/isaac-sim-front-door-api"]["content"] == "API"
     said = json.loads(api["/etc/isaac-sim/front-door/api.json"]["content"])
-    assert said["hosts"] == [{"name": "gpu-1", "status_url": "http://10.0.0.5:8290/status"}], said
+    assert said["hosts"] == [{"name": "gpu-1", "status_url": "http://10.0.0.5:8290/status", "agent_url": ""}], said
+    assert (
+        not any("/agent/" in path for path in api)
+        and "--agent-tls" not in api[f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
+    )
+    # with the door's client certificate: its TLS files (the key root's alone) and the API told where they are
+    with_agents = front_door.files(
+        dict(GOOD, agent_ca="CA", agent_client_cert="CRT", agent_client_key="KEY",
+             backends=[dict(GOOD["backends"][0], agent_url="https://10.0.0.5:8291")]),
+        "managed", "CERT", "KEY", {"auth": "CODE", "store": "STORE", "api": "API"},
+    )[front_door.API_UNIT]  # fmt: skip
+    tls = front_door.AGENT_TLS_DIR
+    assert with_agents[f"{tls}/client.key"] == {"content": "KEY", "mode": "0600"}
+    assert with_agents[f"{tls}/ca.crt"]["content"] == "CA" and with_agents[f"{tls}/client.crt"]["content"] == "CRT"
+    assert f"--agent-tls {tls}" in with_agents[f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
+    assert json.loads(with_agents["/etc/isaac-sim/front-door/api.json"]["content"])["hosts"][0]["agent_url"] == (
+        "https://10.0.0.5:8291"
+    )
     assert "--auth http://127.0.0.1:9480" in api["/etc/systemd/system/isaac-sim-front-door-api.service"]["content"]
     auth, door = files[front_door.AUTH_UNIT], files[front_door.UNIT]
     assert auth["/etc/isaac-sim/front-door/users.json"]["mode"] == "0600"
