@@ -6,11 +6,13 @@ them, through Python's own HTTP client with the CA the role made (nothing trusts
 """
 
 import contextlib
+import http.client
 import json
 import os
 import socket
 import ssl
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -19,6 +21,7 @@ import pytest
 import testbed
 from browser import chromium, console_errors
 from frontdoor import UNITS, ca_dir, door_inventory, login, request, settings
+from selenium.common.exceptions import NoAlertPresentException
 from testbed import INSTANCES, sh, wait_for
 
 
@@ -92,6 +95,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         direct = "css selector", ".instance-card [data-kind]:not([data-kind=entrance]):not([data-kind=logs])"
         assert driver.find_elements(*direct) == []
         assert driver.find_elements("css selector", "button.follow") == []
+        assert driver.find_elements("css selector", ".actions button") == []
         assert console_errors(driver) == []
         driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
         driver.get(f"https://{address}/logout")
@@ -115,11 +119,73 @@ def dashboard_in_chromium(host, address, tmp_path):
         wait_for(lambda: len(journal.text.splitlines()) >= 5, timeout=20, what="the journal's lines in the page")
         last = journal.text.splitlines()[-1]
         assert last in sh(host, "journalctl -u isaac-sim@1.service -o short-iso --no-pager -q -n 400").stdout
+        # a new line of the instance's journal reaches the page (measured; the issue's goal is 2 s)
+        marker = f"console-marker-{time.time_ns()}"
+        sh(host, f"printf 'MESSAGE={marker}\\nOBJECT_SYSTEMD_UNIT=isaac-sim@1.service\\n' | logger --journald")
+        began = time.monotonic()
+        wait_for(lambda: marker in journal.text, timeout=15, interval=0.1, what="the new journal line in the page")
+        print(f"a new journal line reached the page in {time.monotonic() - began:.2f} s")
         card.find_element("css selector", "button.follow").click()
         wait_for(lambda: card.get_attribute("data-following") == "no", timeout=10, what="the journal to stop")
         assert console_errors(driver) == []
+        actions_in_the_console(driver, host)
         tokens_in_the_console(driver, host, address)
     in_journal(host, UNITS[1], "login refused user=vic")
+
+
+def actions_in_the_console(driver, host):
+    """An operator restarts an instance from its card: the progress line moves to the end, the instance
+    is ready again, the host's last actions say who did it. With another instance stopped, the page
+    asks before a restart that would take the host below N-1, and goes on once confirmed."""
+    name = testbed.name(host)
+
+    def run_action(card, action, confirm=False):
+        card.find_element("css selector", f'.actions button[data-action="{action}"]').click()
+        if confirm:
+
+            def asked():
+                try:
+                    return driver.switch_to.alert
+                except NoAlertPresentException:
+                    return None
+
+            alert = wait_for(asked, timeout=20, interval=0.2, what="the confirmation")
+            assert "below N-1" in alert.text, alert.text
+            alert.accept()
+        seen = set()
+
+        def ended():
+            line = card.find_element("css selector", "p.progress")
+            seen.add(line.text)
+            return line.get_attribute("data-state") in ("succeeded", "failed", "refused")
+
+        wait_for(ended, timeout=120, interval=0.2, what=f"{action} to end")
+        line = card.find_element("css selector", "p.progress")
+        assert line.get_attribute("data-state") == "succeeded", line.text
+        return seen
+
+    card = driver.find_element("css selector", '.instance-card[data-instance="2"]')
+    seen = run_action(card, "restart")
+    # the progress line moved: more than the end was shown
+    assert len(seen) >= 2 and any("%" in text for text in seen), seen
+    assert testbed.instance_ready(host, 2)
+    section = driver.find_element("css selector", f'section.host[data-host="{name}"]')
+    last = section.find_element("css selector", "ol.last-actions")
+    wait_for(lambda: "restart isaac-sim-2 by olga: succeeded" in last.text, timeout=10, what="the last actions")
+    in_journal(host, "isaac-sim@2.service", "restart isaac-sim-2 by olga: succeeded")
+    stopped = driver.find_element("css selector", '.instance-card[data-instance="3"]')
+    run_action(stopped, "stop")
+    try:
+        run_action(card, "restart", confirm=True)
+        run_action(stopped, "start")
+    finally:  # the next tests want every instance serving, whatever became of this one
+        sh(host, "systemctl start isaac-sim@3.service", check=False)
+    testbed.all_ready(host)
+    # the API's 412, before the confirmation, is the one resource the browser reports as failed
+    assert [e["message"] for e in console_errors(driver)] == [
+        f"https://{testbed.host_ip(host)}/api/hosts/{name}/instances/2/restart - Failed to load resource: "
+        "the server responded with a status of 412 (Precondition Failed)"
+    ]
 
 
 def tokens_in_the_console(driver, host, address):
@@ -234,6 +300,131 @@ def check_the_api(host, address, bearer):
     assert request(address, "GET", f"/api/hosts/{name}/instances/1", cookie=viewer)[0].status == 200
 
 
+def api_call(address, method, path, token, body=None, timeout=30):
+    """(status, answer) of the fleet API with a token, a JSON body or none."""
+    context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
+    conn = http.client.HTTPSConnection(address, 443, context=context, timeout=timeout)
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+    conn.request(method, path, body=json.dumps(body) if body is not None else None, headers=headers)
+    response = conn.getresponse()
+    data = response.read()
+    conn.close()
+    try:
+        return response.status, json.loads(data)
+    except ValueError:
+        return response.status, data
+
+
+def acted(address, token, path, body=None) -> dict:
+    """An action through the API that is taken (202), followed through the door to its end: its events."""
+    code, answer = api_call(address, "POST", path, token, body)
+    assert code == 202, (code, answer)
+    code, stream = api_call(address, "GET", answer["events"], token, timeout=120)
+    events = [json.loads(line) for line in stream.decode().splitlines()]
+    assert code == 200 and events[-1]["state"] == "succeeded", events
+    return dict(answer, events=events)
+
+
+AGENT = "isaac-sim-agent.service"
+AGENT_PORT = 8291
+
+
+def agent_answer(address, cert=None, netns=None) -> str:
+    """What a TLS client with `cert` (certificate, key) gets of the host's agent at GET /health, in the
+    network namespace of process netns (None: this machine's): the status line, or the error."""
+    script = (
+        "import http.client, ssl, sys\n"
+        "ctx = ssl.create_default_context(cafile=sys.argv[1])\n"
+        "if len(sys.argv) > 3: ctx.load_cert_chain(sys.argv[3], sys.argv[4])\n"
+        f"conn = http.client.HTTPSConnection(sys.argv[2], {AGENT_PORT}, context=ctx, timeout=5)\n"
+        "try:\n    conn.request('GET', '/health'); print(conn.getresponse().status)\n"
+        "except Exception as exc:\n    print(type(exc).__name__, exc)\n"
+    )
+    argv = [sys.executable, "-c", script, str(ca_dir() / "ca.crt"), address, *map(str, cert or ())]
+    if netns:
+        argv = ["nsenter", "-t", str(netns), "-n", *argv]
+    return subprocess.run(argv, capture_output=True, text=True, timeout=30, check=True).stdout.strip()
+
+
+def check_actions(host, address, tmp):
+    """Actions through the fleet's API, run on the host by its agent through the one lifecycle: a token
+    restarts an instance and follows its progress; the instance's journal says who; a deploy's hold
+    refuses an action naming it; below N-1 asks for a confirmation; the API killed in the middle of a
+    restart does not stop it; the agent answers the door's certificate alone, from the door alone."""
+    name, api = testbed.name(host), f"/api/hosts/{testbed.name(host)}"
+    ok(tokens(host, tmp, front_door_token_state="present", front_door_token_user="olga",
+              front_door_token_name="ops", front_door_token_scopes=["read", "act", "operate"]))  # fmt: skip
+    [file] = (tmp / "tokens").glob("*-olga-ops.token")
+    token = file.read_text().strip()
+
+    done = acted(address, token, f"{api}/instances/2/restart")
+    texts = [e["text"] for e in done["events"]]
+    assert texts[0] == "accepted: restart isaac-sim-2 by olga (token ops)" and any(
+        "restart of isaac-sim-2 done" in t for t in texts
+    )
+    assert testbed.instance_ready(host, 2)
+    in_journal(host, "isaac-sim@2.service", f"action {done['id']} restart isaac-sim-2 by olga (token ops): succeeded")
+    in_journal(host, UNITS[3], f"action user=olga token=ops restart {name}/2 from=")
+
+    # a deploy holds the host (its lock as a playbook run writes it): refused, naming it, nothing done
+    now = time.time()
+    holder = {"id": "ctl:1:2", "user": "bob", "controller": "ctl", "pid": 1, "started": "2", "play": "Deploy",
+              "since": now, "renewed": now}  # fmt: skip
+    sh(host, f"echo '{json.dumps(holder)}' > /run/lock/isaac-sim.json")
+    try:
+        code, answer = api_call(address, "POST", f"{api}/instances/2/restart", token)
+        assert code == 409 and "bob on ctl (ansible-playbook pid 1, play 'Deploy')" in answer["error"], answer
+    finally:
+        sh(host, "rm -f /run/lock/isaac-sim.json")
+
+    # one instance stopped: a restart of another would take the host below N-1, so it asks first
+    acted(address, token, f"{api}/instances/3/stop")
+    try:
+        code, answer = api_call(address, "POST", f"{api}/instances/2/restart", token)
+        assert code == 412 and answer["needs_confirm"] and f"below N-1 = {INSTANCES - 1}" in answer["error"], answer
+        acted(address, token, f"{api}/instances/2/restart", {"confirm": True})
+        acted(address, token, f"{api}/instances/3/start")
+    finally:
+        sh(host, "systemctl start isaac-sim@3.service", check=False)
+    testbed.all_ready(host)
+
+    # the API killed in the middle of a restart: the host finishes it, and the API, back, says how it went
+    code, answer = api_call(address, "POST", f"{api}/instances/1/restart", token)
+    assert code == 202, answer
+    sh(host, f"systemctl kill -s KILL {UNITS[3]}")
+
+    def outcome():
+        code, said = api_call(address, "GET", answer["url"], token)
+        return code == 200 and said["state"]  # nginx's 502 while the API is away
+
+    wait_for(lambda: outcome() == "succeeded", timeout=90, what="the restart's outcome from the API, back")
+    assert testbed.instance_ready(host, 1)
+
+    # the channel: the door's certificate from the door's address; nothing else
+    netns = testbed.client().containers.get(name).attrs["State"]["Pid"]
+    door_cert = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key")
+    assert agent_answer(address, door_cert, netns) == "200"
+    assert agent_answer(address, None, netns).startswith(("SSLError", "ConnectionResetError", "SSLEOFError"))
+    other = tmp / "other"
+    other.mkdir()
+    for args in (
+        ["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=other CA",
+         "-keyout", "ca.key", "-out", "ca.crt"],
+        ["req", "-new", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=isaacsim.fleet front door",
+         "-keyout", "door.key", "-out", "door.csr"],
+        ["x509", "-req", "-in", "door.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-set_serial", "7", "-days", "2",
+         "-out", "door.crt"],
+    ):  # fmt: skip
+        subprocess.run(["openssl", *args], cwd=other, check=True, capture_output=True)
+    refused = agent_answer(address, (other / "door.crt", other / "door.key"), netns)
+    assert not refused.startswith("200"), refused
+    # from this machine, not the door: the host's firewall lets nothing reach the port
+    assert agent_answer(address, door_cert).startswith(("TimeoutError", "ConnectionRefusedError", "OSError")), (
+        agent_answer(address, door_cert)
+    )
+    testbed.assert_sandboxed(host, AGENT)
+
+
 def check_sessions_and_tokens(host, address, status_path, operator, tmp):
     """Sessions live on the front door: a restart of the login service keeps them, a logout ends the
     cookie's session for good (the cookie kept and sent again opens nothing). A program's token acts
@@ -328,6 +519,7 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         # a forged cookie is no session
         assert request(address, "GET", status_path, cookie=operator[:-2] + "xx")[0].status == 302
         check_sessions_and_tokens(host, address, status_path, operator, tmp_path)
+        check_actions(host, address, tmp_path)
 
         # a viewer opens the status but not an operator's path; the operator passes it
         viewer = login(address, "vic", "view-secret").getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
