@@ -159,6 +159,7 @@ class Fleet:
             "error": read["error"],
             "generated_at": status.get("generated_at"),
             "deployed": status.get("deployed"),
+            "drained": status.get("drained"),
             "instances": [
                 instance_view(read["name"], i, entrances.get(str(i.get("id"))), operator)
                 for i in status.get("instances") or []

@@ -112,6 +112,7 @@ def build(
                 "host": host,
                 "reachable": True,
                 "deployed": res.get("deployed", False),
+                "drained": res.get("drained"),
                 "error": "; ".join(res.get("errors") or []) or None,
                 "public_address": res.get("public_address"),
                 "status_url": res.get("status_url"),

@@ -754,6 +754,8 @@ def gather(
         },
         # where the host serves this status live (the dashboard refreshes from it), if it does
         "status_url": read_status_url(config_dir),
+        # drained: no new claim here (test runs, sessions); what runs goes on
+        "drained": read_drained(config_dir),
         # the host's own services that run in containers (the Hub cache)
         "host_services": [
             {"name": c["host_service"], "container": name, "state": c["state"], "uptime_s": c["uptime_s"]}
@@ -833,6 +835,18 @@ class _Laps:
         now = time.perf_counter()
         self.parts[part] = round((now - self._last) * 1000, 1)
         self._last = now
+
+
+def read_drained(config_dir: str):
+    """{by, at} where the host is drained (the fleet API's drain, instance/agent.py), else None."""
+    try:
+        with open(os.path.join(config_dir, os.path.basename(layout.DRAINED))) as fh:
+            said = json.loads(fh.read())
+    except (OSError, ValueError):
+        return None
+    return (
+        {"by": str(said.get("by") or "?"), "at": said.get("at")} if isinstance(said, dict) else {"by": "?", "at": None}
+    )
 
 
 def read_status_url(config_dir: str):

@@ -158,7 +158,7 @@ class Agent:
         soak_seconds: float = 0.0,
         data_root: str = layout.DATA_ROOT,
         lock: str = runlock.LOCK,
-        guard: str = runlock.GUARD,
+        guard: str = "",
         record: str = runlock.RECORD,
         drained: str = layout.DRAINED,
         journal=None,
@@ -166,7 +166,8 @@ class Agent:
     ):
         self.name, self.state_dir, self.host = name, state_dir, host
         self.soak, self.data_root = soak_seconds, data_root
-        self.lock, self.guard, self.record, self.drained = lock, guard, record, drained
+        # the guard beside the lock, as the lifecycle call's own marks of its job take it
+        self.lock, self.guard, self.record, self.drained = lock, guard or runlock.guard_of(lock), record, drained
         self.journal = journal or say
         self.renew_s = renew_s
         self.actions_dir = os.path.join(state_dir, "actions")

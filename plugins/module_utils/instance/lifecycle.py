@@ -25,6 +25,7 @@ real host and the unit tests to a scripted one.
 from __future__ import annotations
 
 import glob
+import json
 import os
 import re
 import shutil
@@ -862,11 +863,34 @@ def _mark(host: Host, i: int, run: str, pid=None) -> tuple:
     return rc == 0, err
 
 
+class DrainedError(Exception):
+    """The host is drained (the fleet API's drain): it takes no new claim."""
+
+
+def drained(host: Host) -> str:
+    """Who drained the host and when, in words; "" when it is not drained."""
+    text = host.read(layout.DRAINED)
+    if text is None:
+        return ""
+    try:
+        said = json.loads(text)
+        return f"by {said.get('by') or '?'} at {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime(float(said['at'])))}"
+    except (ValueError, TypeError, KeyError, AttributeError):
+        return "(its record unreadable)"
+
+
 def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.0, pid=None, companions=None):
     """Lend instance i to `run` (its runner's process `pid`), waiting up to wait_s for the run
     that has it to give it back. Returns None once lent, else the run that still has it. A loan
     whose runner's process is gone is ended first, as its runner would have (restart, then free).
-    A lent instance is restarted by no one but its borrower's give_back."""
+    A lent instance is restarted by no one but its borrower's give_back. A drained host lends
+    nothing (DrainedError); what it lent before goes on."""
+    why = drained(host)
+    if why:
+        raise DrainedError(
+            f"the host is drained ({why}): it takes no new claim, and {layout.container(i)} is not lent. Fix: "
+            "undrain it (POST /api/hosts/HOST/undrain on the front door), or run on another host."
+        )
     deadline = host.now() + wait_s
     while True:
         ok, err = _mark(host, i, run, pid)

@@ -16,6 +16,7 @@ import contextlib
 import fcntl
 import json
 import os
+import threading
 import time
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
@@ -118,7 +119,7 @@ def job_running(current) -> str:
 def mark_job(run_id: str, pid: int, path: str = LOCK, guard: str = "") -> bool:
     """The lifecycle job of run `run_id` records itself in the lock while it runs, so no other run
     takes the host over until it has ended (decide); only while that run holds the lock."""
-    with _held_by({"id": run_id}, path, guard or _guard_of(path)) as current:
+    with _held_by({"id": run_id}, path, guard or guard_of(path)) as current:
         if current is None:
             return False
         current["job"] = {"pid": pid, "started": start_time(pid)}
@@ -127,19 +128,20 @@ def mark_job(run_id: str, pid: int, path: str = LOCK, guard: str = "") -> bool:
 
 
 def clear_job(run_id: str, pid: int, path: str = LOCK, guard: str = "") -> None:
-    with _held_by({"id": run_id}, path, guard or _guard_of(path)) as current:
+    with _held_by({"id": run_id}, path, guard or guard_of(path)) as current:
         if current is not None and (current.get("job") or {}).get("pid") == pid:
             del current["job"]
             _write(path, current, 0o644)
 
 
-def _guard_of(path: str) -> str:
+def guard_of(path: str) -> str:
     return os.path.join(os.path.dirname(path), os.path.basename(GUARD))
 
 
 def _write(path: str, data: dict, mode=None) -> None:
     """The whole file or none of it: readers never see half a holder."""
-    tmp = f"{path}.{os.getpid()}.tmp"
+    # the process and thread: an agent's renewer and its lifecycle call write from one process
+    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
     with open(tmp, "w") as out:
         json.dump(data, out, sort_keys=True)
     if mode is not None:

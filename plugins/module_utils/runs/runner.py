@@ -208,9 +208,12 @@ class Runner:
         lent = simulator and simulator["instance"] is not None
         if lent:
             # another run's loan is waited out, up to this run's timeout
-            holder = lifecycle.lend(
-                host, simulator["instance"], run, wait_s=p["timeout"], pid=self.pid, companions=companions
-            )
+            try:
+                holder = lifecycle.lend(
+                    host, simulator["instance"], run, wait_s=p["timeout"], pid=self.pid, companions=companions
+                )
+            except lifecycle.DrainedError as exc:
+                raise _FailError(f"instance: {exc}", **base) from exc
             if holder:
                 raise _FailError(
                     f"instance: isaac-sim@{simulator['instance']} stayed lent to run {holder} for this run's whole "
@@ -373,9 +376,12 @@ class _Share:
         if not exp["simulator"]:
             return exp, None, None
         # another suite's or run's loan is waited out, up to the run's own timeout
-        holder = lifecycle.lend(
-            host, instance, run_id, wait_s=float(run["timeout"]), pid=self.runner.pid, companions=self.companions
-        )
+        try:
+            holder = lifecycle.lend(
+                host, instance, run_id, wait_s=float(run["timeout"]), pid=self.runner.pid, companions=self.companions
+            )
+        except lifecycle.DrainedError as exc:
+            return exp, None, str(exc)
         if holder:
             return exp, None, f"isaac-sim@{instance} stayed lent to {holder} for the run's whole timeout"
         simulator, error = testrun.borrowed(host, exp["simulator"], instance, host.exists)

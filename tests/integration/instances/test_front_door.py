@@ -400,6 +400,17 @@ def check_actions(host, address, tmp):
     wait_for(lambda: outcome() == "succeeded", timeout=90, what="the restart's outcome from the API, back")
     assert testbed.instance_ready(host, 1)
 
+    # drained: the host says so, takes no new claim (the runner's own test covers the refusal), undrained again
+    code, answer = api_call(address, "POST", f"{api}/drain", token)
+    assert code == 200 and answer["state"] == "succeeded", answer
+
+    def drained():  # the API reads a host's status at most every 2 s
+        return (api_call(address, "GET", api, token)[1].get("drained") or {}).get("by")
+
+    wait_for(lambda: drained() == "olga (token ops)", timeout=15, what="the host's status to say it is drained")
+    assert api_call(address, "POST", f"{api}/undrain", token)[0] == 200
+    wait_for(lambda: drained() is None, timeout=15, what="the host's status to say it is not drained")
+
     # the channel: the door's certificate from the door's address; nothing else
     netns = testbed.client().containers.get(name).attrs["State"]["Pid"]
     door_cert = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key")

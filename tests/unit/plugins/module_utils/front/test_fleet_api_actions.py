@@ -47,7 +47,6 @@ class Door:
             str(tmp_path / "agent"),
             host=lambda: self.scripted.host,
             lock=str(tmp_path / "lock.json"),
-            guard=str(tmp_path / ".guard"),
             record=str(tmp_path / "record.json"),
             drained=str(tmp_path / "drained.json"),
             journal=lambda line, unit="": self.agent_lines.append((unit, line)),

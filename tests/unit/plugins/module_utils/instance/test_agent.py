@@ -30,7 +30,6 @@ def make(tmp_path, n=4, running=True, **over):
         str(tmp_path / "state"),
         host=lambda: h.host,
         lock=str(tmp_path / "lock.json"),
-        guard=str(tmp_path / ".guard"),
         record=str(tmp_path / "record.json"),
         drained=str(tmp_path / "drained.json"),
         journal=lambda line, unit="": lines.append((unit, line)),
@@ -143,6 +142,11 @@ def test_a_restart_is_acknowledged_then_runs_through_the_lifecycle_and_says_how_
     assert [r["id"] for r in again.recent()] == [body["id"]]
 
 
+def test_the_agent_takes_the_guard_the_lifecycle_call_marks_its_job_under(tmp_path):
+    a, _h, _lines = make(tmp_path)
+    assert a.guard == runlock.guard_of(a.lock) == str(tmp_path / ".isaac-sim.guard")
+
+
 def test_an_action_on_a_host_a_deploy_holds_is_refused_naming_the_deploy_and_changes_nothing(tmp_path):
     a, h, _lines = make(tmp_path)
     deploy = {"id": "ctl:1:2", "user": "bob", "controller": "ctl", "pid": 1, "started": "2", "play": "Deploy"}
@@ -231,6 +235,10 @@ def test_drain_and_undrain_are_kept_and_take_no_lock(tmp_path):
     a, _h, lines = make(tmp_path)
     code, body = a.submit(req("drain", ids=()))
     assert code == 200 and body["state"] == "succeeded" and a.drained_by()["by"] == "alice"
+    # the host's status says so (the status endpoint reads the same file in its config directory)
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import fleet_status
+
+    assert fleet_status.read_drained(str(tmp_path))["by"] == "alice"
     a.submit(req("undrain", ids=()))
     assert a.drained_by() is None and len(a.recent()) == 2
     assert lines[-1][1].endswith("undrain of gpu-1 by alice: succeeded")

@@ -10,6 +10,7 @@ import fnmatch
 import json
 import os
 
+import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
     firewall,
@@ -986,6 +987,23 @@ def test_a_read_only_kernel_setting_is_an_error_that_says_the_fix():
         assert "docker run --sysctl net.ipv4.ip_local_reserved_ports" in str(exc)
     else:
         raise AssertionError("no error")
+
+
+def test_a_drained_host_lends_nothing_new_and_what_it_lent_goes_on():
+    h = ScriptedHost(2)
+    assert lifecycle.lend(h.host, 0, "run-a") is None
+    h.files[layout.DRAINED] = ('{"by": "olga (token ops)", "at": 1795000000}', 0o600)
+    with pytest.raises(lifecycle.DrainedError) as exc:
+        lifecycle.lend(h.host, 1, "run-b", wait_s=30)
+    assert str(exc.value).startswith("the host is drained (by olga (token ops) at 2026-11-18 ")
+    assert "Fix: undrain it" in str(exc.value) and lifecycle.lent_to(h.host, 1) is None
+    # the loan made before goes on, and ends as any loan does
+    assert lifecycle.lent_to(h.host, 0) == "run-a" and lifecycle.give_back(h.host, 0, "run-a") is None
+    h.files[layout.DRAINED] = ("not json", 0o600)
+    with pytest.raises(lifecycle.DrainedError, match="its record unreadable"):
+        lifecycle.lend(h.host, 1, "run-b")
+    del h.files[layout.DRAINED]
+    assert lifecycle.lend(h.host, 1, "run-b") is None
 
 
 def test_a_loan_ends_restarted_and_ready_before_the_instance_is_free():

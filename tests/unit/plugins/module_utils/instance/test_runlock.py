@@ -203,3 +203,26 @@ def test_a_job_record_whose_pid_now_names_another_process_is_no_job(tmp_path):
     assert "job" not in runlock.read(where["path"])
     # only the holder's own job is recorded
     assert runlock.mark_job(BOB["id"], os.getpid(), path=where["path"]) is False
+
+
+def test_two_threads_of_one_process_write_the_lock_each_whole(tmp_path):
+    """An agent's renewer and its lifecycle call write the lock from one process: each write is whole
+    (a temporary file of its own thread), so neither ever fails for the other's rename."""
+    import threading
+
+    path = str(tmp_path / "lock.json")
+    failures = []
+
+    def writer(n):
+        for i in range(300):
+            try:
+                runlock._write(path, {"id": f"w{n}", "i": i})
+            except OSError as exc:
+                failures.append(exc)
+
+    threads = [threading.Thread(target=writer, args=(n,)) for n in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert failures == [] and runlock.read(path)["id"].startswith("w")

@@ -229,6 +229,17 @@ def test_an_instance_lent_to_another_run_for_the_whole_timeout_fails_the_run(tmp
     assert given_back == [] and not any(c[:2] == ["systemctl", "start"] for c in host.calls)
 
 
+def test_a_run_on_a_drained_host_is_refused_before_it_borrows_anything(tmp_path, given_back):
+    host = Host(tmp_path)
+    host.files[layout.env_file(0)] = INSTANCE_ENV
+    host.files[layout.marker(0)] = ""
+    host.files[layout.DRAINED] = '{"by": "olga", "at": 1795000000}'
+    result = make(host)[0].experience(experience_params(tmp_path, compose=SIM, name="sim", instance=0, timeout=3.0))
+    assert result["failed"] and result["msg"].startswith("instance: the host is drained (by olga at ")
+    assert "isaac-sim-0 is not lent" in result["msg"] and layout.lent_marker(0) not in host.dirs
+    assert given_back == []
+
+
 def test_a_dedicated_simulator_on_a_host_without_gpus_is_warned_about_and_takes_a_slot(tmp_path):
     host = Host(tmp_path, images=["reg/check:1", "nvcr.io/nvidia/isaac-sim:6.0.1"])
     r, warnings = make(host)
