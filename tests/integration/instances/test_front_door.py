@@ -448,6 +448,7 @@ def check_sessions_and_tokens(host, address, status_path, operator, tmp):
     assert response.status == 303 and "Max-Age=0" in response.getheader("Set-Cookie")
     assert request(address, "GET", status_path, cookie=ended)[0].status == 302
     assert request(address, "GET", "/session", cookie=ended)[0].status == 401
+    assert request(address, "GET", "/api/fleet", cookie=ended)[0].status == 401
     in_journal(host, UNITS[1], "logout user=olga from=")
     # the operator's other session goes on
     assert request(address, "GET", status_path, cookie=operator)[0].status == 200
