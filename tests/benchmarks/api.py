@@ -159,17 +159,11 @@ def main():
             "front_door_server_name": door_ip,
             "front_door_turn": False,
         }
-        (inv / "bench.yml").write_text(
-            json.dumps(
-                {
-                    "isaac_sim_hosts": {"vars": settings},
-                    "isaac_sim_front_door": {"hosts": {door_host: {"ansible_connection": "community.docker.docker"}},
-                                             "vars": door},
-                }
-            )
-        )  # fmt: skip
-        print(f"deploy of {len(HOSTS)} hosts x {INSTANCES} instances: {play(inv, 'deploy.yml'):.0f} s")
-        print(f"front door on {door_host} ({door_ip}): {play(inv, 'front_door.yml'):.0f} s")
+        # the door's group; every setting as extra vars, which win over the demo's group_vars
+        (inv / "bench.yml").write_text(json.dumps({"isaac_sim_front_door": {"hosts": {door_host: {}}}}))
+        given = ["-e", json.dumps({**settings, **door})]
+        print(f"deploy of {len(HOSTS)} hosts x {INSTANCES} instances: {play(inv, 'deploy.yml', *given):.0f} s")
+        print(f"front door on {door_host} ({door_ip}): {play(inv, 'front_door.yml', *given):.0f} s")
         made = {
             "front_door_token_state": "present",
             "front_door_token_user": "olga",
@@ -177,7 +171,7 @@ def main():
             "front_door_token_scopes": ["read", "act", "operate"],
             "front_door_token_dir": str(tmp / "tokens"),
         }
-        play(inv, "front_door_token.yml", "-e", json.dumps(made))
+        play(inv, "front_door_token.yml", *given, "-e", json.dumps(made))
         [token] = (tmp / "tokens").glob("*-olga-bench.token")
         api = Door(door_ip, str(tmp / "ca" / "ca.crt"), token.read_text().strip())
 
