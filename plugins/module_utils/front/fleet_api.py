@@ -540,7 +540,8 @@ def action_body(raw: bytes) -> dict:
 
 
 def peer_name(cert: dict) -> str:
-    """The common name of a verified peer certificate (ssl's getpeercert())."""
+    """The common name of a verified peer certificate (ssl's getpeercert()). The agent's own twin
+    (instance/agent.py): this script runs alone on the door, beside no copy of the agent's code."""
     for rdn in (cert or {}).get("subject", ()):
         for key, value in rdn:
             if key == "commonName":

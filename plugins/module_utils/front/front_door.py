@@ -451,6 +451,20 @@ def nginx_conf(p: dict, managed: str) -> str:
         "    }",
     ]
     api = f"http://127.0.0.1:{p['api_port']}"
+
+    def streamed(path_re):
+        """An operator's API path that may stream for an hour, passed on as it comes."""
+        return [
+            f"    location ~ {path_re} {{",
+            *guarded("/fleet-auth-operator", "@fleet_api_login"),
+            "      error_page 403 = @fleet_api_forbidden;",
+            f"      proxy_pass {api};",
+            "      proxy_set_header X-Real-IP $remote_addr;",
+            "      proxy_buffering off;",
+            "      proxy_read_timeout 1h;",
+            "    }",
+        ]
+
     lines += [
         # the fleet's API: a program gets 401 in JSON, never the login page; the API asks the login service
         # itself who is calling (the cookie and token go on to it, to 127.0.0.1 only)
@@ -478,23 +492,9 @@ def nginx_conf(p: dict, managed: str) -> str:
         ),
         # an instance's journal: operators (nginx's match of the path asks for the role); followed, a quiet
         # journal is no reason to end it (the API ends it when the session or token does)
-        "    location ~ ^/api/hosts/[^/]+/instances/[0-9]+/logs$ {",
-        *guarded("/fleet-auth-operator", "@fleet_api_login"),
-        "      error_page 403 = @fleet_api_forbidden;",
-        f"      proxy_pass {api};",
-        "      proxy_set_header X-Real-IP $remote_addr;",
-        "      proxy_buffering off;",
-        "      proxy_read_timeout 1h;",
-        "    }",
+        *streamed("^/api/hosts/[^/]+/instances/[0-9]+/logs$"),
         # an action's events, followed: an instance may take minutes to be ready, with no event between
-        "    location ~ ^/api/hosts/[^/]+/actions/[a-f0-9]+$ {",
-        *guarded("/fleet-auth-operator", "@fleet_api_login"),
-        "      error_page 403 = @fleet_api_forbidden;",
-        f"      proxy_pass {api};",
-        "      proxy_set_header X-Real-IP $remote_addr;",
-        "      proxy_buffering off;",
-        "      proxy_read_timeout 1h;",
-        "    }",
+        *streamed("^/api/hosts/[^/]+/actions/[a-f0-9]+$"),
     ]
     for backend in (b for b in p.get("backends") or [] if b.get("status_url")):
         base = backend["status_url"].removesuffix("/status")

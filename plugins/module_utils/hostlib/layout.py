@@ -85,6 +85,7 @@ AGENT_CODE = (
     "hostlib/docker_socket.py",
     "hostlib/layout.py",
     "hostlib/site_firewall.py",
+    "hostlib/status_server.py",
     "instance/__init__.py",
     "instance/agent.py",
     "instance/firewall.py",

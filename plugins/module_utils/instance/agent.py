@@ -35,6 +35,9 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+
+# the status endpoint's rule for a client's address, one for both host services
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib.status_server import allowed
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
     hostprobe,
     lifecycle,
@@ -510,16 +513,6 @@ def peer_name(cert: dict) -> str:
             if key == "commonName":
                 return value
     return ""
-
-
-def allowed(address: str, networks) -> bool:
-    try:
-        ip = ipaddress.ip_address(address.split("%", 1)[0])
-    except ValueError:
-        return False
-    if ip.version == 6 and ip.ipv4_mapped:
-        ip = ip.ipv4_mapped
-    return any(ip in net for net in networks)
 
 
 class Server(ThreadingHTTPServer):
