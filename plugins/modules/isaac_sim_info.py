@@ -117,6 +117,13 @@ status_url:
   returned: always
   type: str
   sample: http://10.0.0.12:8290/status
+agent_url:
+  description: Where this host's action agent listens (mutual TLS; only the front door's certificate, from
+    isaac_sim_agent_allow's networks, gets an answer); null when it runs none.
+  returned: always
+  type: str
+  version_added: 0.4.0
+  sample: https://10.0.0.12:8291
 summary:
   description: Counts over the instances reported.
   returned: always

@@ -753,7 +753,9 @@ def gather(
             "error": gpu_error,
         },
         # where the host serves this status live (the dashboard refreshes from it), if it does
-        "status_url": read_status_url(config_dir),
+        "status_url": read_env_value(config_dir, layout.STATUS_ENV, layout.K_STATUS_URL),
+        # where the host's action agent listens (the front door's mutual TLS only), if it runs one
+        "agent_url": read_env_value(config_dir, layout.AGENT_ENV, layout.K_AGENT_URL),
         # drained: no new claim here (test runs, sessions); what runs goes on
         "drained": read_drained(config_dir),
         # the host's own services that run in containers (the Hub cache)
@@ -849,9 +851,10 @@ def read_drained(config_dir: str):
     )
 
 
-def read_status_url(config_dir: str):
+def read_env_value(config_dir: str, name: str, key: str):
+    """One value of an env file the role writes for a host service (its address); None without it."""
     try:
-        with open(os.path.join(config_dir, layout.STATUS_ENV)) as fh:
-            return parse_env_file(fh.read()).get(layout.K_STATUS_URL) or None
+        with open(os.path.join(config_dir, name)) as fh:
+            return parse_env_file(fh.read()).get(key) or None
     except OSError:
         return None

@@ -168,7 +168,7 @@ def test_status_lists_each_viewer_under_its_instance_and_the_dashboard_links_it(
 def reported_ports(status: dict, ip: str) -> set:
     """(protocol, port) of every address isaac_sim_info reports for the host: URLs, companions, status."""
     found = set()
-    urls = [status["status_url"]]
+    urls = [status["status_url"]] + ([status["agent_url"]] if status.get("agent_url") else [])
     for inst in status["instances"]:
         urls += list(inst["urls"].values())
         found |= {(p["proto"], p["port"]) for companion in inst["companions"] for p in companion["ports"]}
@@ -191,13 +191,18 @@ def reachable_listeners(host, proto: str) -> set:
 
 
 def check_every_answering_port_is_reported(host, ip):
-    reported = reported_ports(testbed.info(host), ip)
+    status = testbed.info(host)
+    reported = reported_ports(status, ip)
     # TCP: every port of the host, tried from outside it, as a client would
     answering = {("tcp", port) for port in portwatch.listening(ip, range(1, 65536))}
+    # the action agent listens, and the host's firewall lets only the front door's networks reach it
+    # (isaac_sim_agent_allow: here the host itself), never this scan
+    walled = {("tcp", int(status["agent_url"].rsplit(":", 1)[1]))} if status.get("agent_url") else set()
+    assert not walled & answering, walled
     # the scan sees what listens (containerd's gRPC port on 127.0.0.1 is not reachable, nor reported)
-    assert reachable_listeners(host, "tcp") == answering
+    assert reachable_listeners(host, "tcp") == answering | walled
     # UDP answers nothing to a probe: what listens on an address other hosts can reach
-    assert answering | reachable_listeners(host, "udp") == reported
+    assert answering | walled | reachable_listeners(host, "udp") == reported
 
 
 def test_every_port_that_answers_from_outside_the_host_is_reported(host, ip):
