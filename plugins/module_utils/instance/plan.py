@@ -280,35 +280,40 @@ def _foreign(held: dict, port: int) -> str:
     return owner.get("process") or "another process"
 
 
+def _service_port(var: str, value, service: str, example: int, taken: dict, held: dict) -> tuple:
+    """(port, errors) of a host service's port setting `var`: a port, none of the instances',
+    companions' or other host services' (`taken`), none a foreign process holds."""
+    port = as_int(value)
+    if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
+        return port, [f"{var}: {value!r} is not a port in {PORT_MIN}-{PORT_MAX}. Fix: choose one, e.g. {example}."]
+    if port in taken and " companion " in taken[port]:
+        # the companion is what moved onto the service's port: name its setting
+        _inst, i, _word, name, port_name = taken[port].split(" ", 4)
+        return port, [
+            f"{companions.VAR}[{name}].ports.{port_name}: {port} (instance {i}'s) is {service}'s port ({var}). "
+            f"Fix: give the companion another port, or move {service}."
+        ]
+    if port in taken:
+        return port, [
+            f"{var}: {port} is also {taken[port]}'s port. Fix: choose a port no instance, companion or host "
+            "service uses."
+        ]
+    if _foreign(held, port):
+        return port, [
+            f"{var}: {port}/tcp is already held on this host by {_foreign(held, port)}. Fix: stop it, or choose "
+            "another port."
+        ]
+    return port, []
+
+
 def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
     """(the host's status endpoint as the role installs it, errors). Off: {"enabled": False}."""
     want = cfg.get("status_server") or {}
     if not want.get("enabled"):
         return {"enabled": False}, []
-    errors = []
-    port = as_int(want.get("port"))
-    if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
-        errors.append(
-            f"isaac_sim_status_server_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
-            "Fix: choose one, e.g. 8290."
-        )
-    elif port in taken and " companion " in taken[port]:
-        # the companion is what moved onto the endpoint's port: name its setting
-        _inst, i, _word, name, port_name = taken[port].split(" ", 4)
-        errors.append(
-            f"{companions.VAR}[{name}].ports.{port_name}: {port} (instance {i}'s) is the status endpoint's port "
-            f"(isaac_sim_status_server_port). Fix: give the companion another port, or move the status endpoint."
-        )
-    elif port in taken:
-        errors.append(
-            f"isaac_sim_status_server_port: {port} is also {taken[port]}'s port. Fix: choose a port outside every "
-            "instance's block."
-        )
-    elif _foreign(held, port):
-        errors.append(
-            f"isaac_sim_status_server_port: {port}/tcp is already held on this host by {_foreign(held, port)}. "
-            "Fix: stop it, or choose another port."
-        )
+    port, errors = _service_port(
+        "isaac_sim_status_server_port", want.get("port"), "the status endpoint", 8290, taken, held
+    )
     # every address by default: the public address may be a name, or a NAT address the host does
     # not have; who may read is the allow list's business
     address = str(want.get("address") or "0.0.0.0")
@@ -345,26 +350,12 @@ def _status_endpoint(cfg, taken, held) -> tuple[dict, list]:
     }, errors
 
 
-def _agent(cfg, taken, held, status) -> tuple[dict, list]:
+def _agent(cfg, taken, held) -> tuple[dict, list]:
     """(the host's action agent as the role installs it, errors). Off: {"enabled": False}."""
     want = cfg.get("agent") or {}
     if not want.get("enabled"):
         return {"enabled": False}, []
-    errors = []
-    port = as_int(want.get("port"))
-    if not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
-        errors.append(
-            f"isaac_sim_agent_port: {want.get('port')!r} is not a port in {PORT_MIN}-{PORT_MAX}. "
-            "Fix: choose one, e.g. 8291."
-        )
-    elif port in taken or (status.get("enabled") and port == status.get("port")):
-        what = taken.get(port) or "the status endpoint"
-        errors.append(f"isaac_sim_agent_port: {port} is also {what}'s port. Fix: choose another port.")
-    elif _foreign(held, port):
-        errors.append(
-            f"isaac_sim_agent_port: {port}/tcp is already held on this host by {_foreign(held, port)}. "
-            "Fix: stop it, or choose another port."
-        )
+    port, errors = _service_port("isaac_sim_agent_port", want.get("port"), "the action agent", 8291, taken, held)
     networks, net_errors = status_server.parse_networks(want.get("allow"), "isaac_sim_agent_allow")
     errors += net_errors
     if not networks and not net_errors:
@@ -755,7 +746,10 @@ def build(cfg: dict, host: dict) -> dict:
         taken[layout.HUB_PORT] = "the Hub cache"
     status, status_errors = _status_endpoint(cfg, taken, held)
     errors += status_errors
-    agent, agent_errors = _agent(cfg, taken, held, status)
+    beside = dict(taken)
+    if status["enabled"] and isinstance(status["port"], int):
+        beside.setdefault(status["port"], "the status endpoint")
+    agent, agent_errors = _agent(cfg, beside, held)
     errors += agent_errors
     # the kinds a site may give networks of their own: any release's, the companions', the host services'
     kinds = {k for r in RELEASES.values() for k in r["ports"]} | set(firewall.HOST_KINDS)
