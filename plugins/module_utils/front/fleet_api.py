@@ -52,7 +52,7 @@ _ROUTES = [
     ("instance", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})$")),
     ("logs", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/logs$")),
     ("act", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/(?P<action>start|stop|restart|remove)$")),
-    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>drain|undrain)$")),
+    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>drain|undrain|cleanup)$")),
     ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions$")),
     ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})$")),
 ]
@@ -79,6 +79,14 @@ ACTION_SCOPES = {
     "remove": "operate",
     "drain": "operate",
     "undrain": "operate",
+    "cleanup": "operate",
+}
+# the actions on a host as a whole (the others are an instance's)
+HOST_ACTIONS = {
+    "drain": "no new claim there, what runs goes on",
+    "undrain": "claims are taken again",
+    "cleanup": "remove every instance of the host through its lifecycle, caches and logs kept (the old web "
+    "service's Cleanup All); always asks for confirm: true",
 }
 MAX_BODY = 4096
 # seconds an action's request may take to be taken (the agent checks the host first)
@@ -210,7 +218,7 @@ def openapi() -> dict:
                         "properties": {
                             "confirm": {
                                 "type": "boolean",
-                                "description": "go on below N-1 serving instances (the operate scope)",
+                                "description": "go below N-1 serving instances, or clean the host up (operate scope)",
                             }
                         },
                     }
@@ -221,7 +229,7 @@ def openapi() -> dict:
             "202": "Taken: the action runs on the host",
             "400": "A malformed body (the field is named)",
             "409": "The host is held (a deploy, another action): the holder is named",
-            "412": "It would take the host below N-1 serving instances: confirm it",
+            "412": "It would take the host below N-1 serving instances, or it is a cleanup: confirm it",
             "413": "A body over 4096 bytes",
             "429": "Too many actions a minute",
             "504": "The host's agent did not answer",
@@ -266,20 +274,18 @@ def openapi() -> dict:
                     )
                 }
                 for action, scope in ACTION_SCOPES.items()
-                if action not in ("drain", "undrain")
+                if action not in HOST_ACTIONS
             },  # fmt: skip
             **{
                 f"/api/hosts/{{host}}/{action}": {
                     "post": op(
-                        f"{action.capitalize()} the host: "
-                        + ("no new claim there, what runs goes on" if action == "drain" else "claims are taken again")
-                        + " (needs the operate scope)",
+                        f"{action.capitalize()} the host: {said} (needs the operate scope)",
                         [host],
                         "operator",
                         write,
                     )
                 }
-                for action in ("drain", "undrain")
+                for action, said in HOST_ACTIONS.items()
             },  # fmt: skip
             "/api/hosts/{host}/actions": {"get": op("The host's last actions (operators)", [host], "operator")},
             "/api/hosts/{host}/actions/{id}": {

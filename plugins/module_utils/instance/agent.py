@@ -48,7 +48,10 @@ from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import (
 # the subject of the front door's client certificate (roles/front_door issues it from the CA)
 CLIENT_NAME = "isaacsim.fleet front door"
 INSTANCE_ACTIONS = tuple(lifecycle_call.DAY2)
-HOST_ACTIONS = ("drain", "undrain")
+# the host's own: drain, undrain, and cleanup (the old web service's "Cleanup All"): every instance of
+# the host removed through the lifecycle, caches and logs kept, never without a confirmation
+HOST_ACTIONS = ("drain", "undrain", "cleanup")
+DRAINS = ("drain", "undrain")
 # actions that take serving instances out of service while they run
 TAKES_DOWN = ("stop", "restart", "remove")
 MAX_BODY = 4096
@@ -313,6 +316,8 @@ class Agent:
             "token": req["token"],
             "confirmed": req["confirm"],
             "what": what,
+            # the lifecycle's action (cleanup is every instance's remove)
+            "day2": "remove" if req["action"] == "cleanup" else req["action"],
             "state": "accepted",
             "progress": 0,
             "accepted_at": round(time.time(), 3),
@@ -320,7 +325,7 @@ class Agent:
             "result": None,
             "events": [],
         }
-        if req["action"] in HOST_ACTIONS:
+        if req["action"] in DRAINS:
             return self._drain(rec, who)
         me = {
             "id": action_id,
@@ -343,6 +348,22 @@ class Agent:
             configured = hostprobe.existing_instances(
                 layout.CONFIG_DIR, os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants"), host.find
             )
+            if req["action"] == "cleanup":
+                if not configured:
+                    runlock.release(me, self.lock, self.guard)
+                    return self._done(rec, who, f"cleanup: {self.name} runs no instance; nothing to remove")
+                rec["ids"] = list(configured)
+                rec["what"] = f"cleanup {self.name}: remove " + ", ".join(layout.container(i) for i in configured)
+                what = rec["what"]
+                if not req["confirm"]:
+                    why = f"cleanup removes every instance of {self.name} ({len(configured)})"
+                    self.journal(f"refused action {what} by {who}: not confirmed")
+                    raise RefusedError(
+                        412,
+                        f"{why}. Nothing was done; an operator may confirm it (confirm: true).",
+                        needs_confirm=True,
+                        why=why,
+                    )
             missing = [i for i in req["ids"] if i not in configured]
             if missing:
                 raise RefusedError(
@@ -350,7 +371,7 @@ class Agent:
                     f"ids: {', '.join(layout.container(i) for i in missing)} not on {self.name}, which runs "
                     f"{', '.join(layout.container(i) for i in configured) or 'none'}",
                 )
-            below = below_n1(req["action"], req["ids"], lifecycle.states(host, configured))
+            below = below_n1(rec["day2"], rec["ids"], lifecycle.states(host, configured))
             if below and not req["confirm"]:
                 self.journal(f"refused action {what} by {who}: {below}; not confirmed")
                 raise RefusedError(
@@ -392,6 +413,10 @@ class Agent:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.drained)
             text = "undrained: claims are taken here again"
+        return self._done(rec, who, text)
+
+    def _done(self, rec: dict, who: str, text: str) -> tuple:
+        """An action that needed no lifecycle call, written down as succeeded."""
         rec.update(ended_at=round(time.time(), 3), result={"ok": True, "message": text})
         self._event(rec, text, progress=100, state="succeeded")
         self.journal(f"action {rec['id']} {rec['action']} of {self.name} by {who}: succeeded")
@@ -422,7 +447,7 @@ class Agent:
 
         host.run = watched
         p = {
-            "action": rec["action"],
+            "action": rec["day2"],
             "ids": rec["ids"],
             "soak_seconds": self.soak,
             "purge": False,

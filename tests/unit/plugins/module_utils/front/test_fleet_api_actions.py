@@ -242,6 +242,21 @@ def test_drain_and_undrain_through_the_api(door):
     assert door.agent.drained_by() is None
 
 
+def test_cleanup_is_an_operator_s_and_always_asks_first(door):
+    actor = door.token("actor", ["read", "act"])
+    code, answer = call(door.port, "/api/hosts/gpu-1/cleanup", token=actor, body={"confirm": True})
+    assert code == 403 and answer["error"] == "cleanup needs a token with the operate scope"
+    token = door.token("ops", ["read", "act", "operate"])
+    code, answer = call(door.port, "/api/hosts/gpu-1/cleanup", token=token)
+    assert code == 412 and answer["needs_confirm"] and "cleanup removes every instance of gpu-1" in answer["error"]
+    assert not door.scripted.commands("stop")
+    code, answer = call(door.port, "/api/hosts/gpu-1/cleanup", token=token, body={"confirm": True})
+    assert code == 202 and answer["url"] == f"/api/hosts/gpu-1/actions/{answer['id']}"
+    door.agent.wait()
+    assert door.agent.get(answer["id"])["state"] == "succeeded"
+    assert all(u["UnitFileState"] == "disabled" for u in door.scripted.units.values())
+
+
 def test_a_host_that_does_not_answer_is_reported_in_seconds_and_the_others_still_act(door):
     token = door.token("ops", ["read", "act", "operate"])
     began = time.monotonic()

@@ -231,6 +231,33 @@ def test_stop_start_and_remove_go_through_the_lifecycle_too(tmp_path):
     assert not any(line.startswith("rm /var/lib") for line in h.log)
 
 
+def test_cleanup_removes_every_instance_through_the_lifecycle_once_confirmed_and_keeps_the_data(tmp_path):
+    a, h, lines = make(tmp_path)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req("cleanup", ids=()))
+    # always a confirmation, even with every instance serving (it empties the host)
+    assert exc.value.code == 412 and exc.value.body["needs_confirm"] is True
+    assert "cleanup removes every instance of gpu-1 (4)" in exc.value.body["error"]
+    assert not h.commands("stop") and runlock.read(a.lock) is None
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req("cleanup", ids=[1]))
+    assert exc.value.code == 400 and "takes no instances" in exc.value.body["error"]
+    code, body = a.submit(req("cleanup", ids=(), confirm=True))
+    a.wait()
+    rec = a.get(body["id"])
+    assert code == 202 and rec["state"] == "succeeded", rec
+    assert rec["ids"] == [0, 1, 2, 3] and rec["what"].startswith("cleanup gpu-1: remove isaac-sim-0, isaac-sim-1")
+    for i in range(4):
+        assert h.units[i]["UnitFileState"] == "disabled" and f"/etc/isaac-sim/instance-{i}.env" not in h.files
+    assert not any(line.startswith("rm /var/lib") for line in h.log)
+    assert runlock.read(a.lock) is None
+    # each instance's journal has the line; a cleanup of an empty host is done at once
+    assert {unit for unit, line in lines if ": succeeded" in line} >= {f"isaac-sim@{i}.service" for i in range(4)}
+    code, body = a.submit(req("cleanup", ids=()))
+    assert code == 200 and "runs no instance; nothing to remove" in body["result"]["message"]
+    assert runlock.read(a.lock) is None
+
+
 def test_drain_and_undrain_are_kept_and_take_no_lock(tmp_path):
     a, _h, lines = make(tmp_path)
     code, body = a.submit(req("drain", ids=()))
