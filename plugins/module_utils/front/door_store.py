@@ -37,8 +37,8 @@ ROLE_SCOPES = {"viewer": ("read",), "operator": SCOPES}
 PREFIX = "isf_"
 MAX_DAYS = 365
 # a user's or a token's name, as the journal may show it (never a forged line)
-NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
-_TOKEN_RE = re.compile(r"^isf_([0-9a-f]{12})_([A-Za-z0-9_-]{43})$")
+NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}\Z")
+_TOKEN_RE = re.compile(r"^isf_([0-9a-f]{12})_([A-Za-z0-9_-]{43})\Z")
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS sessions (digest TEXT PRIMARY KEY, user TEXT NOT NULL, role TEXT NOT NULL,"
     " fingerprint TEXT NOT NULL, created INTEGER NOT NULL, expires INTEGER NOT NULL, client TEXT NOT NULL)",

@@ -43,18 +43,18 @@ MAX_ANSWER = 16 * 1024 * 1024
 RECHECK_SECONDS = 10
 _HOST = r"(?P<host>[A-Za-z0-9._-]+)"
 _ROUTES = [
-    ("health", re.compile(r"^/api/health$")),
-    ("openapi", re.compile(r"^/api/openapi\.json$")),
-    ("docs", re.compile(r"^/api/docs$")),
-    ("fleet", re.compile(r"^/api/fleet$")),
-    ("config", re.compile(r"^/api/config$")),
-    ("host", re.compile(rf"^/api/hosts/{_HOST}$")),
-    ("instance", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})$")),
-    ("logs", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/logs$")),
-    ("act", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/(?P<action>start|stop|restart|remove)$")),
-    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>drain|undrain|cleanup)$")),
-    ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions$")),
-    ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})$")),
+    ("health", re.compile(r"^/api/health\Z")),
+    ("openapi", re.compile(r"^/api/openapi\.json\Z")),
+    ("docs", re.compile(r"^/api/docs\Z")),
+    ("fleet", re.compile(r"^/api/fleet\Z")),
+    ("config", re.compile(r"^/api/config\Z")),
+    ("host", re.compile(rf"^/api/hosts/{_HOST}\Z")),
+    ("instance", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})\Z")),
+    ("logs", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/logs\Z")),
+    ("act", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/(?P<action>start|stop|restart|remove)\Z")),
+    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>drain|undrain|cleanup)\Z")),
+    ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions\Z")),
+    ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})\Z")),
 ]
 # what each route needs: nothing (health, the API's own description), a session or token that may
 # read, or an operator's

@@ -45,18 +45,18 @@ NGINX = "/usr/sbin/nginx"
 PYTHON = "/usr/bin/python3"
 # nginx's workers drop to the distribution's web user (Debian's base-passwd has it)
 WORKER_USER = "www-data"
-_HOST_RE = re.compile(r"^[A-Za-z0-9.-]+$")
-_RATE_RE = re.compile(r"^[1-9][0-9]*r/[sm]$")
-_NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
+_HOST_RE = re.compile(r"^[A-Za-z0-9.-]+\Z")
+_RATE_RE = re.compile(r"^[1-9][0-9]*r/[sm]\Z")
+_NAME_RE = re.compile(r"^[A-Za-z0-9._-]+\Z")
 # ADDRESS:PORT as a host reports it; what a host's status endpoint says it serves at, and where an
 # instance's web viewer and signalling listen (each goes into nginx's configuration as it is)
 _ADDRESS = r"(?:[0-9.]+|\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}"
-_STATUS_URL_RE = re.compile(rf"^http://{_ADDRESS}/status$")
-_AGENT_URL_RE = re.compile(rf"^https://{_ADDRESS}$")
+_STATUS_URL_RE = re.compile(rf"^http://{_ADDRESS}/status\Z")
+_AGENT_URL_RE = re.compile(rf"^https://{_ADDRESS}\Z")
 # the door's client certificate for the hosts' action agents, and the CA it checks them against
 AGENT_TLS_DIR = f"{CONFIG_DIR}/agent"
-_PAGE_RE = re.compile(rf"^http://({_ADDRESS})/$")
-_SIGNAL_RE = re.compile(rf"^({_ADDRESS})$")
+_PAGE_RE = re.compile(rf"^http://({_ADDRESS})/\Z")
+_SIGNAL_RE = re.compile(rf"^({_ADDRESS})\Z")
 # door ports per host behind it: one per instance number
 VIEWER_PORTS_PER_HOST = 100
 # Mozilla's "intermediate" TLS 1.2 suites: forward secrecy and AEAD only (TLS 1.3 picks its own)

@@ -36,7 +36,7 @@ UNIT = "isaac-sim-mirror-seed.service"
 SKOPEO = "/usr/bin/skopeo"
 STORE = f"{registry_mirror.DATA}/docker/registry/v2"  # the filesystem driver's layout under its root
 RUN_PREFIX = "isaac-sim-seed."
-_REF_RE = re.compile(r"^(?P<name>[a-z0-9]+(?:[._/-][a-z0-9]+)*)@(?P<digest>sha256:[0-9a-f]{64})$")
+_REF_RE = re.compile(r"^(?P<name>[a-z0-9]+(?:[._/-][a-z0-9]+)*)@(?P<digest>sha256:[0-9a-f]{64})\Z")
 
 
 class SeedError(Exception):

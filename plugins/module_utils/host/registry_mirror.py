@@ -30,7 +30,7 @@ DATA = "/var/lib/docker-registry"  # the package's own data directory, that user
 TABLE = "isaac_sim_mirror"
 REGISTRY = "/usr/bin/docker-registry"
 NFT = "/usr/sbin/nft"
-_HOST_RE = re.compile(r"^[A-Za-z0-9.-]+$")
+_HOST_RE = re.compile(r"^[A-Za-z0-9.-]+\Z")
 DOCKER_HUB = "docker.io"
 DOCKER_HUB_NAMES = ("docker.io", "index.docker.io", "registry-1.docker.io")
 

@@ -588,7 +588,7 @@ _EVENT_KINDS = {
     "unhealthy_restart": "unhealthy_restarts",
     "docker_away": "docker_away",
 }
-_EVENT = re.compile(r"^event=([a-z_]+) container=(isaac-sim-\d+)$")
+_EVENT = re.compile(r"^event=([a-z_]+) container=(isaac-sim-\d+)\Z")
 
 
 def events_argv(since: str = "-24h") -> list:

@@ -135,19 +135,19 @@ LABEL_RUN_SERVICE = "org.isaacsim.fleet.run-service"
 LABEL_WARM = "org.isaacsim.fleet.warm"
 WARM_CONTAINER_PREFIX = "isaacsim-warm-"
 RUN_OUTPUTS = "/isaacsim-fleet/outputs"
-RUN_ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,62}$")
+RUN_ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,62}\Z")
 
-UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service$")
-CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))$")
-ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env$")
-MARKER_RE = re.compile(r"^instance-(\d+)\.ready$")
+UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service\Z")
+CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))\Z")
+ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env\Z")
+MARKER_RE = re.compile(r"^instance-(\d+)\.ready\Z")
 # "warm" or "cold": whether the instance's caches held anything when its container last started
-CACHE_STATE_RE = re.compile(r"^instance-(\d+)\.cache$")
+CACHE_STATE_RE = re.compile(r"^instance-(\d+)\.cache\Z")
 # companions: a unit template per companion, one unit per instance (isaac-sim-viewer@2.service)
-COMPANION_NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
-COMPANION_TEMPLATE_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@\.service$")
-COMPANION_UNIT_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@(\d+)\.service$")
-COMPANION_ENV_RE = re.compile(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.env$")
+COMPANION_NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*\Z")
+COMPANION_TEMPLATE_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@\.service\Z")
+COMPANION_UNIT_RE = re.compile(r"^isaac-sim-([a-z][a-z0-9-]*)@(\d+)\.service\Z")
+COMPANION_ENV_RE = re.compile(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.env\Z")
 COMPANION_TEMPLATE_GLOB = "isaac-sim-*@.service"
 # names a companion may not take: the collection's own units and scripts
 RESERVED_COMPANIONS = ("metrics", "run", "ready", "ports", "status", "hub")

@@ -28,7 +28,7 @@ import time
 import urllib.parse
 
 PATH = "/status"
-LOGS_RE = re.compile(r"^/logs/([0-9]{1,2})$")
+LOGS_RE = re.compile(r"^/logs/([0-9]{1,2})\Z")
 LOG_LINES = 200
 # journal streams at once, and how long each may run (a page left open ends; it asks again)
 FOLLOWERS = 8

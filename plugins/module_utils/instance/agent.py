@@ -61,8 +61,8 @@ MAX_CLIENTS = 32
 RENEW_S = 5.0
 # actions kept on disk, newest first
 KEEP = 100
-ACTION_ID_RE = re.compile(r"^[a-f0-9]{16}$")
-NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}$")
+ACTION_ID_RE = re.compile(r"^[a-f0-9]{16}\Z")
+NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}\Z")
 # host: the host the door means (this agent refuses a request for another, whatever its certificate said)
 _FIELDS = {"host": str, "action": str, "ids": list, "confirm": bool, "user": str, "token": str}
 _NEEDED = ("host", "action", "user")

@@ -35,10 +35,10 @@ KEYS = {
     "docker_args",
 }
 HEALTH_KEYS = {"test", "interval", "timeout", "retries", "start_period"}
-PORT_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
-PORT_RE = re.compile(r"^(\d+)(?:/(tcp|udp))?$")
+PORT_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*\Z")
+PORT_RE = re.compile(r"^(\d+)(?:/(tcp|udp))?\Z")
 PLACEHOLDER_RE = re.compile(r"\{(instance|host|port\.[a-z][a-z0-9_]*)\}")
-ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*\Z")
 DEFAULT_READY_TIMEOUT = 60
 DEFAULT_STOP_TIMEOUT = 10
 

@@ -24,7 +24,7 @@ MODES = (HOST, MACVLAN)
 # a pool is expanded only as far as the instances need; a range longer than this is a typo
 MAX_RANGE = 65536
 # the containers that may be on our network: the instances (their companions join their namespace)
-_INSTANCE = re.compile(r"^/?" + re.escape(layout.CONTAINER_PREFIX) + r"\d+$")
+_INSTANCE = re.compile(r"^/?" + re.escape(layout.CONTAINER_PREFIX) + r"\d+\Z")
 
 
 def _address(text, where, errors):

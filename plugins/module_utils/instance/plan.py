@@ -62,7 +62,7 @@ SETTINGS = (
     ("unhealthy_restart", 0, "seconds an unhealthy instance is left before its host restarts it (0: never)"),
 )
 
-ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*\Z")
 
 
 class PlanError(Exception):

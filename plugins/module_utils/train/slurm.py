@@ -49,11 +49,11 @@ SINFO_FORMAT = "%P|%D|%c|%m|%G|%l"
 _VAR_OPEN, _VAR_CLOSE = "\ue000", "\ue001"
 # NAME, or NAME[@] for each element of an array as its own word
 _VAR = re.compile(f"{_VAR_OPEN}([A-Za-z_][A-Za-z0-9_]*(?:\\[@\\])?){_VAR_CLOSE}")
-_ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-_TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?$")
+_ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*\Z")
+_TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?\Z")
 _GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
 _SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")
 # a key of scontrol's one-line output; values may hold spaces ("Reason=Not responding [slurm@...]")
 _FIELD = re.compile(r"(?<!\S)([A-Za-z][A-Za-z0-9_/:]*)=")
 # what munge and slurmd log when a credential is refused or cannot be made ("error: Munge decode
