@@ -201,6 +201,13 @@ instances:
         with systemd's result, or a stop; null while it serves or systemd is bringing it back.
       type: str
       sample: "failed (exit-code): read journalctl -u isaac-sim@2.service"
+    lent_to:
+      description: >-
+        The test run that holds the instance (experience.yml, test_suite.yml), its one claim; nothing but that
+        run restarts it until the run gives it back. Null when nothing holds it.
+      type: str
+      version_added: 0.4.0
+      sample: nightly-7
     active_since:
       description: When the unit became active (epoch seconds).
       type: int

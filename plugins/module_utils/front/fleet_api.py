@@ -100,8 +100,7 @@ WRITES_PER_MINUTE = 30
 def instance_view(host: str, inst: dict, entrance, operator: bool) -> dict:
     """An instance as the API gives it: what a person needs to pick one and what holds it. Direct
     addresses (urls) go to operators alone, as on the dashboard."""
-    container = inst.get("container") or {}
-    run = container.get("test_run")
+    run = inst.get("lent_to")
     view = {
         "host": host,
         "id": inst.get("id"),
@@ -114,7 +113,7 @@ def instance_view(host: str, inst: dict, entrance, operator: bool) -> dict:
         "digest": inst.get("digest"),
         "ports": inst.get("ports") or {},
         "entrance": entrance,
-        # a test run lends an instance (experience.yml, test_suite.yml); sessions come later
+        # the instance's one claim: a test run's loan (experience.yml, test_suite.yml); sessions come later
         "holder": {"kind": "test_run", "id": run} if run else None,
         "health": inst.get("health"),
         "restarts": inst.get("restarts"),

@@ -280,6 +280,9 @@ def table(report: dict) -> list:
             # in status.yml's table and status.txt as in status.json and the dashboard
             if i.get("down_reason"):
                 rows.append((h["host"], str(i["id"]), "", "", "", "", "", f"why: {i['down_reason']}"))
+            # its one claim: nothing but its borrower restarts it until the run gives it back
+            if i.get("lent_to"):
+                rows.append((h["host"], str(i["id"]), "", "", "", "", "", f"held by: test run {i['lent_to']}"))
             # each companion on a line of its own under its instance: 2/ros-bridge
             for c in i.get("companions") or []:
                 rows.append(

@@ -200,6 +200,23 @@ def read_ready_markers(run_dir: str) -> dict:
     return markers
 
 
+def read_loans(run_dir: str) -> dict:
+    """{id: run} of the instances lent to a test run (lifecycle.lend's marker, a directory whose file
+    `run` names the borrower); a marker being made or unreadable says "a run"."""
+    loans = {}
+    for path in glob.glob(os.path.join(run_dir, "instance-*.lent")):
+        i = layout.instance_id(layout.LENT_RE, path)
+        if i is None:
+            continue
+        try:
+            with open(os.path.join(path, "run")) as fh:
+                words = fh.read().split()
+        except OSError:
+            words = []
+        loans[i] = words[0] if words else "a run"
+    return loans
+
+
 def read_cache_states(run_dir: str) -> dict:
     """{id: "warm" or "cold"}: what isaac-sim-cache-state found in the instance's caches at its last start."""
     states = {}
@@ -723,6 +740,10 @@ def gather(
         companion_markers=read_companion_markers(run_dir),
         cache_states=read_cache_states(run_dir),
     )
+    loans = read_loans(run_dir)
+    for r in records:
+        # the one claim on an instance: a test run's loan (sessions come to the same marker)
+        r["lent_to"] = loans.get(r["id"]) if r["id"] is not None else None
     lap("build")
     rc, out, err = events_read()
     if rc != 0:

@@ -141,6 +141,7 @@ UNIT_RE = re.compile(r"^isaac-sim@(\d+)\.service\Z")
 CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))\Z")
 ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env\Z")
 MARKER_RE = re.compile(r"^instance-(\d+)\.ready\Z")
+LENT_RE = re.compile(r"^instance-(\d+)\.lent\Z")
 # "warm" or "cold": whether the instance's caches held anything when its container last started
 CACHE_STATE_RE = re.compile(r"^instance-(\d+)\.cache\Z")
 # companions: a unit template per companion, one unit per instance (isaac-sim-viewer@2.service)

@@ -17,6 +17,7 @@ from testbed import (
     all_ready,
     assert_sandboxed,
     container_id,
+    info,
     instance_ready,
     registry_image,
     run_playbook,
@@ -144,6 +145,9 @@ def test_runs_whose_controller_or_runner_was_killed_leave_the_instance_clean_and
     # its runner killed too: the run is stuck, holding instance 1, until the next run on the host
     swept = killed_mid_run(host, tmp_path, hold_s=300, runner_too=True)
     held = container_id(host, "isaac-sim-1")
+    # the host's status names the run that holds it, the others held by nobody
+    holders = {i["id"]: i["lent_to"] for i in info(host)["instances"]}
+    assert holders == {0: None, 1: swept, 2: None, 3: None}, holders
     # a run's service runs its docker client in the sandbox the security guide lists
     assert_sandboxed(host, f"isaac-sim-run-{swept}-check.service", "isaac-sim-run-RUN-SERVICE.service")
     # a run nobody will fetch, older than the retention limit

@@ -23,9 +23,9 @@ STATUS = {
     "instances": [
         {"id": 0, "name": "isaac-sim-0", "configured": True, "state": "ready", "ready": True, "release": "6.x",
          "image": "nvcr.io/nvidia/isaac-sim:6.0.1", "digest": "sha256:" + "a" * 64, "ports": {"signal": 49100},
-         "urls": {"signal": "10.0.0.5:49100"}, "container": {"test_run": None}, "restarts": 0},
+         "urls": {"signal": "10.0.0.5:49100"}, "lent_to": None, "restarts": 0},
         {"id": 1, "name": "isaac-sim-1", "configured": True, "state": "starting", "ready": False, "release": "6.x",
-         "urls": {"signal": "10.0.0.5:49101"}, "container": {"test_run": "nightly-7"}},
+         "urls": {"signal": "10.0.0.5:49101"}, "lent_to": "nightly-7"},
     ],
 }  # fmt: skip
 

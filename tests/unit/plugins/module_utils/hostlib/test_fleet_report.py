@@ -34,6 +34,14 @@ def test_table_has_one_aligned_line_per_instance():
     assert lines[-1].startswith("1 hosts (1 answered), 5 instances: 4 running, 3 ready")
 
 
+def test_an_instance_a_test_run_holds_says_so_under_its_line():
+    result = host_result()
+    result["instances"][1]["lent_to"] = "nightly-7"
+    lines = fleet_report.table(fleet_report.build({"gpu-node-1": result}, ["gpu-node-1"]))
+    rows = [line.split() for line in lines[1:-1]]
+    assert [r[1] for r in rows][:3] == ["0", "1", "1"] and " ".join(rows[2][2:]) == "held by: test run nightly-7"
+
+
 def test_durations():
     assert [fleet_report.duration(v) for v in (None, 5, 65, 3600 + 300, 2 * 86400 + 7200)] == [
         "-",

@@ -412,6 +412,26 @@ def test_cost_does_not_grow_with_instances(tmp_path, n):
     assert all(ms >= 0 for ms in result["timings_ms"].values())
 
 
+def test_each_instance_says_which_test_run_holds_it(tmp_path):
+    run_dir = tmp_path / "run"
+    (run_dir / "instance-1.lent").mkdir(parents=True)
+    (run_dir / "instance-1.lent" / "run").write_text("nightly-7\n4242\n")
+    # a marker being made (its file not written yet) still holds the instance
+    (run_dir / "instance-2.lent").mkdir()
+    (run_dir / "instance-x.lent").mkdir()
+    assert fleet_status.read_loans(str(run_dir)) == {1: "nightly-7", 2: "a run"}
+    config = tmp_path / "etc"
+    config.mkdir()
+    for i in range(3):
+        (config / f"instance-{i}.env").write_text(recorded("instance-2.env"))
+    result = fleet_status.gather(
+        lambda argv: (0, "", ""), None, RecordedDocker(), no_nvml, config_dir=str(config), run_dir=str(run_dir),
+        gpu_source="none",
+    )  # fmt: skip
+    held = {r["id"]: r["lent_to"] for r in result["instances"] if r["id"] in (0, 1, 2)}
+    assert held == {0: None, 1: "nightly-7", 2: "a run"}
+
+
 def test_a_host_without_the_collection_is_not_deployed(tmp_path):
     result = fleet_status.gather(
         lambda argv: (0, "", ""),
