@@ -45,10 +45,13 @@ def docker_ip(name: str) -> str:
 
 
 def door_auth():
-    spec = importlib.util.spec_from_file_location("door_auth", ROOT / "plugins/module_utils/front/door_auth.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    # the checkout as the collection, as tests/conftest.py makes it importable
+    link = ROOT / ".ansible" / "collections" / "ansible_collections" / "isaacsim" / "fleet"
+    if not link.exists():
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to("../../../..")
+    sys.path.insert(0, str(ROOT / ".ansible" / "collections"))
+    return importlib.import_module("ansible_collections.isaacsim.fleet.plugins.module_utils.front.door_auth")
 
 
 def play(inv, playbook, *extra):
