@@ -9,7 +9,7 @@ import re
 
 def version_tuple(text: str):
     """(570, 169) from "570.169" or "570.169.01"; None when it is not a version."""
-    if not re.match(r"^\d+(\.\d+)*$", (text or "").strip()):
+    if not re.match(r"^\d+(\.\d+)*\Z", (text or "").strip()):
         return None
     return tuple(int(p) for p in text.strip().split("."))
 

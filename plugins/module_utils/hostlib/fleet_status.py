@@ -180,7 +180,7 @@ def read_companion_markers(run_dir: str) -> set:
     """{(instance id, companion name)} whose readiness gate left its marker."""
     found = set()
     for path in glob.glob(os.path.join(run_dir, "instance-*.*.ready")):
-        match = re.match(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.ready$", os.path.basename(path))
+        match = re.match(r"^instance-(\d+)\.([a-z][a-z0-9-]*)\.ready\Z", os.path.basename(path))
         if match:
             found.add((int(match.group(1)), match.group(2)))
     return found

@@ -609,7 +609,7 @@ def handler(agent: Agent):
                 return self._send(200, {"status": "ok", "host": agent.name, "drained": agent.drained_by()})
             if path == "/actions":
                 return self._send(200, {"actions": agent.recent(), "drained": agent.drained_by()})
-            m = re.match(r"^/actions/([a-f0-9]{16})(/events)?$", path)
+            m = re.match(r"^/actions/([a-f0-9]{16})(/events)?\Z", path)
             rec = agent.get(m.group(1)) if m else None
             if rec is None:
                 return self._send(404, {"error": f"no such action: {path}"})

@@ -125,7 +125,7 @@ def ask_mirror(reference: str, certs_dir: str = "/etc/docker/certs.d", timeout: 
         ) from exc
     finally:
         conn.close()
-    if status != 200 or not re.match(r"^sha256:[0-9a-f]{64}$", digest):
+    if status != 200 or not re.match(r"^sha256:[0-9a-f]{64}\Z", digest):
         raise PinError(
             f"the registry mirror {host} answered HTTP {status}{' with no digest' if status == 200 else ''} when "
             f"asked which digest {reference} names. Fix: check that the image and tag exist upstream and that the "

@@ -52,7 +52,7 @@ _VAR = re.compile(f"{_VAR_OPEN}([A-Za-z_][A-Za-z0-9_]*(?:\\[@\\])?){_VAR_CLOSE}"
 _ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*\Z")
 _TIME = re.compile(r"^(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?\Z")
 _GRES_GPU = re.compile(r"(?:^|,)gpu(?::[^:,()]+)?:(\d+)")
-_SIZE = re.compile(r"^(\d+)([KMGT]?)$", re.IGNORECASE)
+_SIZE = re.compile(r"^(\d+)([KMGT]?)\Z", re.IGNORECASE)
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")
 # a key of scontrol's one-line output; values may hold spaces ("Reason=Not responding [slurm@...]")
 _FIELD = re.compile(r"(?<!\S)([A-Za-z][A-Za-z0-9_/:]*)=")
@@ -343,7 +343,7 @@ def stuck_message(job: dict, journals: dict) -> str:
 
 def exit_of(text: str):
     """(exit code, signal) of Slurm's "code:signal" ExitCode, or None."""
-    match = re.match(r"^(\d+):(\d+)$", (text or "").strip())
+    match = re.match(r"^(\d+):(\d+)\Z", (text or "").strip())
     return (int(match.group(1)), int(match.group(2))) if match else None
 
 
