@@ -41,35 +41,6 @@ MAX_TAIL = 200
 MAX_ANSWER = 16 * 1024 * 1024
 # a followed journal asks again who is reading this often: a logout or a revoked token ends it
 RECHECK_SECONDS = 10
-_HOST = r"(?P<host>[A-Za-z0-9._-]+)"
-_ROUTES = [
-    ("health", re.compile(r"^/api/health\Z")),
-    ("openapi", re.compile(r"^/api/openapi\.json\Z")),
-    ("docs", re.compile(r"^/api/docs\Z")),
-    ("fleet", re.compile(r"^/api/fleet\Z")),
-    ("config", re.compile(r"^/api/config\Z")),
-    ("host", re.compile(rf"^/api/hosts/{_HOST}\Z")),
-    ("instance", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})\Z")),
-    ("logs", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/logs\Z")),
-    ("act", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/(?P<action>start|stop|restart|remove)\Z")),
-    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>drain|undrain|cleanup)\Z")),
-    ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions\Z")),
-    ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})\Z")),
-]
-# what each route needs: nothing (health, the API's own description), a session or token that may
-# read, or an operator's
-NEEDS = {
-    "health": None,
-    "openapi": None,
-    "docs": None,
-    "logs": "operator",
-    "act": "operator",
-    "host_act": "operator",
-    "actions": "operator",
-    "action": "operator",
-}
-# the methods of each route (GET where not named); DELETE of an instance is its remove
-METHODS = {"act": ("POST",), "host_act": ("POST",), "instance": ("GET", "DELETE")}
 # the scope a token needs for each action (a session holds its role's); confirming an action that takes
 # a host below N-1 serving instances needs operate
 ACTION_SCOPES = {
@@ -88,6 +59,38 @@ HOST_ACTIONS = {
     "cleanup": "remove every instance of the host through its lifecycle, caches and logs kept (the old web "
     "service's Cleanup All); always asks for confirm: true",
 }
+_HOST = r"(?P<host>[A-Za-z0-9._-]+)"
+# the routes' action names, from the tables above
+_INSTANCE_ACTIONS = "|".join(a for a in ACTION_SCOPES if a not in HOST_ACTIONS)
+_HOST_ACTIONS = "|".join(HOST_ACTIONS)
+_ROUTES = [
+    ("health", re.compile(r"^/api/health\Z")),
+    ("openapi", re.compile(r"^/api/openapi\.json\Z")),
+    ("docs", re.compile(r"^/api/docs\Z")),
+    ("fleet", re.compile(r"^/api/fleet\Z")),
+    ("config", re.compile(r"^/api/config\Z")),
+    ("host", re.compile(rf"^/api/hosts/{_HOST}\Z")),
+    ("instance", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})\Z")),
+    ("logs", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/logs\Z")),
+    ("act", re.compile(rf"^/api/hosts/{_HOST}/instances/(?P<n>[0-9]{{1,2}})/(?P<action>{_INSTANCE_ACTIONS})\Z")),
+    ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>{_HOST_ACTIONS})\Z")),
+    ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions\Z")),
+    ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})\Z")),
+]
+# what each route needs: nothing (health, the API's own description), a session or token that may
+# read, or an operator's
+NEEDS = {
+    "health": None,
+    "openapi": None,
+    "docs": None,
+    "logs": "operator",
+    "act": "operator",
+    "host_act": "operator",
+    "actions": "operator",
+    "action": "operator",
+}
+# the methods of each route (GET where not named); DELETE of an instance is its remove
+METHODS = {"act": ("POST",), "host_act": ("POST",), "instance": ("GET", "DELETE")}
 MAX_BODY = 4096
 # seconds an action's request may take to be taken (the agent checks the host first)
 WRITE_TIMEOUT = 15.0
