@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import resource
 import shlex
 import subprocess
 import time
@@ -88,6 +89,26 @@ def playbook_command(host, extra_vars=None, check=False, extra_inventory=None, p
     return cmd, dict(os.environ, ANSIBLE_FORCE_COLOR="0", ANSIBLE_NOCOLOR="1")
 
 
+# each Ansible call of a test, its wall and CPU seconds: where a scenario's time goes (tools/test sums them)
+CALLS = ROOT / "tests" / "output" / "ansible-calls.tsv"
+
+
+def timed(kind: str, call):
+    started, before = time.monotonic(), resource.getrusage(resource.RUSAGE_CHILDREN)
+    try:
+        return call()
+    finally:
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+        test = os.environ.get("PYTEST_CURRENT_TEST", "?").split(" ", 1)[0]
+        scenario = os.environ.get("MOLECULE_SCENARIO_NAME", "?")
+        try:
+            with CALLS.open("a") as out:
+                out.write(f"{scenario}\t{test}\t{kind}\t{time.monotonic() - started:.2f}\t{cpu:.2f}\n")
+        except OSError:
+            pass
+
+
 def start_playbook(host, extra_vars=None, playbook=None) -> subprocess.Popen:
     """run_playbook in the background: the caller waits for it (communicate)."""
     cmd, env = playbook_command(host, extra_vars, playbook=playbook)
@@ -102,7 +123,11 @@ def run_playbook(
     raw_vars: "name=value" strings given with -e as an operator types them (every value a string).
     """
     cmd, env = playbook_command(host, extra_vars, check, extra_inventory, playbook, raw_vars)
-    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT, check=False)
+    book = Path(playbook or converge_playbook()).stem
+    result = timed(
+        f"playbook {book}",
+        lambda: subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900, cwd=ROOT, check=False),
+    )
     if f"{name(host)} " not in result.stdout.split("PLAY RECAP", 1)[-1]:
         raise AssertionError(f"the playbook did not run on {name(host)}:\n{result.stdout[-2000:]}{result.stderr}")
     if " is held by " in result.stdout + result.stderr:
@@ -121,7 +146,9 @@ def info(host, check=False, **params) -> dict:
     if check:
         cmd.append("--check")
     env = dict(os.environ, ANSIBLE_LOAD_CALLBACK_PLUGINS="1", ANSIBLE_STDOUT_CALLBACK="json")
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120, cwd=ROOT, check=False)
+    out = timed(
+        "info", lambda: subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120, cwd=ROOT, check=False)
+    )
     try:
         result = json.loads(out.stdout)["plays"][0]["tasks"][0]["hosts"][name(host)]
     except (ValueError, KeyError, IndexError) as exc:

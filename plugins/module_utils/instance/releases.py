@@ -202,14 +202,17 @@ def healthcheck(release: str, port: int | None, address: str = "") -> str:
     if port is None:
         return check
     # /proc/net/tcp: "sl local_address rem_address st tx_queue:rx_queue ..."; for a listening
-    # socket (st 0A) rx_queue is the number of connections waiting to be accepted
+    # socket (st 0A) rx_queue is the number of connections waiting to be accepted. Each file is read
+    # by a command substitution, which the shell waits for: a process substitution's reader outlived
+    # the check, and a PID 1 that reaps nothing (an app run without an init) kept a zombie per check.
     hexport = f"{port:04X}"
     probe = (
         f"exec 3<>/dev/tcp/{address or '127.0.0.1'}/{port} && exec 3>&- && "
         f"for t in $(seq {ACCEPT_WAIT_S * 5}); do q=0; "
+        f"for f in /proc/net/tcp /proc/net/tcp6; do [ -r $f ] || continue; "
         f"while read -r _ l _ st qs _; do "
         f'[ "$st" = 0A ] && [ "${{l##*:}}" = {hexport} ] && q=$((q + 16#${{qs#*:}})); '
-        f"done < <(cat /proc/net/tcp /proc/net/tcp6 2>/dev/null); "
+        f'done <<< "$(< $f)"; done; '
         f'[ "$q" = 0 ] && exit 0; sleep 0.2; done; exit 1'
     )
     return f"{check} && bash -c '{probe}'"

@@ -7,6 +7,7 @@ import json
 import os
 import re
 import subprocess
+from pathlib import Path
 
 import testbed
 from testbed import ROOT, client
@@ -70,15 +71,18 @@ def squash(text: str) -> str:
 
 def playbook(name: str, extra: dict | None = None, limit: str | None = None) -> subprocess.CompletedProcess:
     """Run unattended: stdin is not a terminal, as under cron or CI."""
-    return subprocess.run(
-        playbook_argv(name, extra, limit),
-        capture_output=True,
-        text=True,
-        env=dict(os.environ, **PLAIN),
-        timeout=1500,
-        cwd=ROOT,
-        stdin=subprocess.DEVNULL,
-        check=False,
+    return testbed.timed(
+        f"playbook {Path(name).stem}",
+        lambda: subprocess.run(
+            playbook_argv(name, extra, limit),
+            capture_output=True,
+            text=True,
+            env=dict(os.environ, **PLAIN),
+            timeout=1500,
+            cwd=ROOT,
+            stdin=subprocess.DEVNULL,
+            check=False,
+        ),
     )
 
 

@@ -131,3 +131,36 @@ def test_the_port_probe_fails_on_a_server_that_accepts_nothing_or_is_not_there()
         # the same port at another address of the host: nothing listens there
         assert _port_probe(port, "127.0.0.2") != 0
     assert _port_probe(port) != 0
+
+
+# a subreaper runs the whole healthcheck as Docker's exec does, then reaps what the check left behind:
+# in a container whose PID 1 reaps nothing, each of those would stay a zombie for the container's life
+ORPHANS = r"""
+import ctypes, os, subprocess, sys, time
+ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
+# the old check's leftover outlived its shell in most runs, not all: ten runs
+rc = max(subprocess.run(["/bin/sh", "-c", sys.argv[1]]).returncode for _ in range(10))
+time.sleep(0.3)
+orphans = 0
+while True:
+    try:
+        pid, _status = os.waitpid(-1, os.WNOHANG)
+    except ChildProcessError:
+        break
+    if pid == 0:
+        time.sleep(0.1)
+        continue
+    orphans += 1
+print(rc, orphans)
+"""
+
+
+def test_a_healthcheck_leaves_no_process_behind_for_pid_1_to_reap(tmp_path):
+    logs = tmp_path / "Kit" / "isaac-sim" / "6.0"
+    logs.mkdir(parents=True)
+    (logs / "kit_1.log").write_text("[omni.kit.app] AppReady\n")
+    sock, _got = _listener(accepts=True)
+    with sock:
+        check = healthcheck("6.x", sock.getsockname()[1]).replace(releases.RELEASES["6.x"]["log_dir"], str(tmp_path))
+        out = subprocess.run(["python3", "-c", ORPHANS, check], capture_output=True, text=True, timeout=30, check=True)
+    assert out.stdout.split() == ["0", "0"], out.stdout + out.stderr
