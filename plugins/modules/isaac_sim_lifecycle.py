@@ -93,6 +93,15 @@ options:
     description: How long a restarted instance must stay ready with its restart count unchanged.
     type: float
     default: 0
+  held_wait:
+    description:
+      - With O(action=apply) or O(action=restart), how many seconds to wait for a test run or a session that holds
+        an instance the call would restart to give it back. Once the wait is over, the instance is left as it is
+        (its settings too, so the next deploy rolls it) and listed in RV(left); the other instances roll.
+      - A port layout change cannot leave an instance behind; it stops before a held instance, as a failure.
+    type: float
+    default: 0
+    version_added: "0.4.0"
   defer_running:
     description: With O(action=apply), change nothing on a host where a serving instance would restart.
     type: bool
@@ -182,6 +191,15 @@ untouched:
   returned: always
   type: list
   elements: int
+left:
+  description:
+    - Instances left as they were for the test run or session that holds them (O(held_wait)), each with its
+      C(holder). The call does not fail for them.
+  returned: always
+  type: list
+  elements: dict
+  sample: [{"id": 2, "holder": "session-3f2a"}]
+  version_added: "0.4.0"
 directories:
   description: Directories created or given the container user's owner and mode.
   returned: action is apply
@@ -213,6 +231,7 @@ ARGUMENT_SPEC = dict(
     scripts=dict(type="dict", default={}),
     managed=dict(type="str", default=layout.MANAGED),
     soak_seconds=dict(type="float", default=0),
+    held_wait=dict(type="float", default=0),
     defer_running=dict(type="bool", default=False),
     remove_others=dict(type="bool", default=True),
     purge=dict(type="bool", default=False),

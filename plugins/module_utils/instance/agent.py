@@ -371,6 +371,16 @@ class Agent:
                     f"ids: {', '.join(layout.container(i) for i in missing)} not on {self.name}, which runs "
                     f"{', '.join(layout.container(i) for i in configured) or 'none'}",
                 )
+            # a test run or a session has it: nothing of the API acts under it (its holder gives it back)
+            held = {i: h for i in rec["ids"] for h in [lifecycle.lent_to(host, i)] if h is not None}
+            if held:
+                names = "; ".join(f"{layout.container(i)} is held by {h}" for i, h in held.items())
+                self.journal(f"refused action {what} by {who}: {names}")
+                raise RefusedError(
+                    409,
+                    f"{names}; nothing was done. Try again once it is given back.",
+                    held=[{"id": i, "holder": h} for i, h in held.items()],
+                )
             below = below_n1(rec["day2"], rec["ids"], lifecycle.states(host, configured))
             if below and not req["confirm"]:
                 self.journal(f"refused action {what} by {who}: {below}; not confirmed")

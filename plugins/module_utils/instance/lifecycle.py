@@ -506,12 +506,15 @@ def apply(host: Host, want: dict, check=False) -> dict:
            (units, scripts), "instances": {id: env text}, "companions": {id: {name: env text}},
            "companions_found": {id: [names]} (on the host now), "env_mode": int, "remove": [ids],
            "purge": bool, "data_root": str, "soak": seconds, "defer_running": bool,
-           "reserve": [ports] to keep out of the ephemeral range, or None, "managed": str}
+           "reserve": [ports] to keep out of the ephemeral range, or None, "managed": str,
+           "held_wait": seconds to wait for a run or session to give back an instance that would roll}
     An instance changes when its env file or one of its companions' does; it changes with its
     companions, as one. With defer_running, a host where a serving instance would restart or be
     removed is left as it is (deferred=True): the caller rolls it later, in canary batches.
 
-    Returns {"plan", "done", "failed", "untouched", "deferred", "changed", ...}; when the apply
+    An instance lent to a run or a session is waited for up to held_wait, then left on its settings as
+    they are ("left", with its holder); the others roll. Returns {"plan", "done", "failed", "untouched",
+    "left", "deferred", "changed", ...}; when the apply
     stops at instances that failed, "failures" has one entry for each (more than one only where
     they started together) and "failed" is the first of them.
     """
@@ -581,7 +584,9 @@ def apply(host: Host, want: dict, check=False) -> dict:
             for i in to_roll
         },
     }
-    result = {"plan": plan, "done": [], "failed": None, "untouched": [], "deferred": False}
+    result = {"plan": plan, "done": [], "failed": None, "untouched": [], "left": [], "deferred": False}
+    # who holds each instance that would roll: a dry run says which ones a rollout would leave
+    plan["held"] = {i: h for i in to_roll for h in [lent_to(host, i)] if h is not None}
     ports = want.get("reserve")
     managed = want.get("managed", "")
     reserving = ports is not None and reserve(host, ports, managed, grow=False, check=True)
@@ -751,11 +756,16 @@ def apply(host: Host, want: dict, check=False) -> dict:
         why = host.interrupted()
         if why:
             return interrupt(host, result, why, wind_down(n))
-        holder = lent_to(host, i)
-        if holder is not None:  # a test run has it: its settings change after the run, not under it
-            failed = _lent_failure(i, holder, "not changed")
+        # a run or a session has it: its settings change after it is given back, never under it
+        holder = held_after(host, i, None, want.get("held_wait", 0))
+        if holder is not None and _in_the_way(i, current, desired, main_env, steps):
+            failed = _lent_failure(i, holder, "not changed (a port layout change cannot leave it behind)")
             result.update(failed=failed, untouched=[j for j in wind_down(n) if j != i], changed=True)
             return result
+        if holder is not None:
+            # left on its files as they are: the next deploy finds it changed and rolls it
+            result["left"].append(_left(i, holder))
+            continue
         if i in changed_ids:
             write_new(i)
         ok, reason, restart_s = restart(host, i, handover(i), wanted_companions[i])
@@ -806,16 +816,30 @@ def apply(host: Host, want: dict, check=False) -> dict:
         host.remove(path)
     if stale:
         host.run(["systemctl", "daemon-reload"])
-    if reserving:
+    # an instance left for its holder still runs on its old ports: they stay reserved and open
+    if reserving and not result["left"]:
         reserve(host, ports, managed, grow=False)
     # every instance runs as planned: the rules of ports no longer open go
     if wall_todo:
         if wall is None:
             firewall.remove(host)
-        elif grown != wall:
+        elif grown != wall and not result["left"]:
             firewall.load(host, wall, managed)
     result["changed"] = True
     return result
+
+
+def _in_the_way(i: int, current: dict, desired: dict, main_env: dict, steps: list) -> bool:
+    """Whether instance i, left on its ports as they are, would hold a port another instance is
+    moving to, or the roll's order stops instances to free ports: a port layout change around it."""
+    if any(kind == "stop" for kind, _what in steps):
+        return True
+    kept = ports_of(current[i][main_env[i]])
+    wanted = set()
+    for j in desired:
+        if j != i:
+            wanted |= ports_of(desired[j][main_env[j]])
+    return bool(kept & wanted)
 
 
 def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
@@ -854,6 +878,25 @@ def _loan(host: Host, i: int) -> tuple:
 def lent_to(host: Host, i: int) -> str | None:
     """The run instance i is lent to, or None."""
     return _loan(host, i)[0]
+
+
+def held_after(host: Host, i: int, borrower=None, wait_s: float = 0.0, interval: float = 1.0) -> str | None:
+    """Who still holds instance i after waiting up to wait_s for them to give it back; None once it is
+    free (or held by `borrower`). A loan whose runner is gone is waited for as any other: the next run
+    that wants the instance ends it, never a restart of ours under it."""
+    deadline = host.now() + max(0.0, float(wait_s or 0))
+    while True:
+        holder = lent_to(host, i)
+        if holder is None or holder == borrower:
+            return None
+        if host.now() >= deadline:
+            return holder
+        host.sleep(interval)
+
+
+def _left(i: int, holder: str) -> dict:
+    """An instance a rollout left as it was for the run or session that holds it."""
+    return {"id": i, "holder": holder}
 
 
 def _mark(host: Host, i: int, run: str, pid=None) -> tuple:
@@ -929,29 +972,33 @@ def give_back(host: Host, i: int, run: str, companions=None) -> str | None:
     return outcome["failed"]["reason"] if outcome["failed"] else None
 
 
-def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=None, borrower=None) -> dict:
+def restart_each(
+    host: Host, ids, soak_seconds: float, check=False, companions=None, borrower=None, held_wait: float = 0.0
+) -> dict:
     """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
     companions ({id: [names]}).
 
     An instance that fails is restarted once more with the same settings (there is
     nothing older to go back to) and the restart stops there. An instance lent to a run
-    other than `borrower` is not touched: the restart stops before it.
+    other than `borrower` is waited for up to held_wait seconds, then left as it is
+    ("left", with its holder) and the restart goes on with the next.
     """
     ids = list(ids)
-    result = {"done": [], "failed": None, "untouched": [], "changed": bool(ids)}
+    result = {"done": [], "failed": None, "untouched": [], "left": [], "changed": bool(ids)}
     if check:
-        result["done"] = [{"id": i, "action": "restart", "restart_s": 0.0, "soak_s": 0.0} for i in ids]
+        holders = {i: lent_to(host, i) for i in ids}
+        result["left"] = [_left(i, h) for i, h in holders.items() if h is not None and h != borrower]
+        left = {x["id"] for x in result["left"]}
+        result["done"] = [{"id": i, "action": "restart", "restart_s": 0.0, "soak_s": 0.0} for i in ids if i not in left]
         return result
     for n, i in enumerate(ids):
         why = host.interrupted()
         if why:
             return interrupt(host, result, why, ids[n:])
-        holder = lent_to(host, i)
-        if holder is not None and holder != borrower:
-            result["failed"] = _lent_failure(i, holder, "not restarted")
-            result["untouched"] = ids[n + 1 :]
-            result["changed"] = bool(result["done"])
-            return result
+        holder = held_after(host, i, borrower, held_wait)
+        if holder is not None:
+            result["left"].append(_left(i, holder))
+            continue
         text = host.read(layout.env_file(i))
         if text is None:
             result["failed"] = {
@@ -990,15 +1037,17 @@ def restart_each(host: Host, ids, soak_seconds: float, check=False, companions=N
         }
         result["untouched"] = ids[n + 1 :]
         return result
+    result["changed"] = bool(result["done"]) or bool(result["failed"])
     return result
 
 
 def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> list:
-    """Lines for a person: what was rolled, reverted and untouched, and why the rollout stopped.
+    """Lines for a person: what was rolled, reverted, untouched and left for a run or session that holds
+    it, and why the rollout stopped.
 
     outcomes: {host: isaac_sim_lifecycle result (success or failure), or {} when the host was not reached}
     """
-    rolled, unchanged, reverted, untouched, why = [], [], [], [], None
+    rolled, unchanged, reverted, untouched, left, why = [], [], [], [], [], None
     for host in targets:
         out = outcomes.get(host)
         if not out:
@@ -1007,7 +1056,7 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
         moved = [str(d["id"]) for d in out.get("done", []) if d.get("action") != "unchanged"]
         if moved:
             rolled.append(f"{host}: " + ", ".join(layout.container(i) for i in moved))
-        elif not out.get("failed"):
+        elif not out.get("failed") and not out.get("left"):
             unchanged.append(host)
         # every instance that failed (several where they started together); older results name one
         failures = out.get("failed_instances") or ([out["failed_instance"]] if out.get("failed_instance") else [])
@@ -1027,11 +1076,17 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
             why = why or f"{host}: {out.get('msg')}"
         if out.get("untouched"):
             untouched.append(f"{host}: " + ", ".join(layout.container(i) for i in out["untouched"]))
+        if out.get("left"):
+            held = ", ".join(f"{layout.container(x['id'])} (held by {x['holder']})" for x in out["left"])
+            left.append(f"{host}: {held}")
     lines = ["rolled: " + ("; ".join(rolled) or "none")]
     if unchanged:
         lines.append("already current: " + ", ".join(unchanged))
     lines.append("reverted: " + ("; ".join(reverted) or "none"))
     lines.append("untouched: " + ("; ".join(untouched) or "none"))
+    if left:
+        # not a failure: each runs as it was until its holder gives it back; the next rollout rolls it
+        lines.append("left for their holders: " + "; ".join(left))
     if stopped_on or why:
         lines.append(f"stopped: {why or stopped_on}")
     else:

@@ -91,6 +91,7 @@ def _want(host: Host, p: dict, found: dict) -> dict:
         "purge": p["purge"],
         "data_root": plan["layout"]["data_root"],
         "soak": p["soak_seconds"],
+        "held_wait": p.get("held_wait", 0),
         "defer_running": p["defer_running"],
         "reserve": plan.get("reserved_ports", []),
         "managed": p["managed"],
@@ -227,7 +228,9 @@ def _would(p: dict, out: dict) -> dict:
 
 def _restart(host: Host, p: dict, out: dict, found: dict, check: bool) -> dict:
     """action=restart: one instance at a time, each ready (and soaked) before the next."""
-    result = lifecycle.restart_each(host, p["ids"], p["soak_seconds"], check=check, companions=found)
+    result = lifecycle.restart_each(
+        host, p["ids"], p["soak_seconds"], check=check, companions=found, held_wait=p.get("held_wait", 0)
+    )
     out["changed"] = result["changed"]
     return result
 
@@ -312,7 +315,7 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
 
 
 def _call(host: Host, p: dict, check: bool, diff: bool, run: str, record: str) -> dict:
-    out = dict(changed=False, done=[], failed_instance=None, failed_instances=[], untouched=[])
+    out = dict(changed=False, done=[], failed_instance=None, failed_instances=[], untouched=[], left=[])
     found = hostprobe.existing_companions(layout.CONFIG_DIR, host.find)
 
     if p["action"] == "apply":
@@ -323,7 +326,11 @@ def _call(host: Host, p: dict, check: bool, diff: bool, run: str, record: str) -
     # every instance that failed; more than one only where they started together
     failures = result.get("failures") or ([result["failed"]] if result["failed"] else [])
     out.update(
-        done=result["done"], failed_instance=result["failed"], failed_instances=failures, untouched=result["untouched"]
+        done=result["done"],
+        failed_instance=result["failed"],
+        failed_instances=failures,
+        untouched=result["untouched"],
+        left=result.get("left", []),
     )
     if result.get("interrupted"):
         runlock.record(

@@ -148,6 +148,14 @@ def test_runs_whose_controller_or_runner_was_killed_leave_the_instance_clean_and
     # the host's status names the run that holds it, the others held by nobody
     holders = {i["id"]: i["lent_to"] for i in info(host)["instances"]}
     assert holders == {0: None, 1: swept, 2: None, 3: None}, holders
+    # a rolling restart meanwhile restarts the others and leaves the held one as it is, and says so
+    others = {i: container_id(host, f"isaac-sim-{i}") for i in (0, 2, 3)}
+    rolled = run_playbook(host, playbook="playbooks/rolling_restart.yml")
+    said = " ".join((rolled.stdout + rolled.stderr).split())
+    assert rolled.returncode == 0, said[-3000:]
+    assert f"left for their holders: {host.backend.get_hostname()}: isaac-sim-1 (held by {swept})" in said, said[-3000:]
+    assert container_id(host, "isaac-sim-1") == held
+    assert all(container_id(host, f"isaac-sim-{i}") not in ("", others[i]) for i in others)
     # a run's service runs its docker client in the sandbox the security guide lists
     assert_sandboxed(host, f"isaac-sim-run-{swept}-check.service", "isaac-sim-run-RUN-SERVICE.service")
     # a run nobody will fetch, older than the retention limit

@@ -15,7 +15,7 @@ import threading
 import time
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import agent, runlock
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import agent, lifecycle, runlock
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import make_pki
 from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import ScriptedHost
 
@@ -218,6 +218,19 @@ def test_a_failed_restart_is_reverted_by_the_lifecycle_and_reported(tmp_path):
     assert rec["result"]["failed_instance"]["id"] == 2
     assert runlock.read(a.lock) is None
     assert lines[-1][1].endswith(rec["result"]["message"]) and ": failed: " in lines[-1][1]
+
+
+@pytest.mark.parametrize("action", ["restart", "stop", "remove", "cleanup"])
+def test_no_action_touches_an_instance_a_run_or_session_holds_and_the_host_is_free_again(tmp_path, action):
+    a, h, lines = make(tmp_path)
+    lifecycle.lend(h.host, 2, "session-olga")
+    before = list(h.log)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req(action, ids=[] if action == "cleanup" else [2], confirm=True))
+    assert exc.value.code == 409 and "isaac-sim-2 is held by session-olga" in exc.value.body["error"]
+    assert exc.value.body["held"] == [{"id": 2, "holder": "session-olga"}]
+    assert h.log == before and runlock.read(a.lock) is None
+    assert any("refused action" in line and "session-olga" in line for _unit, line in lines)
 
 
 def test_stop_start_and_remove_go_through_the_lifecycle_too(tmp_path):

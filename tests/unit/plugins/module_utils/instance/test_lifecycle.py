@@ -640,6 +640,20 @@ def test_a_port_layout_change_rolls_in_an_order_where_no_instance_starts_on_a_he
     assert result["plan"]["order"] == ["roll 2", "roll 3", "roll 1", "roll 0"]
 
 
+def test_a_port_layout_change_stops_before_a_held_instance_whose_ports_another_moves_to():
+    h = ScriptedHost(4)
+    for i in range(4):
+        h.files[layout.env_file(i)] = (ports_env("reg/isaac-sim:5.0.0", 49100 + i, 47998 + i), 0o644)
+    lifecycle.lend(h.host, 2, "session-olga")
+    result = lifecycle.apply(
+        h.host, want({i: ports_env("reg/isaac-sim:5.0.0", 49100 + 2 * i, 49101 + 2 * i) for i in range(4)})
+    )
+    # instance 1 moves to 49102-49103, and held instance 2 keeps 49102: nothing moves before it
+    assert result["failed"]["id"] == 2 and "port layout change" in result["failed"]["reason"]
+    assert result["done"] == [] and result["left"] == [] and sorted(result["untouched"]) == [0, 1, 3]
+    assert h.commands("restart") == []
+
+
 def test_instances_that_swap_ports_are_stopped_first_and_the_plan_says_so():
     old = {0: {49100}, 1: {49101}}
     new = {0: {49101}, 1: {49100}}
@@ -1046,23 +1060,61 @@ def test_a_claim_that_fails_restarts_nothing_and_a_waiting_run_gets_the_instance
     assert len(h.commands("restart")) == restarts
 
 
-def test_no_restart_touches_an_instance_lent_to_a_run():
+def test_a_rolling_restart_leaves_an_instance_lent_to_a_run_and_restarts_the_others():
     h = ScriptedHost(3)
     lifecycle.lend(h.host, 1, "run-a")
     result = lifecycle.restart_each(h.host, [0, 1, 2], 0)
-    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
-    assert "lent to test run run-a" in result["failed"]["reason"]
-    assert h.commands("restart") == [f"systemctl restart {layout.unit(0)}"]
+    assert [d["id"] for d in result["done"]] == [0, 2] and result["untouched"] == [] and result["failed"] is None
+    assert result["left"] == [{"id": 1, "holder": "run-a"}]
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(i)}" for i in (0, 2)]
+    # a dry run says the same
+    dry = lifecycle.restart_each(h.host, [0, 1, 2], 0, check=True)
+    assert [d["id"] for d in dry["done"]] == [0, 2] and dry["left"] == [{"id": 1, "holder": "run-a"}]
 
 
-def test_a_deploy_stops_before_an_instance_lent_to_a_run_and_leaves_it_as_it_was():
+def test_a_rolling_restart_waits_for_a_holder_up_to_its_bound_and_restarts_what_was_given_back():
+    h = ScriptedHost(2)
+    lifecycle.lend(h.host, 0, "session-olga")
+    waited = []
+
+    def sleep(s):
+        waited.append(s)
+        h.clock += s
+        if len(waited) == 5:  # given back (restarted, then free) 5 s into the wait
+            assert lifecycle.give_back(h.host, 0, "session-olga") is None
+
+    h.host.sleep = sleep
+    result = lifecycle.restart_each(h.host, [0, 1], 0, held_wait=30)
+    assert [d["id"] for d in result["done"]] == [0, 1] and result["left"] == [] and len(waited) == 5
+    # held past the bound: waited for it, then left
+    lifecycle.lend(h.host, 1, "session-piet")
+    waited.clear()
+    result = lifecycle.restart_each(h.host, [0, 1], 0, held_wait=3)
+    assert result["left"] == [{"id": 1, "holder": "session-piet"}] and sum(waited) == 3
+
+
+def test_a_deploy_leaves_an_instance_lent_to_a_run_as_it_was_and_rolls_the_others():
     h = ScriptedHost(3)
     lifecycle.lend(h.host, 1, "run-a")
     result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}))
-    assert result["failed"]["id"] == 1 and "lent to test run run-a" in result["failed"]["reason"]
-    assert [d["id"] for d in result["done"]] == [0] and result["untouched"] == [2]
+    assert result["failed"] is None and result["left"] == [{"id": 1, "holder": "run-a"}]
+    assert [d["id"] for d in result["done"]] == [0, 2] and result["untouched"] == []
+    # its settings too: the next deploy finds it changed and rolls it
     assert h.files[layout.env_file(1)][0] == OLD and h.units[1]["ActiveState"] == "active"
     assert f"systemctl restart {layout.unit(1)}" not in h.log
+    assert lifecycle.apply(h.host, want({i: NEW for i in range(3)}), check=True)["plan"]["held"] == {1: "run-a"}
+    lifecycle.unlend(h.host, 1, "run-a")
+    again = lifecycle.apply(h.host, want({i: NEW for i in range(3)}))
+    assert [d["id"] for d in again["done"]] == [1] and h.files[layout.env_file(1)][0] == NEW
+
+
+def test_the_summary_lists_what_was_left_for_its_holder_and_is_no_failure():
+    lines = lifecycle.summary(
+        {"h1": {"done": [{"id": 0, "action": "restart"}], "left": [{"id": 1, "holder": "session-olga"}]}},
+        ["h1"],
+    )
+    assert "left for their holders: h1: isaac-sim-1 (held by session-olga)" in lines
+    assert lines[-1] == "completed: every host rolled"
 
 
 def test_a_loan_whose_runner_died_is_ended_as_its_runner_would_have_before_the_next_run_gets_it():
