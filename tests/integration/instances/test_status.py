@@ -31,6 +31,14 @@ def ok(result):
 @pytest.mark.core
 def test_info_reports_every_instance_ready_with_its_block_and_urls(host, ip):
     all_ready(host)
+    # ready by its line; healthy at the first check after it (every 5 s here)
+    for i in range(INSTANCES):
+        wait_for(
+            lambda i=i: "(healthy)"
+            in sh(host, f"docker ps --filter name=^isaac-sim-{i}$ --format '{{{{.Status}}}}'").stdout,
+            timeout=30,
+            what=f"isaac-sim-{i} healthy",
+        )
     result = testbed.info(host)
     assert result["changed"] is False and result["deployed"] is True and result["errors"] == []
     assert result["summary"] == {"configured": 4, "running": 4, "ready": 4, "failed": 0, "stopped": 0, "stray": 0}
