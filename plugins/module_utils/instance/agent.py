@@ -52,6 +52,10 @@ INSTANCE_ACTIONS = tuple(lifecycle_call.DAY2)
 # the host removed through the lifecycle, caches and logs kept, never without a confirmation
 HOST_ACTIONS = ("drain", "undrain", "cleanup")
 DRAINS = ("drain", "undrain")
+# a session's claim of one ready instance (the lend marker test runs take) and its end: the instance
+# restarted clean, ready, then free (lifecycle.give_back), as a test run gives one back
+CLAIMS = ("claim", "give_back")
+HOLDER_RE = re.compile(r"^session-[a-z0-9]{1,32}\Z")
 # actions that take serving instances out of service while they run
 TAKES_DOWN = ("stop", "restart", "remove")
 MAX_BODY = 4096
@@ -64,7 +68,7 @@ KEEP = 100
 ACTION_ID_RE = re.compile(r"^[a-f0-9]{16}\Z")
 NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}\Z")
 # host: the host the door means (this agent refuses a request for another, whatever its certificate said)
-_FIELDS = {"host": str, "action": str, "ids": list, "confirm": bool, "user": str, "token": str}
+_FIELDS = {"host": str, "action": str, "ids": list, "confirm": bool, "user": str, "token": str, "holder": str}
 _NEEDED = ("host", "action", "user")
 
 
@@ -95,8 +99,9 @@ def parse_request(body: bytes) -> dict:
     for name, kind in _FIELDS.items():
         if name in req and (not isinstance(req[name], kind) or (kind is int and isinstance(req[name], bool))):
             raise RefusedError(400, f"{name}: {req[name]!r} is not a {kind.__name__}")
-    if req["action"] not in INSTANCE_ACTIONS + HOST_ACTIONS:
-        raise RefusedError(400, f"action: {req['action']!r} is not one of {', '.join(INSTANCE_ACTIONS + HOST_ACTIONS)}")
+    known = INSTANCE_ACTIONS + HOST_ACTIONS + CLAIMS
+    if req["action"] not in known:
+        raise RefusedError(400, f"action: {req['action']!r} is not one of {', '.join(known)}")
     if not NAME_RE.match(req["user"]) or (req.get("token") and not NAME_RE.match(req["token"])):
         raise RefusedError(400, "user, token: names of 1-64 letters, digits and ._@-")
     ids = req.get("ids", [])
@@ -107,6 +112,14 @@ def parse_request(body: bytes) -> dict:
         raise RefusedError(400, f"ids: {ids!r} is not a list of instance numbers 0-99")
     elif len(set(ids)) != len(ids):
         raise RefusedError(400, f"ids: {ids!r} names an instance twice")
+    holder = req.get("holder", "")
+    if req["action"] in CLAIMS:
+        if len(ids) != 1:
+            raise RefusedError(400, f"ids: {req['action']} takes one instance, not {len(ids)}")
+        if not HOLDER_RE.match(holder):
+            raise RefusedError(400, "holder: a session's name, session- and 1-32 lowercase letters and digits")
+    elif holder:
+        raise RefusedError(400, f"holder: only a claim or a give_back names one, not {req['action']}")
     return {
         "host": req["host"],
         "action": req["action"],
@@ -114,6 +127,7 @@ def parse_request(body: bytes) -> dict:
         "confirm": bool(req.get("confirm")),
         "user": req["user"],
         "token": req.get("token") or "",
+        "holder": holder,
     }
 
 
@@ -327,22 +341,11 @@ class Agent:
         }
         if req["action"] in DRAINS:
             return self._drain(rec, who)
-        me = {
-            "id": action_id,
-            "user": who,
-            "controller": f"the fleet API (isaac-sim-agent on {self.name})",
-            "pid": os.getpid(),
-            "started": runlock.start_time(os.getpid()),
-            "play": what,
-            "agent": action_id,
-        }
-        taken, holder, _note = runlock.acquire(me, time.time(), 0, path=self.lock, guard=self.guard, record_path="")
-        if not taken:
-            held = runlock.holder_text(holder or {}, time.time())
-            self.journal(f"refused action {what} by {who}: the host is held by {held}")
-            raise RefusedError(
-                409, f"{self.name} is held by {held}; nothing was done. Try again once it ends.", holder=held
-            )
+        if req["action"] == "claim":
+            return self._claim(rec, who, req["holder"])
+        if req["action"] == "give_back":
+            return self._give_back(rec, who, req["holder"])
+        me = self._hold(rec, who)
         try:
             host = self.host()
             configured = hostprobe.existing_instances(
@@ -424,6 +427,107 @@ class Agent:
                 os.unlink(self.drained)
             text = "undrained: claims are taken here again"
         return self._done(rec, who, text)
+
+    def _claim(self, rec: dict, who: str, holder: str) -> tuple:
+        """Lend one ready instance to a session, at once (200), or refuse with nothing changed. The host's
+        lock is taken for the moment of the claim: a deploy or an action on the host makes it 409, so no
+        instance is claimed while something restarts it."""
+        i = rec["ids"][0]
+        name = layout.container(i)
+        rec["holder"] = holder
+        me = self._hold(rec, who)
+        try:
+            host = self.host()
+            configured = hostprobe.existing_instances(
+                layout.CONFIG_DIR, os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants"), host.find
+            )
+            if i not in configured:
+                raise RefusedError(404, f"ids: {name} not on {self.name}")
+            if not host.exists(layout.marker(i)):
+                raise RefusedError(409, f"{name} is not ready; nothing was claimed", ready=False)
+            drained = self.drained_by()
+            if drained:
+                raise RefusedError(
+                    409, f"{self.name} is drained (by {drained.get('by') or '?'}): it takes no new claim", drained=True
+                )
+            try:
+                other = lifecycle.lend(host, i, holder)
+            except lifecycle.DrainedError as exc:
+                raise RefusedError(409, str(exc), drained=True) from exc
+            if other is not None:
+                raise RefusedError(409, f"{name} is held by {other}; nothing was claimed", held_by=other)
+        except RefusedError as refused:
+            self.journal(f"refused claim of {name} for {holder} by {who}: {refused}")
+            raise
+        finally:
+            runlock.release(me, self.lock, self.guard)
+        self.journal(f"{name} claimed for {holder} by {who}", layout.unit(i))
+        return self._done(rec, who, f"{name} claimed for {holder}")
+
+    def _hold(self, rec: dict, who: str) -> dict:
+        """The host's lock for this action, or RefusedError(409) naming whoever holds it."""
+        me = {
+            "id": rec["id"],
+            "user": who,
+            "controller": f"the fleet API (isaac-sim-agent on {self.name})",
+            "pid": os.getpid(),
+            "started": runlock.start_time(os.getpid()),
+            "play": rec["what"],
+            "agent": rec["id"],
+        }
+        taken, holder, _note = runlock.acquire(me, time.time(), 0, path=self.lock, guard=self.guard, record_path="")
+        if not taken:
+            held = runlock.holder_text(holder or {}, time.time())
+            self.journal(f"refused action {rec['what']} by {who}: the host is held by {held}")
+            raise RefusedError(
+                409, f"{self.name} is held by {held}; nothing was done. Try again once it ends.", holder=held
+            )
+        return me
+
+    def _give_back(self, rec: dict, who: str, holder: str) -> tuple:
+        """The end of a session's claim: 202, then the instance restarted clean and ready, and only then
+        free (lifecycle.give_back), in a thread of its own. No host lock: a rollout that waits for the
+        instance holds it (isaac_sim_rollout_held_wait)."""
+        i = rec["ids"][0]
+        rec["holder"] = holder
+        host = self.host()
+        now = lifecycle.lent_to(host, i)
+        if now is None:
+            return self._done(rec, who, f"{layout.container(i)} is held by nobody; nothing to give back")
+        if now != holder:
+            self.journal(f"refused give_back of {layout.container(i)} for {holder} by {who}: held by {now}")
+            raise RefusedError(409, f"{layout.container(i)} is held by {now}, not {holder}; nothing was done")
+        self._event(rec, f"accepted: {rec['what']} by {who} (the end of {holder})", progress=0)
+        with self._cv:
+            self._live[rec["id"]] = rec
+            answer = {k: v for k, v in rec.items() if k != "events"}
+        worker = threading.Thread(target=self._run_give_back, args=(rec, host, who, holder), daemon=True)
+        worker.start()
+        self._threads = [t for t in self._threads if t.is_alive()] + [worker]
+        self.journal(f"action {rec['id']} accepted: {rec['what']} for {holder} by {who}")
+        return 202, answer
+
+    def _run_give_back(self, rec: dict, host, who: str, holder: str) -> None:
+        i = rec["ids"][0]
+        self._event(rec, f"restart: {layout.container(i)} (a fresh container; waits for its ready line)", 10, "running")
+        try:
+            why = lifecycle.give_back(host, i, holder)
+        except Exception as exc:  # pylint: disable=broad-exception-caught
+            why = f"{type(exc).__name__}: {exc}"
+        ok = why is None
+        rec["ended_at"] = round(time.time(), 3)
+        rec["result"] = {
+            "ok": ok,
+            "message": f"{layout.container(i)} given back by {holder}: restarted and free"
+            if ok
+            else f"{layout.container(i)} given back by {holder}, but its restart failed: {why}",
+        }
+        with contextlib.suppress(OSError):
+            self._event(rec, rec["result"]["message"], progress=100, state="succeeded" if ok else "failed")
+        self.journal(f"action {rec['id']} {rec['what']} by {who}: {rec['result']['message']}", layout.unit(i))
+        with self._cv:
+            self._live.pop(rec["id"], None)
+        self._prune()
 
     def _done(self, rec: dict, who: str, text: str) -> tuple:
         """An action that needed no lifecycle call, written down as succeeded."""

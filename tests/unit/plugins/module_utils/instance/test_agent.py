@@ -15,6 +15,7 @@ import threading
 import time
 
 import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import agent, lifecycle, runlock
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import make_pki
 from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import ScriptedHost
@@ -231,6 +232,92 @@ def test_no_action_touches_an_instance_a_run_or_session_holds_and_the_host_is_fr
     assert exc.value.body["held"] == [{"id": 2, "holder": "session-olga"}]
     assert h.log == before and runlock.read(a.lock) is None
     assert any("refused action" in line and "session-olga" in line for _unit, line in lines)
+
+
+def test_a_claim_lends_one_ready_instance_to_a_session_at_once_and_gives_the_host_back(tmp_path):
+    a, h, lines = make(tmp_path)
+    code, body = a.submit(req("claim", ids=[2], holder="session-ab12"))
+    assert code == 200 and body["state"] == "succeeded" and body["holder"] == "session-ab12"
+    assert lifecycle.lent_to(h.host, 2) == "session-ab12" and runlock.read(a.lock) is None
+    # nothing restarted: the instance was ready, and is handed over as it is
+    assert not h.commands("restart") and not h.commands("stop")
+    assert (layout.unit(2), "isaac-sim-2 claimed for session-ab12 by alice") in lines
+    # the same instance again, for anyone: refused, naming who has it
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req("claim", ids=[2], holder="session-cd34"))
+    assert exc.value.code == 409 and exc.value.body["held_by"] == "session-ab12"
+    assert lifecycle.lent_to(h.host, 2) == "session-ab12" and runlock.read(a.lock) is None
+
+
+@pytest.mark.parametrize("why", ["drained", "not ready", "deploy", "not there"])
+def test_a_claim_is_refused_with_nothing_changed(tmp_path, why):
+    a, h, _lines = make(tmp_path)
+    i, code = 1, 409
+    if why == "drained":
+        a.submit(req("drain", ids=[]))
+    elif why == "not ready":
+        h.markers.discard(1)
+    elif why == "deploy":
+        deploy = {"id": "ctl:1:2", "user": "bob", "controller": "ctl", "pid": 1, "started": "2", "play": "Deploy"}
+        runlock.acquire(deploy, time.time(), 3600, path=a.lock, guard=a.guard, record_path="")
+    else:
+        i, code = 7, 404
+    before = list(h.log)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req("claim", ids=[i], holder="session-ab12"))
+    assert exc.value.code == code, exc.value.body
+    assert {"drained": "drained", "not ready": "not ready", "deploy": "held by bob"}.get(why, "not on") in str(
+        exc.value.body["error"]
+    )
+    assert lifecycle.lent_to(h.host, i) is None and h.log == before
+    if why != "deploy":
+        assert runlock.read(a.lock) is None
+
+
+def test_a_give_back_restarts_the_instance_clean_and_only_then_frees_it(tmp_path):
+    a, h, lines = make(tmp_path)
+    a.submit(req("claim", ids=[3], holder="session-ab12"))
+    # another session's give-back of it is refused, and nothing restarts
+    with pytest.raises(agent.RefusedError) as exc:
+        a.submit(req("give_back", ids=[3], holder="session-cd34"))
+    assert exc.value.code == 409 and not h.commands("restart")
+    freed_before_ready = []
+    start = h._start
+
+    def spy(i):
+        freed_before_ready.append(lifecycle.lent_to(h.host, i))
+        return start(i)
+
+    h._start = spy
+    code, body = a.submit(req("give_back", ids=[3], holder="session-ab12"))
+    assert code == 202
+    a.wait()
+    done = a.get(body["id"])
+    assert done["state"] == "succeeded" and "restarted and free" in done["result"]["message"], done
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(3)}"]
+    # still held while it restarted; free once ready
+    assert freed_before_ready == ["session-ab12"] and lifecycle.lent_to(h.host, 3) is None
+    # a give-back of what nobody holds changes nothing
+    code, body = a.submit(req("give_back", ids=[3], holder="session-ab12"))
+    assert code == 200 and "held by nobody" in body["result"]["message"]
+    assert len(h.commands("restart")) == 1
+
+
+@pytest.mark.parametrize(
+    ("over", "words"),
+    [
+        ({"action": "claim", "ids": [1, 2], "holder": "session-a"}, "takes one instance"),
+        ({"action": "claim", "ids": [1], "holder": "olga"}, "holder: a session's name"),
+        ({"action": "claim", "ids": [1], "holder": "session-a\n"}, "holder: a session's name"),
+        ({"action": "claim", "ids": [1]}, "holder: a session's name"),
+        ({"action": "restart", "ids": [1], "holder": "session-a"}, "only a claim or a give_back"),
+    ],
+)
+def test_a_claim_s_request_is_checked_field_by_field(over, words):
+    body = {"host": "gpu-1", "user": "alice", **over}
+    with pytest.raises(agent.RefusedError) as exc:
+        agent.parse_request(json.dumps(body).encode())
+    assert exc.value.code == 400 and words in exc.value.body["error"]
 
 
 def test_stop_start_and_remove_go_through_the_lifecycle_too(tmp_path):
