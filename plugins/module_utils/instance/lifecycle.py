@@ -825,7 +825,10 @@ def apply(host: Host, want: dict, check=False) -> dict:
             firewall.remove(host)
         elif grown != wall and not result["left"]:
             firewall.load(host, wall, managed)
-    result["changed"] = True
+    # a deploy whose only change is an instance left for its holder changed nothing
+    result["changed"] = bool(result["done"]) or bool(
+        shared or stale or to_start or gone or plan["enable"] or revive or cleared or reserving or wall_todo
+    )
     return result
 
 

@@ -1103,6 +1103,9 @@ def test_a_deploy_leaves_an_instance_lent_to_a_run_as_it_was_and_rolls_the_other
     assert h.files[layout.env_file(1)][0] == OLD and h.units[1]["ActiveState"] == "active"
     assert f"systemctl restart {layout.unit(1)}" not in h.log
     assert lifecycle.apply(h.host, want({i: NEW for i in range(3)}), check=True)["plan"]["held"] == {1: "run-a"}
+    # while it is held, a deploy again has nothing else to do: no change
+    kept = lifecycle.apply(h.host, want({i: NEW for i in range(3)}))
+    assert kept["changed"] is False and kept["left"] == [{"id": 1, "holder": "run-a"}] and kept["done"] == []
     lifecycle.unlend(h.host, 1, "run-a")
     again = lifecycle.apply(h.host, want({i: NEW for i in range(3)}))
     assert [d["id"] for d in again["done"]] == [1] and h.files[layout.env_file(1)][0] == NEW
