@@ -24,17 +24,55 @@ def assert_rejected(host, extra_vars, *needles):
     return out
 
 
+# Each run is refused for every mistake it carries at once (each one a line of its own), so mistakes
+# the same check reads go together: one playbook run for each group, not one for each mistake.
 @pytest.mark.parametrize(
     "extra_vars, needles",
     [
-        ({"isaac_sim_port_bases": {"signal": 47999}}, ["isaac_sim_port_bases", "overlaps instance", "Fix:"]),
-        ({"isaac_sim_port_bases": {"web_viewer": 65534}}, ["isaac_sim_port_bases", "outside 1024-65535", "Fix:"]),
-        ({"isaac_sim_instance_count": 9}, ["isaac_sim_instance_count: 9 is above isaac_sim_max_instances (8)"]),
-        ({"isaac_sim_image": "nvcr.io/nvidia/Isaac Sim:5"}, ["isaac_sim_image", "not a valid image reference"]),
-        ({"isaac_sim_memory_limit": "lots"}, ["isaac_sim_memory_limit: 'lots' is not a size", "Fix:"]),
-        ({"isaac_sim_shm_size": "2 gigs"}, ["isaac_sim_shm_size: '2 gigs' is not a size"]),
-        ({"isaac_sim_memory_limit": "4096g"}, ["isaac_sim_memory_limit: 4 instances x 4096g", "more than this host's"]),
+        # the plan's checks of words and numbers
+        (
+            {
+                "isaac_sim_port_bases": {"signal": 47999},
+                "isaac_sim_image": "nvcr.io/nvidia/Isaac Sim:5",
+                "isaac_sim_memory_limit": "lots",
+                "isaac_sim_shm_size": "2 gigs",
+            },
+            [
+                "isaac_sim_port_bases",
+                "overlaps instance",
+                "Fix:",
+                "isaac_sim_image",
+                "not a valid image reference",
+                "isaac_sim_memory_limit: 'lots' is not a size",
+                "isaac_sim_shm_size: '2 gigs' is not a size",
+            ],
+        ),
+        # the plan's sums: ports past the end, memory past the host's
+        (
+            {"isaac_sim_port_bases": {"web_viewer": 65534}, "isaac_sim_memory_limit": "4096g"},
+            [
+                "isaac_sim_port_bases",
+                "outside 1024-65535",
+                "isaac_sim_memory_limit: 4 instances x 4096g",
+                "more than this host's",
+            ],
+        ),
+        # against what the host has and what the image needs
+        (
+            {
+                "isaac_sim_instance_count": 9,
+                "isaac_sim_gpu_enabled": True,
+                "isaac_sim_image": "nvcr.io/nvidia/isaac-sim:6.0.1",
+                "isaac_sim_registry_password": "",
+            },
+            [
+                "isaac_sim_instance_count: 9 is above isaac_sim_max_instances (8)",
+                "isaac_sim_gpu_enabled: true, but this host has no nvidia-smi",
+                "isaac_sim_registry_password: empty, but nvcr.io/nvidia/isaac-sim:6.0.1 is on NGC",
+            ],
+        ),
         ({"isaac_sim_release": "7.x"}, ["isaac_sim_release: '7.x' is not a release this collection knows"]),
+        # types, before any role runs
         (
             {"isaac_sim_instance_count": "many", "isaac_sim_rollout_soak": "abc"},
             [
@@ -43,11 +81,6 @@ def assert_rejected(host, extra_vars, *needles):
             ],
         ),
         ({"isaac_sim_port_bases": {"signal": "abc"}}, ["isaac_sim_port_bases.signal: 'abc' is not a port number"]),
-        ({"isaac_sim_gpu_enabled": True}, ["isaac_sim_gpu_enabled: true, but this host has no nvidia-smi"]),
-        (
-            {"isaac_sim_image": "nvcr.io/nvidia/isaac-sim:6.0.1", "isaac_sim_registry_password": ""},
-            ["isaac_sim_registry_password: empty, but nvcr.io/nvidia/isaac-sim:6.0.1 is on NGC"],
-        ),
         # every way out of the container at once, each named with the containers it would reach, judged on
         # what Docker makes of the words (a short-flag cluster, a CSV-quoted field, Go's "0" for false); the
         # one allowed by name, spelled otherwise, passes
@@ -99,21 +132,7 @@ def assert_rejected(host, extra_vars, *needles):
             ],
         ),
     ],
-    ids=[
-        "overlap",
-        "port-range",
-        "max-instances",
-        "image",
-        "memory",
-        "shm",
-        "memory-sum",
-        "release",
-        "count-type",
-        "port-base-type",
-        "gpu-without-driver",
-        "ngc-without-key",
-        "confinement",
-    ],
+    ids=["plan-words", "plan-sums", "host-and-image", "release", "types", "port-base-type", "confinement"],
 )
 def test_bad_input_is_rejected_before_any_change(host, extra_vars, needles):
     out = assert_rejected(host, extra_vars, *needles)
