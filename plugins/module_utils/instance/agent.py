@@ -375,7 +375,7 @@ class Agent:
                     f"{', '.join(layout.container(i) for i in configured) or 'none'}",
                 )
             # a test run or a session has it: nothing of the API acts under it (its holder gives it back)
-            held = {i: h for i in rec["ids"] for h in [lifecycle.lent_to(host, i)] if h is not None}
+            held = lifecycle.holders(host, rec["ids"])
             if held:
                 names = "; ".join(f"{layout.container(i)} is held by {h}" for i, h in held.items())
                 self.journal(f"refused action {what} by {who}: {names}")

@@ -586,7 +586,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
     }
     result = {"plan": plan, "done": [], "failed": None, "untouched": [], "left": [], "deferred": False}
     # who holds each instance that would roll: a dry run says which ones a rollout would leave
-    plan["held"] = {i: h for i in to_roll for h in [lent_to(host, i)] if h is not None}
+    plan["held"] = holders(host, to_roll)
     ports = want.get("reserve")
     managed = want.get("managed", "")
     reserving = ports is not None and reserve(host, ports, managed, grow=False, check=True)
@@ -599,9 +599,11 @@ def apply(host: Host, want: dict, check=False) -> dict:
     wall_kept = firewall.state(host).get("model") if walls else None
     wall_todo = walls and not firewall.in_sync(host, wall, managed)
     plan["firewall"] = ("load" if wall else "remove") if wall_todo else None
-    changed = bool(
-        shared or stale or to_start or to_roll or gone or plan["enable"] or revive or cleared or reserving or wall_todo
+    # every change but the serving instances' rolls, which may end up left for their holders
+    besides_rolls = bool(
+        shared or stale or to_start or gone or plan["enable"] or revive or cleared or reserving or wall_todo
     )
+    changed = besides_rolls or bool(to_roll)
     if check or not changed:
         result["changed"] = changed
         return result
@@ -826,9 +828,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
         elif grown != wall and not result["left"]:
             firewall.load(host, wall, managed)
     # a deploy whose only change is an instance left for its holder changed nothing
-    result["changed"] = bool(result["done"]) or bool(
-        shared or stale or to_start or gone or plan["enable"] or revive or cleared or reserving or wall_todo
-    )
+    result["changed"] = bool(result["done"]) or besides_rolls
     return result
 
 
@@ -881,6 +881,11 @@ def _loan(host: Host, i: int) -> tuple:
 def lent_to(host: Host, i: int) -> str | None:
     """The run instance i is lent to, or None."""
     return _loan(host, i)[0]
+
+
+def holders(host: Host, ids, borrower=None) -> dict:
+    """{id: holder} of the instances among ids that a run or session other than `borrower` holds."""
+    return {i: h for i in ids for h in [lent_to(host, i)] if h is not None and h != borrower}
 
 
 def held_after(host: Host, i: int, borrower=None, wait_s: float = 0.0, interval: float = 1.0) -> str | None:
@@ -989,8 +994,7 @@ def restart_each(
     ids = list(ids)
     result = {"done": [], "failed": None, "untouched": [], "left": [], "changed": bool(ids)}
     if check:
-        holders = {i: lent_to(host, i) for i in ids}
-        result["left"] = [_left(i, h) for i, h in holders.items() if h is not None and h != borrower]
+        result["left"] = [_left(i, h) for i, h in holders(host, ids, borrower).items()]
         left = {x["id"] for x in result["left"]}
         result["done"] = [{"id": i, "action": "restart", "restart_s": 0.0, "soak_s": 0.0} for i in ids if i not in left]
         return result
