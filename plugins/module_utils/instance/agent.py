@@ -348,9 +348,7 @@ class Agent:
         me = self._hold(rec, who)
         try:
             host = self.host()
-            configured = hostprobe.existing_instances(
-                layout.CONFIG_DIR, os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants"), host.find
-            )
+            configured = _configured(host)
             if req["action"] == "cleanup":
                 if not configured:
                     runlock.release(me, self.lock, self.guard)
@@ -394,13 +392,7 @@ class Agent:
                     why=below,
                 )
             self._event(rec, f"accepted: {what} by {who}" + (f"; confirmed: {below}" if below else ""), progress=0)
-            with self._cv:
-                self._live[action_id] = rec
-                answer = {k: v for k, v in rec.items() if k != "events"}
-            worker = threading.Thread(
-                target=self._run, args=(rec, me, host, who), name=f"action-{action_id}", daemon=True
-            )
-            worker.start()
+            answer = self._launch(rec, self._run, (rec, me, host, who))
         except BaseException as exc:
             runlock.release(me, self.lock, self.guard)
             with self._cv:
@@ -411,7 +403,6 @@ class Agent:
                 with contextlib.suppress(OSError):
                     self._event(rec, rec["result"]["message"], progress=100, state="failed")
             raise
-        self._threads = [t for t in self._threads if t.is_alive()] + [worker]
         self.journal(f"action {action_id} accepted: {what} by {who}" + (" (confirmed below N-1)" if below else ""))
         return 202, answer
 
@@ -438,10 +429,7 @@ class Agent:
         me = self._hold(rec, who)
         try:
             host = self.host()
-            configured = hostprobe.existing_instances(
-                layout.CONFIG_DIR, os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants"), host.find
-            )
-            if i not in configured:
+            if i not in _configured(host):
                 raise RefusedError(404, f"ids: {name} not on {self.name}")
             if not host.exists(layout.marker(i)):
                 raise RefusedError(409, f"{name} is not ready; nothing was claimed", ready=False)
@@ -498,12 +486,7 @@ class Agent:
             self.journal(f"refused give_back of {layout.container(i)} for {holder} by {who}: held by {now}")
             raise RefusedError(409, f"{layout.container(i)} is held by {now}, not {holder}; nothing was done")
         self._event(rec, f"accepted: {rec['what']} by {who} (the end of {holder})", progress=0)
-        with self._cv:
-            self._live[rec["id"]] = rec
-            answer = {k: v for k, v in rec.items() if k != "events"}
-        worker = threading.Thread(target=self._run_give_back, args=(rec, host, who, holder), daemon=True)
-        worker.start()
-        self._threads = [t for t in self._threads if t.is_alive()] + [worker]
+        answer = self._launch(rec, self._run_give_back, (rec, host, who, holder))
         self.journal(f"action {rec['id']} accepted: {rec['what']} for {holder} by {who}")
         return 202, answer
 
@@ -515,19 +498,13 @@ class Agent:
         except Exception as exc:  # pylint: disable=broad-exception-caught
             why = f"{type(exc).__name__}: {exc}"
         ok = why is None
-        rec["ended_at"] = round(time.time(), 3)
         rec["result"] = {
             "ok": ok,
             "message": f"{layout.container(i)} given back by {holder}: restarted and free"
             if ok
             else f"{layout.container(i)} given back by {holder}, but its restart failed: {why}",
         }
-        with contextlib.suppress(OSError):
-            self._event(rec, rec["result"]["message"], progress=100, state="succeeded" if ok else "failed")
-        self.journal(f"action {rec['id']} {rec['what']} by {who}: {rec['result']['message']}", layout.unit(i))
-        with self._cv:
-            self._live.pop(rec["id"], None)
-        self._prune()
+        self._end(rec, who, "succeeded" if ok else "failed")
 
     def _done(self, rec: dict, who: str, text: str) -> tuple:
         """An action that needed no lifecycle call, written down as succeeded."""
@@ -586,6 +563,20 @@ class Agent:
             if renewer.is_alive():
                 renewer.join()
             runlock.release(me, self.lock, self.guard)
+        self._end(rec, who, ended)
+
+    def _launch(self, rec: dict, target, args: tuple) -> dict:
+        """An accepted action in hand and its thread started; the answer to its request."""
+        with self._cv:
+            self._live[rec["id"]] = rec
+            answer = {k: v for k, v in rec.items() if k != "events"}
+        worker = threading.Thread(target=target, args=args, name=f"action-{rec['id']}", daemon=True)
+        worker.start()
+        self._threads = [t for t in self._threads if t.is_alive()] + [worker]
+        return answer
+
+    def _end(self, rec: dict, who: str, ended: str) -> None:
+        """An action's outcome (rec["result"]) kept and said in the journal, in each instance's own too."""
         rec["ended_at"] = round(time.time(), 3)
         kept = True
         try:
@@ -701,6 +692,13 @@ class Server(ThreadingHTTPServer):
             conn.close()
             return
         self.RequestHandlerClass(conn, client_address, self)
+
+
+def _configured(host) -> list:
+    """The instances the host has set up (their env file and enabled unit)."""
+    return hostprobe.existing_instances(
+        layout.CONFIG_DIR, os.path.join(layout.UNIT_DIR, layout.TARGET + ".wants"), host.find
+    )
 
 
 def handler(agent: Agent):
