@@ -154,7 +154,9 @@ EXAMPLES = r"""
 
 RETURN = r"""
 plan:
-  description: What O(action=apply) found to do - shared files to write, instances to start, roll, remove, enable.
+  description:
+    - What O(action=apply) found to do - shared files to write, instances to start, roll, remove, enable.
+    - C(held) names the holder of each instance to roll that a test run or a session holds (see O(held_wait)).
   returned: action is apply
   type: dict
   sample: {"files": [], "start": [], "roll": [0, 1], "remove": [], "enable": [], "reserved_ports": false}
