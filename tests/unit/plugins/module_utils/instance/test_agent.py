@@ -249,6 +249,26 @@ def test_a_claim_lends_one_ready_instance_to_a_session_at_once_and_gives_the_hos
     assert lifecycle.lent_to(h.host, 2) == "session-ab12" and runlock.read(a.lock) is None
 
 
+def test_claims_of_one_instance_at_once_lend_it_once(tmp_path):
+    a, h, _lines = make(tmp_path)
+    codes = []
+
+    def claim(n):
+        try:
+            codes.append(a.submit(req("claim", ids=[1], holder=f"session-s{n}"))[0])
+        except agent.RefusedError as refused:
+            codes.append(refused.code)
+
+    threads = [threading.Thread(target=claim, args=(n,)) for n in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    # one lends it; the others found the host held by that claim, or the instance held
+    assert sorted(codes) == [200] + [409] * 7, codes
+    assert lifecycle.lent_to(h.host, 1).startswith("session-s") and runlock.read(a.lock) is None
+
+
 @pytest.mark.parametrize("why", ["drained", "not ready", "deploy", "not there"])
 def test_a_claim_is_refused_with_nothing_changed(tmp_path, why):
     a, h, _lines = make(tmp_path)
