@@ -897,7 +897,8 @@ def held_after(host: Host, i: int, borrower=None, wait_s: float = 0.0, interval:
         holder = lent_to(host, i)
         if holder is None or holder == borrower:
             return None
-        if host.now() >= deadline:
+        # the controller gone (Ctrl-C, killed) ends the wait too: the rollout then stops at its next step
+        if host.now() >= deadline or host.interrupted():
             return holder
         host.sleep(interval)
 

@@ -1093,6 +1093,23 @@ def test_a_rolling_restart_waits_for_a_holder_up_to_its_bound_and_restarts_what_
     assert result["left"] == [{"id": 1, "holder": "session-piet"}] and sum(waited) == 3
 
 
+def test_a_controller_gone_while_a_rollout_waits_for_a_holder_ends_the_wait_and_the_rollout():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 0, "session-olga")
+    waited = []
+
+    def sleep(s):
+        waited.append(s)
+        h.clock += s
+
+    h.host.sleep = sleep
+    h.host.interrupted = lambda: "the controller is gone" if len(waited) >= 2 else ""
+    result = lifecycle.restart_each(h.host, [0, 1, 2], 0, held_wait=600)
+    assert len(waited) == 2 and result["left"] == [{"id": 0, "holder": "session-olga"}]
+    assert result["interrupted"] == "the controller is gone" and result["untouched"] == [1, 2]
+    assert h.commands("restart") == []
+
+
 def test_a_deploy_leaves_an_instance_lent_to_a_run_as_it_was_and_rolls_the_others():
     h = ScriptedHost(3)
     lifecycle.lend(h.host, 1, "run-a")
