@@ -22,9 +22,11 @@ options:
   _input:
     description:
       - The front door's settings - C(server_name), C(port), C(http_port), C(auth_port), C(api_port), C(login_rate),
-        C(session_hours), C(users), C(backends), C(viewer_port_base), C(turn), C(turn_port), C(turn_min_port),
-        C(turn_max_port), C(turn_gid); for C(services) also C(cert), C(key) (PEM text), C(auth_code) (the
-        login service's code), C(store_code) (its store's code), C(api_code) (the fleet API's code) and C(turn_secret).
+        C(session_hours), C(sim) (the simulator sessions' rules), C(metrics_dir), C(users), C(backends),
+        C(viewer_port_base), C(turn), C(turn_port), C(turn_min_port), C(turn_max_port), C(turn_gid); for C(services)
+        also C(cert), C(key)
+        (PEM text), C(auth_code) (the login service's code), C(store_code) (its store's code), C(api_code) (the
+        fleet API's code), C(pool_code) (its sessions' pool) and C(turn_secret).
     type: dict
     required: true
   what:
@@ -61,7 +63,12 @@ def isaac_sim_front_door(settings: dict, what: str):
             layout.MANAGED,
             settings["cert"],
             settings["key"],
-            {"auth": settings["auth_code"], "store": settings["store_code"], "api": settings["api_code"]},
+            {
+                "auth": settings["auth_code"],
+                "store": settings["store_code"],
+                "api": settings["api_code"],
+                "pool": settings["pool_code"],
+            },
             settings.get("turn_secret", ""),
         )
     if what == "removal":

@@ -14,8 +14,9 @@ description:
     R(the front_door role,ansible_collections.isaacsim.fleet.front_door_role)), on the store the login service reads
     (an SQLite file of the state directory); the service sees a change at the next request, with no restart.
   - A token is C(isf_ID_SECRET). It acts as its user, with the user's role of the moment, and only within its scopes -
-    C(read) (the fleet, status, logs an operator may read), C(act) (start, stop, restart instances) and C(operate)
-    (drain, remove, clean up). A viewer may hold C(read) only. Programs send it as a bearer token in the
+    C(read) (the fleet, status, logs an operator may read), C(use) (ask for a simulator session, end it), C(act)
+    (start, stop, restart instances) and C(operate) (drain, remove, clean up). A viewer may hold C(read) and C(use)
+    only. Programs send it as a bearer token in the
     C(Authorization) header.
   - Only the SHA-256 of its secret is kept; the token is returned once, when made. A user has one live token of a
     name; making it again (O(rotate=true)) replaces it, and the old one ends.
@@ -44,7 +45,7 @@ options:
     description: What it may do.
     type: list
     elements: str
-    choices: [read, act, operate]
+    choices: [read, use, act, operate]
     default: [read]
   days:
     description: How many days it is good for (1-365).

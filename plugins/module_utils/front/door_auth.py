@@ -239,10 +239,12 @@ class Door:
     def _who(who) -> str:
         return f"user={who['user']}" + (f" token={who['token']}" if who and who.get("token") else "")
 
-    def check(self, cookie_header: str, path: str, client: str, need: str = "", authorization: str = ""):
+    def check(
+        self, cookie_header: str, path: str, client: str, need: str = "", authorization: str = "", instance: str = ""
+    ):
         """(status, identity) for nginx: 204 passes, 401 means log in, 403 refused for the role
         or the token's scopes. path: the request as sent (for the journal only); need: what nginx's
-        location asks for."""
+        location asks for; instance: HOST/N of a web viewer's port, which a session may hold."""
         who = self.identify(cookie_header, authorization)
         if who is None:
             what = "no valid token" if bearer(authorization) else "no valid session"
@@ -251,6 +253,11 @@ class Door:
         if not may_open(who["role"], need, who["scopes"]):
             wanted = "/".join(NEEDS.get(need, ("?", "?")))
             self.log(f"refused {self._who(who)} path={path!r} from={client} (role {who['role']}, needs {wanted})")
+            return 403, who
+        host, _sep, n = instance.rpartition("/")
+        holder = self.store.session_holder(host, int(n)) if host and n.isdigit() and who["role"] != "operator" else None
+        if holder is not None and holder != who["user"]:
+            self.log(f"refused {self._who(who)} path={path!r} from={client} (instance {instance}: another's session)")
             return 403, who
         return 204, who
 
@@ -406,6 +413,7 @@ def handler(door: Door, form_action: str = ""):
                     self._client(),
                     urllib.parse.parse_qs(url.query).get("need", [""])[0],
                     self.headers.get("Authorization", ""),
+                    urllib.parse.parse_qs(url.query).get("instance", [""])[0],
                 )
                 said = [("X-Fleet-User", who["user"])] if who else []
                 self._send(code, headers=said + ([("X-Fleet-Token", who["token"])] if who and who["token"] else []))
@@ -500,6 +508,12 @@ def handler(door: Door, form_action: str = ""):
     return Handler
 
 
+class Server(ThreadingHTTPServer):
+    # a burst of requests at once (nginx passes them on as they come) waits in the kernel, never reset
+    request_queue_size = 128
+    daemon_threads = True
+
+
 def main(argv=None):
     import argparse
 
@@ -518,7 +532,7 @@ def main(argv=None):
     with contextlib.suppress(FileNotFoundError):
         os.remove(os.path.join(os.path.dirname(args.store), "session.key"))
     door = Door(args.users, args.store, args.hours, turn=turn if args.turn_url else None)
-    ThreadingHTTPServer(("127.0.0.1", args.port), handler(door, args.form_action)).serve_forever()
+    Server(("127.0.0.1", args.port), handler(door, args.form_action)).serve_forever()
 
 
 if __name__ == "__main__":

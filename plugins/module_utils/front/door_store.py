@@ -30,10 +30,11 @@ import secrets
 import sqlite3
 import time
 
-# what a token may be given: read the fleet; act on instances; operate hosts
-SCOPES = ("read", "act", "operate")
-# what a role may hold: a viewer reads, an operator may be given all
-ROLE_SCOPES = {"viewer": ("read",), "operator": SCOPES}
+# what a token may be given: read the fleet; use a simulator (a session from the pool); act on
+# instances; operate hosts
+SCOPES = ("read", "use", "act", "operate")
+# what a role may hold: a viewer reads and asks for simulators, an operator may be given all
+ROLE_SCOPES = {"viewer": ("read", "use"), "operator": SCOPES}
 PREFIX = "isf_"
 MAX_DAYS = 365
 # a user's or a token's name, as the journal may show it (never a forged line)
@@ -154,6 +155,17 @@ class Store:
                 (self._now(),),
             ).fetchall()
         return [dict(r) for r in rows]
+
+    def session_holder(self, host: str, n: int):
+        """The user whose simulator session (front/pool.py) holds that instance now; else None."""
+        try:
+            with self._db(write=False) as db:
+                row = db.execute(
+                    "SELECT user FROM sim_sessions WHERE host = ? AND instance = ? AND state = 'active'", (host, n)
+                ).fetchone()
+        except sqlite3.OperationalError:  # no session was ever asked for: the API made no table yet
+            return None
+        return row["user"] if row else None
 
     # tokens
 

@@ -35,6 +35,11 @@ import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+try:
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.front import pool as sim_pool
+except ImportError:  # on the front door host, beside the service's script
+    import isaac_sim_door_pool as sim_pool  # type: ignore[no-redef]
+
 VERSION = "1"
 MAX_TAIL = 200
 # a host's answer: read whole within the timeout, at most this big
@@ -76,6 +81,8 @@ _ROUTES = [
     ("host_act", re.compile(rf"^/api/hosts/{_HOST}/(?P<action>{_HOST_ACTIONS})\Z")),
     ("actions", re.compile(rf"^/api/hosts/{_HOST}/actions\Z")),
     ("action", re.compile(rf"^/api/hosts/{_HOST}/actions/(?P<id>[a-f0-9]{{16}})\Z")),
+    ("sessions", re.compile(r"^/api/sessions\Z")),
+    ("session", re.compile(r"^/api/sessions/(?P<sid>[a-f0-9]{12})\Z")),
 ]
 # what each route needs: nothing (health, the API's own description), a session or token that may
 # read, or an operator's
@@ -90,7 +97,13 @@ NEEDS = {
     "action": "operator",
 }
 # the methods of each route (GET where not named); DELETE of an instance is its remove
-METHODS = {"act": ("POST",), "host_act": ("POST",), "instance": ("GET", "DELETE")}
+METHODS = {
+    "act": ("POST",),
+    "host_act": ("POST",),
+    "instance": ("GET", "DELETE"),
+    "sessions": ("GET", "POST"),
+    "session": ("GET", "DELETE"),
+}
 MAX_BODY = 4096
 # seconds an action's request may take to be taken (the agent checks the host first)
 WRITE_TIMEOUT = 15.0
@@ -116,8 +129,9 @@ def instance_view(host: str, inst: dict, entrance, operator: bool) -> dict:
         "digest": inst.get("digest"),
         "ports": inst.get("ports") or {},
         "entrance": entrance,
-        # the instance's one claim: a test run's loan (experience.yml, test_suite.yml); sessions come later
-        "holder": {"kind": "test_run", "id": run} if run else None,
+        # the instance's one claim: a person's session (front/pool.py) or a test run's loan (experience.yml,
+        # test_suite.yml)
+        "holder": holder(run),
         "health": inst.get("health"),
         "restarts": inst.get("restarts"),
         "uptime_s": inst.get("uptime_s"),
@@ -126,6 +140,14 @@ def instance_view(host: str, inst: dict, entrance, operator: bool) -> dict:
     if operator:
         view["urls"] = inst.get("urls") or {}
     return view
+
+
+def holder(lent_to):
+    """Who holds an instance, from its host's loan marker: a session or a test run; None: nobody."""
+    if not lent_to:
+        return None
+    session = re.match(r"^session-([a-z0-9]+)\Z", lent_to)
+    return {"kind": "session", "id": session.group(1)} if session else {"kind": "test_run", "id": lent_to}
 
 
 class Fleet:
@@ -159,6 +181,11 @@ class Fleet:
                     self._hosts = list(pool.map(self._read, backends))
                 self._at = now
             return self._hosts
+
+    def refresh(self) -> None:
+        """The next read asks the hosts again (something changed there)."""
+        with self._lock:
+            self._at = None
 
     def host_view(self, read: dict, operator: bool) -> dict:
         status = read["status"]
@@ -208,6 +235,12 @@ def openapi() -> dict:
         "in": "path",
         "required": True,
         "schema": {"type": "string", "pattern": "^[a-f0-9]{16}$"},
+    }
+    session_id = {
+        "name": "id",
+        "in": "path",
+        "required": True,
+        "schema": {"type": "string", "pattern": "^[a-f0-9]{12}$"},
     }
     write = {
         "requestBody": {
@@ -289,6 +322,28 @@ def openapi() -> dict:
                 }
                 for action, said in HOST_ACTIONS.items()
             },  # fmt: skip
+            "/api/sessions": {
+                "get": op("Your sessions and places in the queue (operators: everyone's too)"),
+                "post": op(
+                    "Ask for a simulator (the use scope): 201 and the session where an instance is free, else "
+                    "202 and your place in the queue; {} or release, profile (what the instance runs)",
+                    extra={
+                        "responses_extra": {
+                            "201": "A session: its instance and entrance",
+                            "202": "A place in the queue: look at it (GET) to keep it",
+                            "400": "A malformed body (the field is named)",
+                            "409": "You have as many sessions as you may",
+                        }
+                    },
+                ),
+            },
+            "/api/sessions/{sid}": {
+                "get": op("One of your sessions or places: its state, entrance, time left, warning", [session_id]),
+                "delete": op(
+                    "End it (the use scope; an operator ends anyone's): its instance is reset, then free",
+                    [session_id],
+                ),
+            },
             "/api/hosts/{host}/actions": {"get": op("The host's last actions (operators)", [host], "operator")},
             "/api/hosts/{host}/actions/{id}": {
                 "get": op(
@@ -579,6 +634,7 @@ class Api:
         recheck=RECHECK_SECONDS,
         agents=None,
         limiter=None,
+        pool=None,
     ):
         """identify(cookie, authorization) -> identity or None; logs(status_url, n) -> the host's text;
         follow(url, path, ctx=None) -> a Follow; agents: the Agents the actions go through."""
@@ -586,6 +642,8 @@ class Api:
         self.follow, self.recheck = follow, recheck
         self.agents = agents or Agents(fleet.config)
         self.limiter = limiter or Limiter()
+        # the sessions handed out from the pool (None: no store, no sessions)
+        self.pool = pool
         self.logs = logs or (lambda url, n: get(url.removesuffix("/status") + f"/logs/{n}", fleet.timeout).decode())
         self.doc = openapi()
 
@@ -622,6 +680,8 @@ class Api:
         if refused:
             self.log(f"refused {who_line(who)} path={url.path!r} from={client} ({refused[0]})")
             return _json(403, {"error": refused[1]})
+        if route in ("sessions", "session"):
+            return self.sessions(method, route, found, who, client, body, headers or {})
         if method != "GET" or route in ("actions", "action"):
             return self.act(method, route, found, who, client, body, headers or {}, url, (cookie, authorization))
         if route == "fleet":
@@ -691,14 +751,9 @@ class Api:
                 f"refused {who_line(who)} {action} on {host} from={client} (needs the {ACTION_SCOPES[action]} scope)"
             )
             return _json(403, {"error": f"{action} needs a token with the {ACTION_SCOPES[action]} scope"})
-        if not who.get("token"):
-            # a person's browser: the door's own page, which read the session's CSRF token from /session
-            csrf = (headers.get("X-Fleet-CSRF") or "").encode("utf-8", "replace")
-            if another_site(headers) or not who.get("csrf") or not hmac.compare_digest(csrf, who["csrf"].encode()):
-                self.log(f"refused {who_line(who)} {action} on {host} from={client} (another site, or no CSRF token)")
-                return _json(
-                    403, {"error": "a write from a browser needs the door's own page (Origin and X-Fleet-CSRF)"}
-                )
+        if not browser_write_ok(who, headers):
+            self.log(f"refused {who_line(who)} {action} on {host} from={client} (another site, or no CSRF token)")
+            return _json(403, {"error": "a write from a browser needs the door's own page (Origin and X-Fleet-CSRF)"})
         try:
             body = action_body(raw)
         except ValueError as exc:
@@ -734,6 +789,49 @@ class Api:
             answer["events"] = answer["url"] + "?follow=1"
         return _json(code, answer)
 
+    def sessions(self, method: str, route: str, found, who: dict, client: str, raw: bytes, headers: dict):
+        """A person's simulator sessions: ask (POST), look (GET), end (DELETE); an operator sees and ends all."""
+        if self.pool is None:
+            return _json(409, {"error": "this front door hands out no sessions (its API runs without a store)"})
+        user, operator = who["user"], who.get("role") == "operator"
+        scopes = set(who.get("scopes") or [])
+        if method != "GET":
+            if "use" not in scopes:
+                self.log(f"refused {who_line(who)} {method} {route} from={client} (needs the use scope)")
+                return _json(403, {"error": "sessions need a token with the use scope"})
+            if not browser_write_ok(who, headers):
+                self.log(f"refused {who_line(who)} {method} {route} from={client} (another site, or no CSRF token)")
+                return _json(
+                    403, {"error": "a write from a browser needs the door's own page (Origin and X-Fleet-CSRF)"}
+                )
+            key = f"token:{user}/{who['token']}" if who.get("token") else f"user:{user}"
+            if not self.limiter.allow(key):
+                self.log(f"refused {who_line(who)} {method} {route} from={client} (rate limit)")
+                return _json(429, {"error": f"more than {self.limiter.per_minute} requests a minute; wait a little"})
+        # an operator's token ends another's session only with the operate scope
+        over = operator and (not who.get("token") or "operate" in scopes)
+        try:
+            if route == "sessions" and method == "POST":
+                try:
+                    body = json.loads(raw or b"{}")
+                except (ValueError, RecursionError):
+                    return _json(400, {"error": 'the body: not JSON. Fix: {} or {"release": "5.0"}.'})
+                code, answer = self.pool.request(user, body)
+                return _json(code, answer)
+            if route == "sessions":
+                answer = {"user": user, "mine": self.pool.mine(user)}
+                if operator:
+                    answer.update(self.pool.everything())
+                return _json(200, answer)
+            if method == "DELETE":
+                answer = self.pool.end(found["sid"], user, over)
+                self.log(f"session {found['sid']} end asked by {who_line(who)} from={client}: {answer['state']}")
+                return _json(200, answer)
+            return _json(200, self.pool.look(found["sid"], user, operator))
+        except sim_pool.RefusedError as refused:
+            code, answer = refused.args
+            return _json(code, answer)
+
     def read_action(self, route: str, found, url, creds):
         """The host's last actions, one action, or (follow=1) its events as they come."""
         host = found["host"]
@@ -764,6 +862,15 @@ class Api:
         if operator:
             out["status_urls"] = {b["name"]: b["status_url"] for b in c.get("hosts") or []}
         return out
+
+
+def browser_write_ok(who: dict, headers: dict) -> bool:
+    """A token's write, or a person's browser on the door's own page (which read the session's CSRF
+    token from /session)."""
+    if who.get("token"):
+        return True
+    csrf = (headers.get("X-Fleet-CSRF") or "").encode("utf-8", "replace")
+    return not another_site(headers) and bool(who.get("csrf")) and hmac.compare_digest(csrf, who["csrf"].encode())
 
 
 def refusal(who: dict, route: str):
@@ -852,6 +959,12 @@ def handler(api: Api):
     return Handler
 
 
+class Server(ThreadingHTTPServer):
+    # a burst of requests at once (nginx passes them on as they come) waits in the kernel, never reset
+    request_queue_size = 128
+    daemon_threads = True
+
+
 def main(argv=None):
     import argparse
 
@@ -861,6 +974,8 @@ def main(argv=None):
     parser.add_argument("--auth", required=True, help="the login service's URL (http://127.0.0.1:PORT)")
     parser.add_argument("--ttl", type=float, default=2.0, help="seconds a host's status read is reused")
     parser.add_argument("--agent-tls", default="", help="a directory of ca.crt, client.crt, client.key")
+    parser.add_argument("--store", default="", help="the login service's SQLite file: sessions are kept there")
+    parser.add_argument("--metrics-dir", default="", help="node_exporter's textfile directory (the sessions' figures)")
     args = parser.parse_args(argv)
     with open(args.config, encoding="utf-8") as f:
         config = json.load(f)
@@ -871,12 +986,20 @@ def main(argv=None):
             k: f"{args.agent_tls}/{name}"
             for k, name in (("ca", "ca.crt"), ("cert", "client.crt"), ("key", "client.key"))
         }
+    agents = Agents(config, tls)
+    pool = None
+    if args.store:
+        pool = sim_pool.Pool(sim_pool.Store(args.store), fleet, agents, config.get("pool"), log=say)
+        threading.Thread(
+            target=pool.run, args=(threading.Event(),), kwargs={"metrics_dir": args.metrics_dir}, daemon=True
+        ).start()
     api = Api(
         fleet,
         lambda cookie, authorization: ask_identity(args.auth, cookie, authorization),
-        agents=Agents(config, tls),
+        agents=agents,
+        pool=pool,
     )
-    ThreadingHTTPServer(("127.0.0.1", args.port), handler(api)).serve_forever()
+    Server(("127.0.0.1", args.port), handler(api)).serve_forever()
 
 
 if __name__ == "__main__":

@@ -41,6 +41,8 @@ AUTH_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-auth"
 STORE_CODE = f"{layout.LIBEXEC_DIR}/isaac_sim_door_store.py"
 STORE = f"{STATE_DIR}/door.db"
 API_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-api"
+# the simulator sessions' pool (front/pool.py), beside the API's script that imports it
+POOL_CODE = f"{layout.LIBEXEC_DIR}/isaac_sim_door_pool.py"
 NGINX = "/usr/sbin/nginx"
 PYTHON = "/usr/bin/python3"
 # nginx's workers drop to the distribution's web user (Debian's base-passwd has it)
@@ -64,6 +66,39 @@ CIPHERS = (
     "ECDHE-ECDSA-AES128-GCM-SHA256:ECDHE-RSA-AES128-GCM-SHA256:ECDHE-ECDSA-AES256-GCM-SHA384:"
     "ECDHE-RSA-AES256-GCM-SHA384:ECDHE-ECDSA-CHACHA20-POLY1305:ECDHE-RSA-CHACHA20-POLY1305"
 )
+
+
+# the pool's rules (front/pool.py RULES): the role's variable, the lowest and highest it may be, an example
+_SIM = {
+    "per_person": ("front_door_sim_per_person", 1, 100, 1),
+    "idle_minutes": ("front_door_sim_idle_minutes", 0, 7 * 24 * 60, 30),
+    "max_minutes": ("front_door_sim_max_minutes", 1, 7 * 24 * 60, 240),
+    "warn_minutes": ("front_door_sim_warn_minutes", 0, 24 * 60, 5),
+    "queue_grace_s": ("front_door_sim_queue_grace_seconds", 10, 24 * 3600, 120),
+    "host_gone_s": ("front_door_sim_host_gone_seconds", 10, 24 * 3600, 120),
+}
+
+
+def _sim_errors(sim: dict) -> list:
+    errors = []
+    for key, (var, low, high, example) in _SIM.items():
+        value = _port(sim.get(key, example))
+        if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+            errors.append(f"{var}: {value!r} is not a whole number of {low}-{high}. Fix: e.g. {example}.")
+    warn = _port(sim.get("warn_minutes", 5))
+    for key in ("max_minutes", "idle_minutes"):
+        end = _port(sim.get(key, _SIM[key][3]))
+        if isinstance(warn, int) and isinstance(end, int) and end and warn >= end:
+            errors.append(
+                f"front_door_sim_warn_minutes: {warn} is not below {_SIM[key][0]} ({end}). Fix: a warning that "
+                "comes before the end, e.g. 5."
+            )
+    return errors
+
+
+def sim_rules(p: dict) -> dict:
+    """The pool's rules as api.json gives them to the API (checked: _sim_errors)."""
+    return {key: int(_port((p.get("sim") or {}).get(key, example))) for key, (_v, _l, _h, example) in _SIM.items()}
 
 
 def _port(value):
@@ -106,6 +141,13 @@ def check(p: dict) -> list:
     hours = p.get("session_hours")
     if not isinstance(hours, (int, float)) or isinstance(hours, bool) or not 0 < hours <= 24 * 30:
         errors.append(f"front_door_session_hours: {hours!r} is not a number of hours of 0-720. Fix: e.g. 8.")
+    errors += _sim_errors(p.get("sim") or {})
+    metrics_dir = p.get("metrics_dir") or ""
+    if metrics_dir and not re.fullmatch(r"/[A-Za-z0-9._/-]+", str(metrics_dir)):
+        errors.append(
+            f"front_door_metrics_textfile_dir: {metrics_dir!r} is not an absolute path of letters, digits and . _ - /. "
+            "Fix: node_exporter's textfile directory, e.g. /var/lib/prometheus/node-exporter, or '' for none."
+        )
     errors += _user_errors(p.get("users"))
     errors += _client_ca_errors(p)
     for backend in p.get("backends") or []:
@@ -527,9 +569,12 @@ def nginx_conf(p: dict, managed: str) -> str:
         origin = _entry(p, viewer).rstrip("/").lower()
         lines += [
             *tls_server(viewer["port"]),
+            # an instance a session holds opens for its holder (and operators) alone: the login service reads
+            # the sessions' store
+            *ask("/fleet-auth-instance", f"?instance={viewer['host']}/{viewer['instance']}"),
             *to_login(f"{door}/login?next=/viewers/{viewer['host']}/{viewer['instance']}/"),
             "    location / {",
-            *guarded(),
+            *guarded("/fleet-auth-instance"),
             # another site's page never opens this signalling with the person's session
             '      set $fleet_origin "$fleet_websocket $http_origin";',
             f'      if ($fleet_origin ~ "^1 (?!{re.escape(origin)}$)") {{ return 403; }}',
@@ -610,6 +655,98 @@ def _entry(p: dict, viewer: dict) -> str:
 
 # A person's own API tokens, behind the login: made (shown once), listed and revoked through the
 # login service's /tokens; a viewer is offered the read scope alone.
+# a person's simulator: ask, wait in the queue, open it, see the time left and the warning, end it
+# (the page's own requests keep a place in the queue while it is open)
+SIM_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>Isaac Sim fleet: your simulator</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>body{font-family:system-ui,sans-serif;max-width:48em;margin:2em auto}.error{color:#b00020}
+#warning{background:#fff3cd;border:1px solid #c9a227;padding:.6em}#state{font-size:1.2em}</style></head>
+<body><h1>Your simulator</h1>
+<p id="state">Reading your sessions\u2026</p>
+<p id="warning" hidden></p>
+<p id="entrance" hidden><a id="open" target="_blank" rel="noopener">Open your simulator's viewer</a></p>
+<p id="left" hidden></p>
+<p><button type="button" id="ask" hidden>Ask for a simulator</button>
+<button type="button" id="end" hidden>End my session</button></p>
+<p id="said" class="error" hidden></p>
+<p><a href="/">The front door</a> \u00b7 <a href="/logout">Log out</a></p>
+<script>
+(function () {
+  "use strict";
+  var csrf = "", current = null, last = null, left = null;
+  var $ = function (id) { return document.getElementById(id); };
+  function show(id, text) { $(id).textContent = text || ""; $(id).hidden = !text; }
+  function call(method, path, body) {
+    var headers = {"Content-Type": "application/json", "X-Fleet-CSRF": csrf};
+    var asked = {method: method, cache: "no-store", headers: headers};
+    if (body !== undefined) { asked.body = JSON.stringify(body); }
+    return fetch(path, asked).then(function (r) {
+      return r.json().catch(function () { return {}; }).then(function (a) { return [r.status, a]; });
+    });
+  }
+  function clock(s) {
+    var h = Math.floor(s / 3600), m = Math.floor(s % 3600 / 60), x = Math.floor(s % 60);
+    return h + ":" + (m < 10 ? "0" : "") + m + ":" + (x < 10 ? "0" : "") + x;
+  }
+  function render(s) {
+    current = s && (s.state === "active" || s.state === "queued" || s.state === "ending") ? s : null;
+    if (s) { last = s.id; }
+    document.body.dataset.state = s ? s.state : "none";
+    $("ask").hidden = !!current;
+    $("end").hidden = !current || current.state === "ending";
+    $("end").textContent = current && current.state === "queued" ? "Leave the queue" : "End my session";
+    $("entrance").hidden = !(s && s.state === "active" && s.entrance);
+    if (s && s.entrance) { $("open").href = s.entrance; }
+    show("warning", s && s.state === "active" ? s.warning : "");
+    left = s && s.state === "active" ? s.seconds_left : null;
+    show("left", left === null ? "" : "Time left: " + clock(left));
+    if (!s) { show("state", "You hold no simulator."); return; }
+    if (s.state === "queued") {
+      show("state", "You are number " + s.place + " of " + s.waiting + " in the queue" +
+        (s.estimate_s ? " (at most about " + Math.ceil(s.estimate_s / 60) + " minutes)" : "") +
+        ". Keep this page open: your place is kept while it is.");
+    } else if (s.state === "active") {
+      show("state", "Your simulator: " + s.host + ", instance " + s.instance + ".");
+    } else if (s.state === "ending") {
+      show("state", "Your session ended (" + s.why + "); its simulator is being reset.");
+    } else {
+      show("state", "Your session ended (" + s.why + ").");
+    }
+  }
+  function poll() {
+    call("GET", "/api/sessions").then(function (res) {
+      if (res[0] !== 200) { show("said", res[1].error || "HTTP " + res[0]); return; }
+      var mine = res[1].mine || [];
+      if (mine.length || !last) { render(mine[0] || null); return; }
+      return call("GET", "/api/sessions/" + last).then(function (one) { render(one[0] === 200 ? one[1] : null); });
+    }).catch(function (e) { show("said", "The fleet could not be asked: " + e.message); })
+      .then(function () { document.body.dataset.ready = "yes"; });
+  }
+  $("ask").addEventListener("click", function () {
+    show("said", "");
+    call("POST", "/api/sessions", {}).then(function (res) {
+      if (res[0] === 201 || res[0] === 202) { render(res[1]); } else { show("said", res[1].error || "HTTP " + res[0]); }
+    });
+  });
+  $("end").addEventListener("click", function () {
+    if (!current) { return; }
+    call("DELETE", "/api/sessions/" + current.id).then(function (res) {
+      if (res[0] === 200) { render(res[1]); } else { show("said", res[1].error || "HTTP " + res[0]); }
+    });
+  });
+  setInterval(function () {
+    if (left !== null && left > 0) { left -= 1; show("left", "Time left: " + clock(left)); }
+  }, 1000);
+  fetch("/session", {cache: "no-store"}).then(function (r) { return r.json(); }).then(function (who) {
+    csrf = who.csrf || "";
+    poll();
+    setInterval(poll, 2000);
+  }).catch(function (e) { show("said", "Who you are could not be read: " + e.message); });
+})();
+</script></body></html>
+"""
+
 TOKENS_PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>Isaac Sim fleet: your API tokens</title>
 <meta name="viewport" content="width=device-width, initial-scale=1">
@@ -722,7 +859,8 @@ def index_page(p: dict) -> str:
         "<body><h1>Isaac Sim fleet</h1>"
         '<p><a href="/dashboard.html">The dashboard</a> (written here by playbooks/status.yml)</p>'
         f"<p>Each host's status:</p><ul>{rows}</ul>"
-        '<p><a href="/tokens.html">Your API tokens</a> \u00b7 <a href="/api/docs">the fleet\'s API</a></p>'
+        '<p><a href="/simulator.html">A simulator for you</a> \u00b7 <a href="/tokens.html">Your API tokens</a> '
+        '\u00b7 <a href="/api/docs">the fleet\'s API</a></p>'
         '<p><a href="/logout">Log out</a></p></body></html>\n'
     )
 
@@ -811,6 +949,8 @@ def api_unit(p: dict, managed: str) -> str:
                     ("Description", "isaacsim.fleet front door: the fleet's API"),
                     ("Wants", f"network-online.target {AUTH_UNIT}"),
                     ("After", f"network-online.target {AUTH_UNIT}"),
+                    # it runs the login service's store code (the sessions' file): a new one restarts both
+                    ("PartOf", AUTH_UNIT),
                 ],
             ),
             (
@@ -819,13 +959,17 @@ def api_unit(p: dict, managed: str) -> str:
                     (
                         "ExecStart",
                         f"{PYTHON} {API_SCRIPT} --port {p['api_port']} --config {CONFIG_DIR}/api.json "
-                        f"--auth http://127.0.0.1:{p['auth_port']}"
-                        + (f" --agent-tls {AGENT_TLS_DIR}" if p.get("agent_client_cert") else ""),
+                        f"--auth http://127.0.0.1:{p['auth_port']} --store {STORE}"
+                        + (f" --agent-tls {AGENT_TLS_DIR}" if p.get("agent_client_cert") else "")
+                        + (f" --metrics-dir {p['metrics_dir']}" if p.get("metrics_dir") else ""),
                     ),
                     ("Restart", "on-failure"),
                     ("RestartSec", 2),
-                    # it reads the hosts' status endpoints on the LAN, and asks the login service on 127.0.0.1
-                    *sandbox.reader(),
+                    # it reads the hosts' status endpoints on the LAN, and asks the login service on 127.0.0.1;
+                    # it writes the simulator sessions and their queue beside the login service's (SQLite)
+                    ("StateDirectory", STATE_DIR.rsplit("/", 1)[1]),
+                    # and the sessions' figures for node_exporter's textfile collector
+                    *sandbox.reader(writable=[p["metrics_dir"]] if p.get("metrics_dir") else []),
                     ("PrivateDevices", "yes"),
                     ("ProtectProc", "invisible"),
                 ],
@@ -834,6 +978,13 @@ def api_unit(p: dict, managed: str) -> str:
         ],
         header=[managed],
     )
+
+
+def _signals(p: dict) -> dict:
+    out = {}
+    for viewer in viewers(p):
+        out.setdefault(viewer["host"], {})[str(viewer["instance"])] = viewer["signal"]
+    return out
 
 
 def api_json(p: dict) -> str:
@@ -845,6 +996,9 @@ def api_json(p: dict) -> str:
         "relay": door["relay"],
         "entrances": door["entrances"],
         "session_hours": p["session_hours"],
+        "pool": sim_rules(p),
+        # where each web viewer's signalling is relayed to: a session's stream with nobody on it ends (idle)
+        "signals": _signals(p),
         "hosts": [
             {"name": b["name"], "status_url": b["status_url"], "agent_url": b.get("agent_url") or ""}
             for b in p.get("backends") or []
@@ -869,6 +1023,7 @@ def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = 
         API_UNIT: {
             f"/etc/systemd/system/{API_UNIT}": {"content": api_unit(p, managed), "mode": "0644"},
             API_SCRIPT: {"content": code["api"], "mode": "0644"},
+            POOL_CODE: {"content": code["pool"], "mode": "0644"},
             f"{CONFIG_DIR}/api.json": {"content": api_json(p), "mode": "0644"},
             **(
                 {
@@ -887,6 +1042,7 @@ def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = 
             f"{CONFIG_DIR}/door.key": {"content": key, "mode": "0600"},
             f"{CONFIG_DIR}/www/index.html": {"content": index_page(p), "mode": "0644"},
             f"{CONFIG_DIR}/www/tokens.html": {"content": TOKENS_PAGE, "mode": "0644"},
+            f"{CONFIG_DIR}/www/simulator.html": {"content": SIM_PAGE, "mode": "0644"},
             f"{CONFIG_DIR}/www/front-door.json": {"content": door_json(p), "mode": "0644"},
             **(
                 {f"{CONFIG_DIR}/client-ca.crt": {"content": p["client_ca"], "mode": "0644"}}
@@ -910,11 +1066,12 @@ def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = 
 
 
 def services(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = "") -> list:
-    """[{name, state, files, remove}] for isaac_sim_host_service, in order: what runs, started;
-    the relay, when off, stopped and removed with its files."""
+    """[{name, state, files, directories, remove}] for isaac_sim_host_service, in order: what runs,
+    started; the relay, when off, stopped and removed with its files."""
     present, gone = files(p, managed, cert, key, code, secret), removal()
+    made = {API_UNIT: [{"path": p["metrics_dir"], "uid": 0, "gid": 0, "mode": "0755"}] if p.get("metrics_dir") else []}
     return [
-        {"name": u, "state": "started", "files": present[u], "remove": []}
+        {"name": u, "state": "started", "files": present[u], "directories": made.get(u, []), "remove": []}
         if u in present
         else {"name": u, "state": "absent", "files": gone[u]["files"], "remove": gone[u]["remove"]}
         for u in gone
@@ -930,7 +1087,7 @@ def removal() -> dict:
             "files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}},
             "remove": [AUTH_SCRIPT, STORE_CODE, STATE_DIR],
         },
-        API_UNIT: {"files": {f"/etc/systemd/system/{API_UNIT}": {"content": ""}}, "remove": [API_SCRIPT]},
+        API_UNIT: {"files": {f"/etc/systemd/system/{API_UNIT}": {"content": ""}}, "remove": [API_SCRIPT, POOL_CODE]},
         UNIT: {"files": {f"/etc/systemd/system/{UNIT}": {"content": ""}}, "remove": [CONFIG_DIR]},
         turn.UNIT: {
             "files": {f"/etc/systemd/system/{turn.UNIT}": {"content": ""}},

@@ -45,6 +45,29 @@ def in_journal(host, unit, line):
     wait_for(lambda: line in journal(host, unit), timeout=10, what=f"{line!r} in the journal of {unit}")
 
 
+def simulator_in_chromium(driver, host, address):
+    """A person's simulator page: ask, hold one with its time left, end it; it is reset behind, and the
+    page says how it ended."""
+    driver.get(f"https://{address}/simulator.html")
+    body = driver.find_element("tag name", "body")
+    wait_for(lambda: body.get_attribute("data-ready") == "yes", timeout=15, what="the simulator page")
+    assert body.get_attribute("data-state") == "none", driver.find_element("id", "state").text
+    driver.find_element("id", "ask").click()
+    wait_for(lambda: body.get_attribute("data-state") == "active", timeout=15, what="a simulator for vic")
+    state = driver.find_element("id", "state").text
+    assert state.startswith(f"Your simulator: {testbed.name(host)}, instance "), state
+    assert driver.find_element("id", "left").text.startswith("Time left: 3:59:")
+    driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-simulator.png"))
+    driver.find_element("id", "end").click()
+    wait_for(
+        lambda: body.get_attribute("data-state") == "ended",
+        timeout=120,
+        what="the session to end, its simulator reset",
+    )
+    assert driver.find_element("id", "state").text == "Your session ended (ended by its holder)."
+    assert console_errors(driver) == []
+
+
 def dashboard_in_chromium(host, address, tmp_path):
     report = tmp_path / "report"
     ok(
@@ -98,6 +121,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         assert driver.find_elements("css selector", ".actions button") == []
         assert console_errors(driver) == []
         driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-dashboard.png"))
+        simulator_in_chromium(driver, host, address)
         driver.get(f"https://{address}/logout")
         # the page kept nothing in the browser's cache (Cache-Control: no-store): the login again
         driver.get(f"https://{address}/dashboard.html")
@@ -353,7 +377,7 @@ def check_actions(host, address, tmp):
     restart does not stop it; the agent answers the door's certificate alone, from the door alone."""
     name, api = testbed.name(host), f"/api/hosts/{testbed.name(host)}"
     ok(tokens(host, tmp, front_door_token_state="present", front_door_token_user="olga",
-              front_door_token_name="ops", front_door_token_scopes=["read", "act", "operate"]))  # fmt: skip
+              front_door_token_name="ops", front_door_token_scopes=["read", "use", "act", "operate"]))  # fmt: skip
     [file] = (tmp / "tokens").glob("*-olga-ops.token")
     token = file.read_text().strip()
 
@@ -411,6 +435,8 @@ def check_actions(host, address, tmp):
     assert api_call(address, "POST", f"{api}/undrain", token)[0] == 200
     wait_for(lambda: drained() is None, timeout=15, what="the host's status to say it is not drained")
 
+    check_a_session(host, address, token)
+
     # the channel: the door's certificate from the door's address; nothing else
     netns = testbed.client().containers.get(name).attrs["State"]["Pid"]
     door_cert = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key")
@@ -434,6 +460,40 @@ def check_actions(host, address, tmp):
         agent_answer(address, door_cert)
     )
     testbed.assert_sandboxed(host, AGENT)
+
+
+def check_a_session(host, address, token):
+    """A simulator from the pool: the API claims a ready instance through the host's agent, the host's
+    own marker names the session, an action on it is refused, a restart of the API keeps it; ended, the
+    instance is restarted and only then free."""
+    name = testbed.name(host)
+    code, session = api_call(address, "POST", "/api/sessions", token, {})
+    assert code == 201 and session["host"] == name and session["state"] == "active", session
+    n, holder = session["instance"], session["holder"]
+    assert api_call(address, "POST", "/api/sessions", token, {})[0] == 409  # one each
+    code, refused = api_call(address, "POST", f"/api/hosts/{name}/instances/{n}/restart", token)
+    assert code == 409 and f"held by {holder}" in refused["error"], refused
+    wait_for(
+        lambda: api_call(address, "GET", f"/api/hosts/{name}/instances/{n}", token)[1]["holder"]
+        == {"kind": "session", "id": session["id"]},
+        timeout=15,
+        what="the fleet's listing to name the session as the instance's holder",
+    )
+    started = journal(host, f"isaac-sim@{n}.service").count("Started")
+    sh(host, f"systemctl restart {UNITS[3]}")
+    wait_for(lambda: api_call(address, "GET", session["url"], token)[0] == 200, timeout=30, what="the API back")
+    assert api_call(address, "GET", session["url"], token)[1]["state"] == "active"
+    code, ended = api_call(address, "DELETE", session["url"], token)
+    assert code == 200 and ended["state"] == "ending" and ended["why"] == "ended by its holder", ended
+    wait_for(
+        lambda: api_call(address, "GET", session["url"], token)[1]["state"] == "ended",
+        timeout=120,
+        what="the session's instance to be reset and given back",
+    )
+    assert testbed.instance_ready(host, n)
+    assert journal(host, f"isaac-sim@{n}.service").count("Started") > started
+    in_journal(host, UNITS[3], f"session {session['id']} of user=olga started on {name}/{n}")
+    in_journal(host, UNITS[3], f"session {session['id']} of user=olga ended (ended by its holder)")
 
 
 def check_sessions_and_tokens(host, address, status_path, operator, tmp):

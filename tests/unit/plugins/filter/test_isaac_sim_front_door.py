@@ -26,6 +26,7 @@ def settings(**over):
         "auth_code": "CODE",
         "store_code": "STORE",
         "api_code": "API",
+        "pool_code": "POOL",
     }
     base.update(over)
     return base

@@ -162,7 +162,7 @@ def test_health_and_the_description_need_no_login_and_nothing_else_is_there(api)
     doc = json.loads(call(port, "/api/openapi.json")[2])
     assert doc["openapi"] == "3.0.3" and "/api/hosts/{host}/instances/{n}/logs" in doc["paths"]
     # every route the service answers is in the document, and each documented path answers
-    example = {"{host}": "gpu-1", "{n}": "2", "{id}": "0123456789abcdef"}
+    example = {"{host}": "gpu-1", "{n}": "2", "{id}": "0123456789abcdef", "{sid}": "0123456789ab"}
     answered = set()
     for path, methods in doc["paths"].items():
         concrete = path

@@ -7,7 +7,7 @@ import json
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, front_door
 
-CODE = {"auth": "CODE", "store": "STORE", "api": "API"}
+CODE = {"auth": "CODE", "store": "STORE", "api": "API", "pool": "POOL"}
 HASH = door_auth.hash_password("pw", 10000, b"0123456789abcdef")
 GOOD = {
     "server_name": "fleet.lab",
@@ -58,6 +58,11 @@ def test_good_settings_pass():
         ({"http_port": 443}, "front_door_port and front_door_http_port: both 443"),
         ({"login_rate": "10/m"}, "front_door_login_rate: '10/m'"),
         ({"session_hours": 0}, "front_door_session_hours: 0"),
+        ({"metrics_dir": "var/lib/x"}, "front_door_metrics_textfile_dir: 'var/lib/x' is not an absolute path"),
+        ({"sim": {"per_person": 0}}, "front_door_sim_per_person: 0 is not a whole number of 1-100"),
+        ({"sim": {"max_minutes": "2h"}}, "front_door_sim_max_minutes: '2h' is not a whole number"),
+        ({"sim": {"queue_grace_s": 5}}, "front_door_sim_queue_grace_seconds: 5 is not a whole number of 10-86400"),
+        ({"sim": {"max_minutes": 10, "warn_minutes": 10}}, "front_door_sim_warn_minutes: 10 is not below"),
         ({"users": []}, "front_door_users: empty"),
         (
             {"users": [{"name": "olga", "role": "admin", "password_hash": HASH}]},
@@ -169,7 +174,9 @@ def test_nginx_serves_tls_only_behind_the_login_and_redirects_plain_http():
 
 
 def test_files_keep_secrets_root_s_and_list_the_login_service_first():
-    files = front_door.files(GOOD, "managed", "CERT", "KEY", {"auth": "CODE", "store": "STORE", "api": "API"})
+    files = front_door.files(
+        GOOD, "managed", "CERT", "KEY", {"auth": "CODE", "store": "STORE", "api": "API", "pool": "POOL"}
+    )
     assert list(files) == [front_door.AUTH_UNIT, front_door.API_UNIT, front_door.UNIT]
     api = files[front_door.API_UNIT]
     assert api["/usr/local/libexec/isaac-sim/isaac-sim-front-door-api"]["content"] == "API"
@@ -183,7 +190,7 @@ def test_files_keep_secrets_root_s_and_list_the_login_service_first():
     with_agents = front_door.files(
         dict(GOOD, agent_ca="CA", agent_client_cert="CRT", agent_client_key="KEY",
              backends=[dict(GOOD["backends"][0], agent_url="https://10.0.0.5:8291")]),
-        "managed", "CERT", "KEY", {"auth": "CODE", "store": "STORE", "api": "API"},
+        "managed", "CERT", "KEY", {"auth": "CODE", "store": "STORE", "api": "API", "pool": "POOL"},
     )[front_door.API_UNIT]  # fmt: skip
     tls = front_door.AGENT_TLS_DIR
     assert with_agents[f"{tls}/client.key"] == {"content": "KEY", "mode": "0600"}
@@ -226,7 +233,10 @@ def test_a_viewer_s_port_serves_its_page_and_its_signalling_behind_the_login():
     assert 'Strict-Transport-Security "max-age=31536000" always' in server
     assert 'add_header Cache-Control "no-store" always;' in server
     root = server.split("    location / {", 1)[1]
-    assert "auth_request /fleet-auth;" in root and "error_page 401 = @fleet_login;" in root
+    assert "auth_request /fleet-auth-instance;" in root and "error_page 401 = @fleet_login;" in root
+    # the login service is asked with the instance: one a session holds opens for its holder alone
+    asks = server.split("location = /fleet-auth-instance {", 1)[1].split("}", 1)[0]
+    assert "proxy_pass http://127.0.0.1:9480/auth?instance=gpu-2/3;" in asks and "internal;" in asks
     # no session: the login on the door's own port, then back here through the entrance
     assert "return 302 https://fleet.lab/login?next=/viewers/gpu-2/3/;" in server
     # a WebSocket goes to the signal port, anything else to the page, each with the Host it expects
@@ -401,4 +411,36 @@ def test_with_a_client_ca_every_tls_port_asks_for_a_certificate_it_signed():
     assert "ssl_verify_client" not in plain and "ssl_client_s_dn" not in plain
     assert (
         "/etc/isaac-sim/front-door/client-ca.crt" not in front_door.files(VIEWERS, "m", "C", "K", CODE)[front_door.UNIT]
+    )
+
+
+def test_the_api_keeps_sessions_in_the_login_service_s_store_with_the_pool_s_rules():
+    p = dict(GOOD, sim={"max_minutes": "30", "per_person": 2})
+    rules = json.loads(front_door.api_json(p))["pool"]
+    assert rules == {
+        "per_person": 2,
+        "idle_minutes": 30,
+        "max_minutes": 30,
+        "warn_minutes": 5,
+        "queue_grace_s": 120,
+        "host_gone_s": 120,
+    }
+    assert json.loads(front_door.api_json(VIEWERS))["signals"]["gpu-2"]["3"] == "10.0.0.13:49100"
+    unit = front_door.files(p, "managed", "CERT", "KEY", CODE)[front_door.API_UNIT]
+    text = unit[f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
+    assert f"--store {front_door.STORE}" in text and "StateDirectory=isaac-sim-front-door" in text
+    assert f"PartOf={front_door.AUTH_UNIT}" in text and unit[front_door.POOL_CODE]["content"] == "POOL"
+
+
+def test_the_api_writes_the_sessions_figures_where_node_exporter_reads_them():
+    p = dict(GOOD, metrics_dir="/var/lib/prometheus/node-exporter")
+    [api] = [s for s in front_door.services(p, "managed", "CERT", "KEY", CODE) if s["name"] == front_door.API_UNIT]
+    assert api["directories"] == [{"path": "/var/lib/prometheus/node-exporter", "uid": 0, "gid": 0, "mode": "0755"}]
+    text = api["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
+    assert "--metrics-dir /var/lib/prometheus/node-exporter" in text
+    assert "ReadWritePaths=/var/lib/prometheus/node-exporter" in text
+    [bare] = [s for s in front_door.services(GOOD, "managed", "CERT", "KEY", CODE) if s["name"] == front_door.API_UNIT]
+    assert (
+        bare["directories"] == []
+        and "--metrics-dir" not in bare["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
     )

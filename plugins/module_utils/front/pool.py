@@ -1,0 +1,617 @@
+# Copyright: isaacsim.fleet contributors
+# Apache-2.0
+"""Simulators for whoever asks: the front door's sessions, handed out from the one pool of instances
+that test runs share, with a fair queue (isaac-sim-front-door-api.service runs it).
+
+A person (or a program with a token of the `use` scope) asks; the request joins the queue, and the
+queue is served in arrival order from the ready instances nobody holds, on the least loaded host
+that fits. An instance is taken with the host agent's claim, the same marker a test run's loan
+takes (lifecycle.lend): the agent refuses an instance that a run, another session or a deploy has,
+so nothing is ever given twice, whatever this file believes. A session ends when its holder or an
+operator ends it, or at its maximum duration (a warning shown first); its instance is then given
+back through the agent (restarted clean, ready, only then free) and goes to the head of the queue.
+
+What is here is kept in SQLite beside the login service's sessions (door_store): a restart of the
+service or of the front door host keeps every session and place in the queue. A host that does not
+answer for `host_gone_s` has its sessions ended (their holders see why); its claims are given back
+once it answers again.
+
+The standard library alone, as the rest of the door's services.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import secrets
+import socket
+import threading
+import time
+
+try:
+    from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_store
+except ImportError:  # on the front door host, beside the service's script
+    import isaac_sim_door_store as door_store  # type: ignore[no-redef]
+
+# the holder an instance's claim names (the agent's HOLDER_RE)
+HOLDER = "session-{}"
+# what a request may ask for (each matched against the instance's status)
+WANTS = ("release", "profile")
+# the defaults of the role's settings (front_door_session_*)
+RULES = {
+    "per_person": 1,
+    "idle_minutes": 30,
+    "max_minutes": 240,
+    "warn_minutes": 5,
+    "queue_grace_s": 120,
+    "host_gone_s": 120,
+}
+# a guess at a reset's length until one was seen (seconds)
+RESET_GUESS_S = 60.0
+# node_exporter's textfile the API writes (in the directory the role gives it)
+METRICS_FILE = "isaac_sim_sessions.prom"
+METRICS_EVERY_S = 15.0
+# the warnings a session's holder is given (sim_sessions.warned): for want of a client, for its maximum duration
+IDLE, MAXIMUM = 1, 2
+# how often the door looks for a client on each session's stream
+CLIENTS_EVERY_S = 5.0
+_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS sim_sessions (id TEXT PRIMARY KEY, user TEXT NOT NULL, wants TEXT NOT NULL,"
+    " host TEXT NOT NULL, instance INTEGER NOT NULL, state TEXT NOT NULL, created REAL NOT NULL,"
+    " started REAL NOT NULL, expires REAL NOT NULL, warned INTEGER NOT NULL DEFAULT 0, ended REAL,"
+    " why TEXT, action TEXT, client_seen REAL)",
+    "CREATE TABLE IF NOT EXISTS sim_queue (seq INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT UNIQUE NOT NULL,"
+    " user TEXT NOT NULL, wants TEXT NOT NULL, created REAL NOT NULL, seen REAL NOT NULL)",
+)
+
+
+class RefusedError(Exception):
+    """A request the pool does not take: (HTTP status, answer)."""
+
+
+def wants_errors(body) -> list:
+    """What is wrong with a request's body, each naming the field."""
+    if not isinstance(body, dict):
+        return ['the body: not a JSON object. Fix: {} or {"release": "5.0"}.']
+    errors = [
+        f"{k}: not a field of a session request; the fields are {', '.join(WANTS)}" for k in body if k not in WANTS
+    ]
+    for k in WANTS:
+        v = body.get(k)
+        if v is not None and (not isinstance(v, str) or not door_store.NAME_RE.match(v)):
+            errors.append(f"{k}: {v!r} is not a name (1-64 of A-Z a-z 0-9 . _ @ -)")
+    return errors
+
+
+class Store(door_store.Store):
+    """The sessions and the queue, in the login service's file."""
+
+    def __init__(self, path: str, clock=time.time):
+        super().__init__(path, clock)
+        with self._db() as db:
+            for statement in _SCHEMA:
+                db.execute(statement)
+
+    def enqueue(self, user: str, wants: dict, limit: int) -> str:
+        """A new place at the end of the queue; RefusedError(409) where the user has `limit` already."""
+        with self._db() as db:
+            now = self.clock()  # in the write lock: the queue's order is its times' order
+            held = db.execute(
+                "SELECT id FROM sim_sessions WHERE user = ? AND state = 'active' UNION ALL "
+                "SELECT id FROM sim_queue WHERE user = ?",
+                (user, user),
+            ).fetchall()
+            if len(held) >= limit:
+                ids = [r["id"] for r in held]
+                raise RefusedError(
+                    409,
+                    {
+                        "error": f"{user} has {len(ids)} session(s) or place(s) in the queue, the most allowed "
+                        f"({limit}): {', '.join(ids)}. End one first (DELETE /api/sessions/ID).",
+                        "sessions": ids,
+                    },
+                )
+            ident = secrets.token_hex(6)
+            db.execute(
+                "INSERT INTO sim_queue (id, user, wants, created, seen) VALUES (?, ?, ?, ?, ?)",
+                (ident, user, json.dumps(wants, sort_keys=True), now, now),
+            )
+        return ident
+
+    def queue(self) -> list:
+        with self._db(write=False) as db:
+            rows = db.execute("SELECT * FROM sim_queue ORDER BY seq").fetchall()
+        return [dict(r, wants=json.loads(r["wants"])) for r in rows]
+
+    def grant(self, entry: dict, host: str, n: int, expires: float) -> bool:
+        """The queued entry becomes a session on host's instance n; False where it left the queue meanwhile
+        (its claim is then given back by the caller)."""
+        now = self.clock()
+        with self._db() as db:
+            gone = db.execute("DELETE FROM sim_queue WHERE id = ?", (entry["id"],)).rowcount
+            if gone:
+                db.execute(
+                    "INSERT INTO sim_sessions (id, user, wants, host, instance, state, created, started, expires)"
+                    " VALUES (?, ?, ?, ?, ?, 'active', ?, ?, ?)",
+                    (entry["id"], entry["user"], json.dumps(entry["wants"]), host, n, entry["created"], now, expires),
+                )
+        return bool(gone)
+
+    def leave(self, ident: str) -> bool:
+        with self._db() as db:
+            return bool(db.execute("DELETE FROM sim_queue WHERE id = ?", (ident,)).rowcount)
+
+    def seen(self, ident: str) -> None:
+        with self._db() as db:
+            db.execute("UPDATE sim_queue SET seen = ? WHERE id = ?", (self.clock(), ident))
+
+    def sessions(self, states=("active", "ending")) -> list:  # pylint: disable=arguments-differ
+        marks = ", ".join("?" * len(states))
+        with self._db(write=False) as db:
+            rows = db.execute(f"SELECT * FROM sim_sessions WHERE state IN ({marks}) ORDER BY started", states)
+            return [dict(r, wants=json.loads(r["wants"])) for r in rows.fetchall()]
+
+    def get(self, ident: str):
+        """The session or queued entry of that id (a queued one with state 'queued'); else None."""
+        with self._db(write=False) as db:
+            row = db.execute("SELECT * FROM sim_sessions WHERE id = ?", (ident,)).fetchone()
+            if row:
+                return dict(row, wants=json.loads(row["wants"]))
+            row = db.execute("SELECT * FROM sim_queue WHERE id = ?", (ident,)).fetchone()
+        return dict(row, wants=json.loads(row["wants"]), state="queued") if row else None
+
+    def update(self, ident: str, only_if=None, **fields) -> bool:
+        """Set fields of a session; only_if: its state must be one of these. Whether it changed."""
+        sets = ", ".join(f"{k} = ?" for k in fields)
+        where, args = "id = ?", [*fields.values(), ident]
+        if only_if:
+            where += f" AND state IN ({', '.join('?' * len(only_if))})"
+            args += list(only_if)
+        with self._db() as db:
+            return bool(db.execute(f"UPDATE sim_sessions SET {sets} WHERE {where}", args).rowcount)
+
+    def figures(self, now: float) -> dict:
+        """What the metrics say, from the file (so a restart of the service keeps their sums)."""
+        with self._db(write=False) as db:
+            states = dict(db.execute("SELECT state, COUNT(*) FROM sim_sessions GROUP BY state").fetchall())
+            queued, oldest = db.execute("SELECT COUNT(*), MIN(created) FROM sim_queue").fetchone()
+            waited = db.execute("SELECT COUNT(*), COALESCE(SUM(started - created), 0) FROM sim_sessions").fetchone()
+            lasted = db.execute(
+                "SELECT COUNT(*), COALESCE(SUM(ended - started), 0) FROM sim_sessions WHERE ended IS NOT NULL"
+            ).fetchone()
+        return {
+            "active": states.get("active", 0),
+            "ending": states.get("ending", 0),
+            "queued": queued,
+            "oldest_wait_s": now - oldest if oldest is not None else 0,
+            "waits": tuple(waited),
+            "lengths": tuple(lasted),
+        }
+
+    def recent(self, limit: int = 50) -> list:
+        with self._db(write=False) as db:
+            rows = db.execute("SELECT * FROM sim_sessions ORDER BY started DESC LIMIT ?", (limit,)).fetchall()
+        return [dict(r, wants=json.loads(r["wants"])) for r in rows]
+
+
+def peers(texts) -> set:
+    """{(address, port)} at the far end of each established TCP connection in /proc/net/tcp and tcp6
+    texts (an IPv4 address mapped into IPv6 as plain IPv4)."""
+    out = set()
+    for text in texts:
+        for line in (text or "").splitlines()[1:]:
+            parts = line.split()
+            if len(parts) < 4 or parts[3] != "01":  # 01: ESTABLISHED
+                continue
+            address, _sep, port = parts[2].partition(":")
+            raw = bytes.fromhex(address)
+            # the kernel writes each 32-bit word in the host's order (little-endian here)
+            raw = b"".join(raw[k : k + 4][::-1] for k in range(0, len(raw), 4))
+            ip = ipaddress.ip_address(raw)
+            if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped:
+                ip = ip.ipv4_mapped
+            out.add((str(ip), int(port, 16)))
+    return out
+
+
+def proc_peers() -> set:
+    """peers() of this host's network (the door's nginx relays each stream's signalling from here)."""
+    texts = []
+    for name in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            with open(name, encoding="ascii") as fh:
+                texts.append(fh.read())
+        except OSError:
+            pass
+    return peers(texts)
+
+
+def address_of(signal: str):
+    """(address, port) of ADDRESS:PORT as a status endpoint reports it (a name resolved); None if it cannot be."""
+    host, _sep, port = str(signal).rpartition(":")
+    try:
+        return socket.getaddrinfo(host.strip("[]"), int(port), type=socket.SOCK_STREAM)[0][4][0], int(port)
+    except (OSError, ValueError):
+        return None
+
+
+def fits(wants: dict, inst: dict) -> bool:
+    return all(not wants.get(k) or str(inst.get(k) or "") == wants[k] for k in WANTS)
+
+
+class Pool:
+    """The queue served from the fleet's free instances through the hosts' agents.
+
+    fleet: the API's Fleet (hosts' status, read at most once per its ttl); agents: its Agents;
+    config: api.json (entrances); rules: RULES, as the role set them; log: the journal."""
+
+    def __init__(self, store: Store, fleet, agents, rules=None, *, log, clock=time.time, clients=proc_peers):
+        """clients(): {(address, port)} of the established connections the door holds (proc_peers)."""
+        self.store, self.fleet, self.agents, self.log, self.clock = store, fleet, agents, log, clock
+        self.rules = dict(RULES, **(rules or {}))
+        # one dispatcher at a time: the queue is served in its order
+        self._lock = threading.Lock()
+        # host -> when it last answered (since this service started: a host gone across a restart still times out)
+        self._seen_up, self._since = {}, clock()
+        self._resets = []  # seconds the last give-backs took
+        self.clients, self._looked = clients, None
+
+    # --- what a person sees
+
+    def view(self, row: dict, operator: bool = False) -> dict:
+        now = self.clock()
+        out = {
+            "id": row["id"],
+            "user": row["user"],
+            "state": row["state"],
+            "wants": row["wants"],
+            "created": row["created"],
+            "url": f"/api/sessions/{row['id']}",
+        }
+        if row["state"] == "queued":
+            queue = self.store.queue()
+            place = next((k for k, e in enumerate(queue, 1) if e["id"] == row["id"]), None)
+            out.update(place=place, waiting=len(queue), estimate_s=self.estimate(place))
+            return out
+        entrances = (self.fleet.config.get("entrances") or {}).get(row["host"]) or {}
+        out.update(
+            host=row["host"],
+            instance=row["instance"],
+            holder=HOLDER.format(row["id"]),
+            entrance=entrances.get(str(row["instance"])),
+            started=row["started"],
+            expires=row["expires"],
+            seconds_left=max(0, round(row["expires"] - now)) if row["state"] == "active" else 0,
+            warning=(self._warning(row, now) or (None, None))[1] if row["state"] == "active" else None,
+            ended=row["ended"],
+            why=row["why"],
+        )
+        return out
+
+    def _signal(self, row: dict):
+        """(address, port) of the session's stream's signalling as the door reaches it; None where the
+        door relays none (no web viewer behind it: its idleness is not known, so it never ends idle)."""
+        signal = ((self.fleet.config.get("signals") or {}).get(row["host"]) or {}).get(str(row["instance"]))
+        return address_of(signal) if signal else None
+
+    def _idle_end(self, row: dict):
+        """When the session ends for want of a client on its stream; None: it does not."""
+        if not self.rules["idle_minutes"] or self._signal(row) is None:
+            return None
+        return max(row["started"], row.get("client_seen") or 0) + self.rules["idle_minutes"] * 60
+
+    def _warning(self, row: dict, now: float):
+        """(IDLE or MAXIMUM, what the page says) while the session's end is near; else None."""
+        warn = self.rules["warn_minutes"] * 60
+        idle = self._idle_end(row)
+        if idle is not None and idle < row["expires"] and idle - now <= warn:
+            quiet = round((now - idle) / 60 + self.rules["idle_minutes"])
+            return IDLE, (
+                f"Nobody has been on this simulator's stream for {quiet} minute(s): it ends in "
+                f"{max(0, round((idle - now) / 60))} minute(s) unless you open it."
+            )
+        if row["expires"] - now <= warn:
+            return MAXIMUM, (
+                f"This session ends in {max(0, round((row['expires'] - now) / 60))} minute(s), at its maximum "
+                "duration. Save your work where it is kept."
+            )
+        return None
+
+    def estimate(self, place) -> float | None:
+        """An upper bound in seconds before the place-th in the queue is served: the active sessions'
+        ends in order (their maximum duration), plus a reset."""
+        if not place:
+            return None
+        ends = sorted(s["expires"] for s in self.store.sessions(("active",)))
+        if len(ends) < place:
+            return None
+        reset = sum(self._resets) / len(self._resets) if self._resets else RESET_GUESS_S
+        return round(max(0.0, ends[place - 1] - self.clock()) + reset)
+
+    # --- asking, looking, ending
+
+    def request(self, user: str, body) -> tuple:
+        """(201, the session) where an instance was free; (202, the place in the queue) where not."""
+        errors = wants_errors(body)
+        if errors:
+            raise RefusedError(400, {"error": "; ".join(errors)})
+        wants = {k: body[k] for k in WANTS if body.get(k)}
+        if wants:
+            self._offered(wants)
+        ident = self.store.enqueue(user, wants, int(self.rules["per_person"]))
+        self.log(
+            f"session {ident} asked by user={user}" + (f" wants={json.dumps(wants, sort_keys=True)}" if wants else "")
+        )
+        self.dispatch()
+        row = self.store.get(ident)
+        return (201 if row["state"] == "active" else 202), self.view(row)
+
+    def _offered(self, wants: dict) -> None:
+        """RefusedError(409) where no instance of the fleet, held or not, fits: the request would wait for ever."""
+        insts = [i for r in self._read() for i in r["status"].get("instances") or [] if i.get("configured")]
+        if not any(fits(wants, i) for i in insts):
+            offered = {k: sorted({str(i.get(k)) for i in insts if i.get(k)}) for k in wants}
+            raise RefusedError(
+                409,
+                {
+                    "error": "; ".join(
+                        f"{k}: no instance of the fleet runs {v!r}. Fix: one of {', '.join(offered[k]) or 'none'}."
+                        for k, v in wants.items()
+                    )
+                },
+            )
+
+    def look(self, ident: str, user: str, operator: bool) -> dict:
+        """The session or place of that id (its holder or an operator); a queued one's holder is
+        still there (its place is kept while it looks)."""
+        row = self.store.get(ident)
+        if row is None or (row["user"] != user and not operator):
+            raise RefusedError(404, {"error": f"no session {ident} of yours"})
+        if row["state"] == "queued" and row["user"] == user:
+            self.store.seen(ident)
+        return self.view(row, operator)
+
+    def mine(self, user: str) -> list:
+        """The user's sessions and places; the user is looking, so the places are kept."""
+        rows = [r for r in self.store.sessions(("active", "ending")) if r["user"] == user]
+        for e in self.store.queue():
+            if e["user"] == user:
+                self.store.seen(e["id"])
+                rows.append(dict(e, state="queued"))
+        return [self.view(r) for r in rows]
+
+    def everything(self) -> dict:
+        return {
+            "sessions": [self.view(r, True) for r in self.store.sessions(("active", "ending"))],
+            "queue": [self.view(dict(e, state="queued"), True) for e in self.store.queue()],
+        }
+
+    def end(self, ident: str, user: str, operator: bool, why: str = "") -> dict:
+        row = self.store.get(ident)
+        if row is None or (row["user"] != user and not operator):
+            raise RefusedError(404, {"error": f"no session {ident} of yours"})
+        by = why or ("ended by its holder" if row["user"] == user else f"ended by the operator {user}")
+        if row["state"] == "queued":
+            if self.store.leave(ident):
+                self.log(f"session {ident} of user={row['user']} left the queue ({by})")
+            return {"id": ident, "state": "ended", "why": by}
+        if row["state"] == "active":
+            self._end(row, by)
+        return self.view(self.store.get(ident), operator)
+
+    def _end(self, row: dict, why: str) -> None:
+        """An active session ends for its holder now; its instance is given back (restarted) behind."""
+        if not self.store.update(row["id"], ("active",), state="ending", ended=self.clock(), why=why):
+            return
+        self.log(f"session {row['id']} of user={row['user']} on {row['host']}/{row['instance']} ends: {why}")
+        self._give_back(self.store.get(row["id"]))
+
+    def _give_back(self, row: dict) -> None:
+        """Ask the host's agent to give the instance back; where it cannot be reached, the next tick asks again."""
+        request = {
+            "host": row["host"],
+            "action": "give_back",
+            "user": row["user"],
+            "ids": [row["instance"]],
+            "holder": HOLDER.format(row["id"]),
+        }
+        try:
+            code, answer = self.agents.ask(row["host"], "POST", "/actions", request)
+        except OSError as exc:
+            self.log(f"session {row['id']}: {row['host']} did not take the give-back ({exc}); asking again")
+            return
+        if code == 202:
+            self.store.update(row["id"], action=answer["id"])
+        else:  # 200: held by nobody already; 409: by another now (a deploy's cleanup): ours is gone either way
+            self._ended(row, answer.get("error") or (answer.get("result") or {}).get("message") or str(code))
+
+    def _ended(self, row: dict, said: str) -> None:
+        if self.store.update(row["id"], ("ending",), state="ended"):
+            # the instance is free on its host now: the next read shows it to the queue
+            self.fleet.refresh()
+            took = self.clock() - (row["ended"] or self.clock())
+            self._resets = [*self._resets[-9:], took]
+            self.log(
+                f"session {row['id']} of user={row['user']} ended ({row['why']}); {row['host']}/{row['instance']} "
+                f"given back after {took:.1f} s: {said}"
+            )
+
+    # --- serving the queue
+
+    def free(self) -> list:
+        """[(host, instance status)] ready, held by nobody, on reachable hosts with an agent that are
+        not drained, least loaded host first."""
+        ours = {(s["host"], s["instance"]) for s in self.store.sessions()}
+        out = []
+        for read in self._read():
+            status = read["status"]
+            if not read["reachable"] or status.get("drained") or not self.agents.url(read["name"]):
+                continue
+            insts = [i for i in status.get("instances") or [] if i.get("configured") and i.get("id") is not None]
+            held = sum(1 for i in insts if i.get("lent_to") or (read["name"], i["id"]) in ours)
+            load = held / len(insts) if insts else 1.0
+            for i in insts:
+                if i.get("ready") and not i.get("lent_to") and (read["name"], i["id"]) not in ours:
+                    out.append((load, read["name"], i["id"], i))
+        return [(h, i) for _load, h, _n, i in sorted(out, key=lambda t: t[:3])]
+
+    def dispatch(self) -> int:
+        """Serve the queue in its order; how many it granted."""
+        with self._lock:
+            queue = self.store.queue()
+            if not queue:
+                return 0
+            free, granted = self.free(), 0
+            for entry in queue:
+                for host, inst in [(h, i) for h, i in free if fits(entry["wants"], i)]:
+                    if not any(h == host and i is inst for h, i in free):
+                        continue  # its host was left out meanwhile
+                    code, answer = self._claim(entry, host, inst["id"])
+                    if code is None or "holder" in answer or answer.get("drained"):
+                        # the host did not answer, is held (a deploy, an action) or drained: none of it this time
+                        free = [(h, i) for h, i in free if h != host]
+                        continue
+                    free = [(h, i) for h, i in free if (h, i["id"]) != (host, inst["id"])]
+                    if code == 200:
+                        granted += 1
+                        break
+            return granted
+
+    def _claim(self, entry: dict, host: str, n: int) -> tuple:
+        """(the agent's status, its answer) of a claim for the entry; (None, None) where it did not answer."""
+        request = {
+            "host": host,
+            "action": "claim",
+            "user": entry["user"],
+            "ids": [n],
+            "holder": HOLDER.format(entry["id"]),
+        }
+        try:
+            code, answer = self.agents.ask(host, "POST", "/actions", request)
+        except OSError as exc:
+            self.log(f"session {entry['id']}: {host} did not answer the claim of instance {n} ({exc})")
+            return None, None
+        if code != 200:
+            return code, answer
+        expires = self.clock() + self.rules["max_minutes"] * 60
+        if not self.store.grant(entry, host, n, expires):
+            # it left the queue while its claim was made: the instance goes back at once
+            self._give_back({"id": entry["id"], "user": entry["user"], "host": host, "instance": n})
+            return 409, {}
+        waited = self.clock() - entry["created"]
+        self.log(
+            f"session {entry['id']} of user={entry['user']} started on {host}/{n} after {waited:.1f} s in the queue"
+        )
+        return code, answer
+
+    def _read(self) -> list:
+        """The fleet's hosts as last read, noting when each answered."""
+        reads, now = self.fleet.hosts(), self.clock()
+        for read in reads:
+            if read["reachable"]:
+                self._seen_up[read["name"]] = now
+        return reads
+
+    # --- time passing
+
+    def tick(self) -> None:
+        """Warnings, maximum durations, give-backs that ended, hosts gone, places given up; then the queue."""
+        now, rules = self.clock(), self.rules
+        up = {r["name"] for r in self._read() if r["reachable"]}
+        if self._looked is None or now - self._looked >= CLIENTS_EVERY_S:
+            self._looked = now
+            self._see_clients(now)
+        for e in self.store.queue():
+            if now - e["seen"] > rules["queue_grace_s"] and self.store.leave(e["id"]):
+                self.log(
+                    f"session {e['id']} of user={e['user']} left the queue: "
+                    f"not looked at for {rules['queue_grace_s']} s"
+                )
+        for row in self.store.sessions():
+            gone_for = now - self._seen_up.get(row["host"], self._since)
+            if row["state"] == "active":
+                if gone_for > rules["host_gone_s"]:
+                    why = f"{row['host']} did not answer for {round(gone_for)} s; the session is over"
+                    self.store.update(row["id"], ("active",), state="ending", ended=now, why=why)
+                    self.log(
+                        f"session {row['id']} of user={row['user']} on {row['host']}/{row['instance']} ends: {why}"
+                    )
+                elif row["expires"] <= now:
+                    self._end(row, f"its maximum duration ({rules['max_minutes']} minutes)")
+                elif (self._idle_end(row) or now + 1) <= now:
+                    self._end(row, f"nobody on its stream for {rules['idle_minutes']} minutes")
+                elif (warning := self._warning(row, now)) and row["warned"] != warning[0]:
+                    self.store.update(row["id"], warned=warning[0])
+                    self.log(f"session {row['id']} of user={row['user']} warned: {warning[1]}")
+            elif row["host"] not in up:
+                continue  # asked again once it answers
+            elif row["action"]:
+                self._follow(row)
+            else:
+                self._give_back(row)
+        self.dispatch()
+
+    def _see_clients(self, now: float) -> None:
+        """Each active session whose stream the door relays to someone now was seen in use now."""
+        active = [(r, self._signal(r)) for r in self.store.sessions(("active",))]
+        if not any(signal for _r, signal in active):
+            return
+        connected = self.clients()
+        for row, signal in active:
+            if signal is not None and signal in connected:
+                # someone is on it: an idle warning given is over (one for its maximum duration stands)
+                self.store.update(row["id"], client_seen=now, **({"warned": 0} if row["warned"] == IDLE else {}))
+
+    def _follow(self, row: dict) -> None:
+        try:
+            code, answer = self.agents.ask(row["host"], "GET", f"/actions/{row['action']}")
+        except OSError:
+            return
+        if code == 404:  # the agent forgot it (its state lost): ask again
+            self.store.update(row["id"], action=None)
+        elif answer.get("ended_at"):
+            self._ended(row, (answer.get("result") or {}).get("message") or answer.get("state", "?"))
+
+    def metrics(self) -> str:
+        """node_exporter textfile lines: sessions active and ending, the queue, waits and lengths."""
+        f = self.store.figures(self.clock())
+        lines = []
+        for name, kind, help_text, value in (
+            ("isaac_sim_door_sessions_active", "gauge", "Simulator sessions holding an instance", f["active"]),
+            ("isaac_sim_door_sessions_ending", "gauge", "Sessions whose instance is being reset", f["ending"]),
+            ("isaac_sim_door_queue_length", "gauge", "People waiting for a simulator", f["queued"]),
+            ("isaac_sim_door_queue_oldest_wait_seconds", "gauge", "How long the first in the queue has waited",
+             round(f["oldest_wait_s"], 3)),
+        ):  # fmt: skip
+            lines += [f"# HELP {name} {help_text}", f"# TYPE {name} {kind}", f"{name} {value}"]
+        for name, help_text, (count, total) in (
+            ("isaac_sim_door_session_wait_seconds", "From the request to the instance, per session", f["waits"]),
+            ("isaac_sim_door_session_length_seconds", "From the instance to the end, per ended session", f["lengths"]),
+        ):
+            lines += [
+                f"# HELP {name} {help_text}",
+                f"# TYPE {name} summary",
+                f"{name}_sum {round(total, 3)}",
+                f"{name}_count {count}",
+            ]
+        return "\n".join(lines) + "\n"
+
+    def write_metrics(self, directory: str) -> None:
+        """The textfile, whole or not at all (node_exporter never reads half of one)."""
+        path = os.path.join(directory, METRICS_FILE)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(self.metrics())
+        os.replace(tmp, path)
+
+    def run(self, stop: threading.Event, every: float = 0.5, metrics_dir: str = "") -> None:
+        written = None
+        while not stop.wait(every):
+            try:
+                self.tick()
+                if metrics_dir and (written is None or self.clock() - written >= METRICS_EVERY_S):
+                    written = self.clock()
+                    self.write_metrics(metrics_dir)
+            except Exception as exc:  # pylint: disable=broad-exception-caught
+                self.log(f"pool: {type(exc).__name__}: {exc}")

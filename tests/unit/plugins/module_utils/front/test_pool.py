@@ -1,0 +1,403 @@
+"""Sessions from the one pool (module_utils/front/pool.py), end to end over real sockets: the login
+service says who asks, the fleet API takes the request, the pool claims instances through two hosts'
+real action agents (module_utils/instance/agent.py, mutual TLS) that run the lifecycle on scripted
+hosts; each host's status is read from its scripted host, as its status endpoint reads the real one."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+
+import pytest
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, fleet_api, pool
+from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
+from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import agent, lifecycle
+from ansible_collections.isaacsim.fleet.tests.unit.helpers import issue, make_pki
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.front.test_fleet_api import HASH
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.front.test_fleet_api_actions import (
+    ORIGIN,
+    call,
+)
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import ScriptedHost
+
+HOSTS = ("gpu-1", "gpu-2")
+
+
+def serve(handler_class):
+    """A service as the door runs it (its backlog too)."""
+    server = fleet_api.Server(("127.0.0.1", 0), handler_class)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory):
+    d = make_pki(tmp_path_factory.mktemp("pki"), agent.CLIENT_NAME)
+    issue(d, "ca", "gpu-2 agent", "serverAuth", "IP:127.0.0.1", 5, stem="agent2")
+    return d
+
+
+class Clock:
+    def __init__(self):
+        self.now = 1_800_000_000.0
+
+    def __call__(self):
+        return self.now
+
+
+class Fleet:
+    """2 hosts x 4 instances behind a door: the login service, the API with its pool, each host's agent."""
+
+    def __init__(self, tmp_path, pki, rules=None):
+        users = {name: {"role": "viewer", "hash": HASH} for name in ("vic", *(f"u{k}" for k in range(20)))}
+        users["olga"] = {"role": "operator", "hash": HASH}
+        (tmp_path / "users.json").write_text(json.dumps(users))
+        self.db = str(tmp_path / "door.db")
+        self.door = door_auth.Door(str(tmp_path / "users.json"), self.db, 1, log=lambda line: None)
+        self.servers = [serve(door_auth.handler(self.door))]
+        self.scripted, self.agents, self.down = {}, {}, set()
+        config = {"door": ORIGIN + "/", "session_hours": 8, "hosts": [], "entrances": {}}
+        for name, stem in zip(HOSTS, ("agent", "agent2")):
+            scripted = ScriptedHost(4)
+            a = agent.Agent(
+                name,
+                str(tmp_path / name),
+                host=lambda s=scripted: s.host,
+                lock=str(tmp_path / f"{name}.lock"),
+                record=str(tmp_path / f"{name}.record"),
+                drained=str(tmp_path / f"{name}.drained"),
+                journal=lambda line, unit="": None,
+                renew_s=0.05,
+            )
+            ctx = agent.tls_context(str(pki / f"{stem}.crt"), str(pki / f"{stem}.key"), str(pki / "ca.crt"))
+            channel = agent.Server(
+                ("127.0.0.1", 0), agent.handler(a), ctx, [agent.ipaddress.ip_network("127.0.0.0/8")],
+                log=lambda line: None,
+            )  # fmt: skip
+            threading.Thread(target=channel.serve_forever, daemon=True).start()
+            self.servers.append(channel)
+            self.scripted[name], self.agents[name] = scripted, a
+            config["hosts"].append(
+                {"name": name, "status_url": f"http://{name}/status",
+                 "agent_url": f"https://127.0.0.1:{channel.server_address[1]}"}
+            )  # fmt: skip
+            config["entrances"][name] = {str(i): f"{ORIGIN}:{8100 + i}/" for i in range(4)}
+        self.config = config
+        tls = {"ca": str(pki / "ca.crt"), "cert": str(pki / f"{agent.CLIENT_NAME}.crt"),
+               "key": str(pki / f"{agent.CLIENT_NAME}.key")}  # fmt: skip
+        self.fleet = fleet_api.Fleet(config, ttl=0, timeout=2, fetch=self.status)
+        self.clock = Clock()
+        self.lines = []
+        self.pool = pool.Pool(
+            pool.Store(self.db, clock=self.clock),
+            self.fleet,
+            fleet_api.Agents(config, tls, timeout=3),
+            rules or {},
+            log=self.lines.append,
+            clock=self.clock,
+        )
+        service = fleet_api.Api(
+            self.fleet,
+            lambda cookie, auth: fleet_api.ask_identity(f"http://127.0.0.1:{self.servers[0].server_address[1]}",
+                                                        cookie, auth),
+            log=self.lines.append,
+            agents=self.pool.agents,
+            limiter=fleet_api.Limiter(1000),
+            pool=self.pool,
+        )  # fmt: skip
+        self.servers.append(serve(fleet_api.handler(service)))
+        self.port = self.servers[-1].server_address[1]
+
+    def status(self, url):
+        """What the host's status endpoint gives of its instances: configured, ready, held by whom."""
+        name = url.split("/")[2]
+        if name in self.down:
+            raise OSError("connection refused")
+        scripted = self.scripted[name]
+        instances = [
+            {"id": i, "configured": True, "ready": i in scripted.markers, "release": "5.0",
+             "lent_to": lifecycle.lent_to(scripted.host, i)}
+            for i in range(4)
+        ]  # fmt: skip
+        return json.dumps({"instances": instances, "drained": self.agents[name].drained_by()}).encode()
+
+    def token(self, user):
+        return self.door.store.make_token(user, "s", ["read", "use"], 1, HASH)[0]
+
+    def held(self):
+        """{(host, instance): holder} as the hosts' own markers say."""
+        return {
+            (name, i): lifecycle.lent_to(s.host, i)
+            for name, s in self.scripted.items()
+            for i in range(4)
+            if lifecycle.lent_to(s.host, i)
+        }
+
+    def settle(self, rounds=40):
+        """Ticks until no give-back is pending."""
+        for _round in range(rounds):
+            self.pool.tick()
+            if not self.pool.store.sessions(("ending",)):
+                return
+            threading.Event().wait(0.05)
+        raise AssertionError("a give-back never ended")
+
+    def close(self):
+        for s in self.servers:
+            s.shutdown()
+            s.server_close()
+
+
+@pytest.fixture
+def fleet(tmp_path, pki):
+    f = Fleet(tmp_path, pki)
+    yield f
+    f.close()
+
+
+def test_twenty_requests_at_once_for_eight_free_instances_grant_eight_and_queue_twelve_in_order(fleet):
+    tokens = {f"u{k}": fleet.token(f"u{k}") for k in range(20)}
+    answers = {}
+
+    def ask(user):
+        answers[user] = call(fleet.port, "/api/sessions", token=tokens[user], body={})
+
+    threads = [threading.Thread(target=ask, args=(u,)) for u in tokens]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    granted = {u: a for u, (code, a) in answers.items() if code == 201}
+    queued = {u: a for u, (code, a) in answers.items() if code == 202}
+    assert len(granted) == 8 and len(queued) == 12, answers
+    # eight different instances, four on each host (the least loaded first), and each host's own marker agrees
+    places = {(a["host"], a["instance"]) for a in granted.values()}
+    assert len(places) == 8
+    assert fleet.held() == {(a["host"], a["instance"]): a["holder"] for a in granted.values()}
+    assert all(a["entrance"] == f"{ORIGIN}:{8100 + a['instance']}/" for a in granted.values())
+    # the queue is in the order the requests came: everyone granted came before everyone queued
+    rows = {r["id"]: r for r in fleet.pool.store.sessions()}
+    queue = fleet.pool.store.queue()
+    assert [e["user"] for e in queue] == sorted(queued, key=lambda u: queue[[e["user"] for e in queue].index(u)]["seq"])
+    assert max(rows[a["id"]]["created"] for a in granted.values()) <= min(e["created"] for e in queue)
+    assert [fleet.pool.look(e["id"], e["user"], False)["place"] for e in queue] == list(range(1, 13))
+    # one each: asking again is refused, naming what the person has
+    code, again = call(fleet.port, "/api/sessions", token=tokens["u0"], body={})
+    assert code == 409 and "the most allowed (1)" in again["error"]
+
+
+def test_an_ended_session_s_instance_is_reset_then_goes_to_the_head_of_the_queue(fleet):
+    for k in range(9):
+        fleet.pool.request(f"u{k}", {})
+    first = next(s for s in fleet.pool.store.sessions() if s["user"] == "u0")
+    [waiting] = fleet.pool.store.queue()
+    assert waiting["user"] == "u8"
+    restarts = len(fleet.scripted[first["host"]].commands("restart"))
+    ended = fleet.pool.end(first["id"], "u0", False)
+    assert ended["state"] == "ending" and ended["why"] == "ended by its holder"
+    fleet.settle()
+    # the instance was restarted (a fresh container) before anyone else got it; then u8 had it
+    assert fleet.scripted[first["host"]].commands("restart")[restarts:] == [
+        f"systemctl restart {layout.unit(first['instance'])}"
+    ]
+    assert fleet.pool.store.get(first["id"])["state"] == "ended"
+    mine = fleet.pool.mine("u8")
+    assert [(m["state"], m["host"], m["instance"]) for m in mine] == [("active", first["host"], first["instance"])]
+    assert fleet.held()[(first["host"], first["instance"])] == pool.HOLDER.format(mine[0]["id"])
+    assert any("given back after" in line for line in fleet.lines)
+
+
+def test_instances_a_test_run_holds_are_never_granted_and_a_drained_host_gets_no_claim(fleet):
+    s1 = fleet.scripted["gpu-1"]
+    for i in range(4):
+        assert lifecycle.lend(s1.host, i, f"run-{i}") is None
+    fleet.agents["gpu-2"].submit({"host": "gpu-2", "action": "drain", "ids": [], "user": "olga", "token": "",
+                                  "confirm": False, "holder": ""})  # fmt: skip
+    code, answer = fleet.pool.request("vic", {})
+    assert code == 202 and answer["place"] == 1
+    assert set(fleet.held().values()) == {f"run-{i}" for i in range(4)}
+    # the drained host undrained: the queue is served at the next tick
+    fleet.agents["gpu-2"].submit({"host": "gpu-2", "action": "undrain", "ids": [], "user": "olga", "token": "",
+                                  "confirm": False, "holder": ""})  # fmt: skip
+    fleet.pool.tick()
+    [mine] = fleet.pool.mine("vic")
+    assert mine["state"] == "active" and mine["host"] == "gpu-2"
+    # what a request asks for is matched: 5.0 runs on the instances left; 4.5 runs nowhere, so it would wait for ever
+    code, other = fleet.pool.request("u1", {"release": "5.0"})
+    assert code == 201 and other["host"] == "gpu-2" and other["wants"] == {"release": "5.0"}
+    with pytest.raises(pool.RefusedError) as nowhere:
+        fleet.pool.request("u3", {"release": "4.5"})
+    assert nowhere.value.args == (409, {"error": "release: no instance of the fleet runs '4.5'. Fix: one of 5.0."})
+    with pytest.raises(pool.RefusedError) as bad:
+        fleet.pool.request("u2", {"release": "5.0\n", "colour": "red"})
+    assert bad.value.args[0] == 400 and "colour: not a field" in bad.value.args[1]["error"]
+    assert "release: '5.0\\n' is not a name" in bad.value.args[1]["error"]
+
+
+def test_only_its_holder_and_operators_see_or_end_a_session_and_a_browser_needs_the_door_s_page(fleet):
+    code, mine = call(fleet.port, "/api/sessions", token=fleet.token("vic"), body={})
+    assert code == 201
+    url = mine["url"]
+    other = fleet.token("u1")
+    # its viewer's port and signalling (nginx asks the login service with the instance) open for vic and operators
+    held, free = f"{mine['host']}/{mine['instance']}", f"{mine['host']}/{(mine['instance'] + 1) % 4}"
+    cookies = {u: f"{door_auth.COOKIE}=" + fleet.door.login(u, "s3cret", "x") for u in ("vic", "u1", "olga")}
+    assert [fleet.door.check(cookies[u], "/", "x", "", "", held)[0] for u in ("vic", "u1", "olga")] == [204, 403, 204]
+    assert fleet.door.check(cookies["u1"], "/", "x", "", "", free)[0] == 204
+    assert call(fleet.port, url, method="GET", token=other)[0] == 404
+    assert call(fleet.port, url, method="DELETE", token=other)[0] == 404
+    # a token without the use scope reads but does not ask
+    reader = fleet.door.store.make_token("u2", "r", ["read"], 1, HASH)[0]
+    code, refused = call(fleet.port, "/api/sessions", token=reader, body={})
+    assert code == 403 and "use scope" in refused["error"]
+    # a person's cookie from another site's page is refused; the door's own page (CSRF token) is not
+    cookie = f"{door_auth.COOKIE}=" + fleet.door.login("u3", "s3cret", "x")
+    assert (
+        call(fleet.port, "/api/sessions", cookie=cookie, body={}, headers={"Origin": "https://evil.example"})[0] == 403
+    )
+    csrf = door_auth.csrf_token(cookie.split("=", 1)[1])
+    headers = {"Origin": ORIGIN, "X-Fleet-Origin": ORIGIN, "X-Fleet-CSRF": csrf}
+    assert call(fleet.port, "/api/sessions", cookie=cookie, body={}, headers=headers)[0] == 201
+    # the operator sees everyone's and ends vic's; vic is told who ended it
+    op = fleet.door.store.make_token("olga", "o", ["read", "use", "operate"], 1, HASH)[0]
+    code, everything = call(fleet.port, "/api/sessions", method="GET", token=op)
+    assert code == 200 and {s["user"] for s in everything["sessions"]} == {"vic", "u3"}
+    code, ended = call(fleet.port, url, method="DELETE", token=op)
+    assert code == 200 and ended["why"] == "ended by the operator olga"
+    fleet.settle()
+    code, seen = call(fleet.port, url, method="GET", token=fleet.token("vic"))
+    assert code == 200 and seen["state"] == "ended" and seen["why"] == "ended by the operator olga"
+    assert fleet.door.check(cookies["u1"], "/", "x", "", "", held)[0] == 204
+    # the fleet shows each instance's holder: a session by its id
+    code, listing = call(fleet.port, "/api/fleet", method="GET", token=op)
+    holders = [i["holder"] for h in listing["hosts"] for i in h["instances"] if i["holder"]]
+    assert holders == [{"kind": "session", "id": everything["sessions"][1]["id"]}] or holders == [
+        {"kind": "session", "id": everything["sessions"][0]["id"]}
+    ]
+
+
+def test_the_maximum_duration_warns_first_then_ends_and_a_queue_place_not_looked_at_is_given_up(tmp_path, pki):
+    f = Fleet(tmp_path, pki, {"max_minutes": 30, "warn_minutes": 5, "queue_grace_s": 60})
+    try:
+        code, s = f.pool.request("vic", {})
+        assert code == 201 and s["seconds_left"] == 1800 and s["warning"] is None
+        f.clock.now += 25 * 60 + 1
+        f.pool.tick()
+        seen = f.pool.look(s["id"], "vic", False)
+        assert "ends in 5 minute(s)" in seen["warning"] and any("warned" in line for line in f.lines)
+        f.clock.now += 5 * 60
+        f.settle()
+        seen = f.pool.look(s["id"], "vic", False)
+        assert seen["state"] == "ended" and seen["why"] == "its maximum duration (30 minutes)"
+        assert not f.held()
+        # the figures node_exporter reads: one session that waited nothing and lasted its 30 minutes (ended at the tick)
+        f.pool.write_metrics(str(tmp_path))
+        text = (tmp_path / pool.METRICS_FILE).read_text()
+        assert "isaac_sim_door_sessions_active 0\n" in text and "isaac_sim_door_queue_length 0\n" in text
+        assert "isaac_sim_door_session_length_seconds_sum 1801.0\n" in text
+        assert "isaac_sim_door_session_length_seconds_count 1\n" in text
+        assert "isaac_sim_door_session_wait_seconds_sum 0.0\n" in text
+        # a queued person who stops looking loses the place; one who looks keeps it
+        for k in range(8):
+            f.pool.request(f"u{k}", {})
+        _c, gone = f.pool.request("u8", {})
+        _c, kept = f.pool.request("u9", {})
+        f.clock.now += 45
+        f.pool.look(kept["id"], "u9", False)
+        f.clock.now += 30
+        f.pool.tick()
+        assert [e["user"] for e in f.pool.store.queue()] == ["u9"]
+        assert f.pool.store.get(gone["id"]) is None
+    finally:
+        f.close()
+
+
+def test_sessions_and_the_queue_survive_a_restart_and_a_host_gone_frees_its_claims_after_the_timeout(tmp_path, pki):
+    f = Fleet(tmp_path, pki, {"host_gone_s": 120})
+    try:
+        for k in range(9):
+            f.pool.request(f"u{k}", {})
+        on_2 = [s for s in f.pool.store.sessions() if s["host"] == "gpu-2"]
+        # the API's service restarted: a new pool on the same file has every session and place
+        again = pool.Pool(pool.Store(f.db, clock=f.clock), f.fleet, f.pool.agents, {"host_gone_s": 120},
+                          log=f.lines.append, clock=f.clock)  # fmt: skip
+        assert len(again.store.sessions()) == 8 and [e["user"] for e in again.store.queue()] == ["u8"]
+        f.pool = again
+        f.down.add("gpu-2")
+        f.pool.tick()
+        f.clock.now += 121
+        [queued] = f.pool.mine("u8")
+        f.pool.look(queued["id"], "u8", False)  # its page is open: the place is kept
+        f.pool.tick()
+        told = [f.pool.look(s["id"], s["user"], False) for s in on_2]
+        assert all(t["state"] == "ending" and t["why"].startswith("gpu-2 did not answer for 121 s") for t in told)
+        assert {s["host"] for s in f.pool.store.sessions(("active",))} == {"gpu-1"}
+        # back: its claims are given back through its agent, and the queue is served from it
+        f.down.discard("gpu-2")
+        f.settle()
+        assert all(f.pool.store.get(s["id"])["state"] == "ended" for s in on_2)
+        [u8] = f.pool.mine("u8")
+        assert u8["state"] == "active" and u8["host"] == "gpu-2"
+        assert sorted(h for (h, _i) in f.held()) == ["gpu-1"] * 4 + ["gpu-2"]
+    finally:
+        f.close()
+
+
+def test_layout_holder_is_what_the_agent_takes():
+    assert agent.HOLDER_RE.match(pool.HOLDER.format("0123456789ab"))
+
+
+def test_a_session_nobody_is_on_is_warned_then_ended_and_a_client_back_in_time_keeps_it(tmp_path, pki):
+    """The door sees a session's stream in use by its own connections to the instance's signalling (read
+    from this machine's /proc/net/tcp, as the door's API reads its host's)."""
+    listeners = {}
+    for name in HOSTS:
+        for i in range(4):
+            listeners[(name, i)] = socket.create_server(("127.0.0.1", 0))
+    f = Fleet(tmp_path, pki, {"idle_minutes": 10, "warn_minutes": 5})
+    try:
+        f.fleet.config["signals"] = {
+            name: {str(i): f"127.0.0.1:{listeners[(name, i)].getsockname()[1]}" for i in range(4)} for name in HOSTS
+        }
+        _code, s = f.pool.request("vic", {})
+        signal = listeners[(s["host"], s["instance"])].getsockname()
+
+        def later(minutes):
+            f.clock.now += minutes * 60
+            f.pool.tick()
+            return f.pool.look(s["id"], "vic", False)
+
+        viewer = socket.create_connection(signal)
+        assert later(6)["warning"] is None  # on it all along
+        viewer.close()
+        seen = later(6)
+        assert seen["state"] == "active" and seen["warning"].startswith("Nobody has been on this simulator's stream")
+        assert "it ends in 4 minute(s) unless you open it" in seen["warning"]
+        viewer = socket.create_connection(signal)  # back in time: the warning goes, the session stays
+        assert later(1)["warning"] is None
+        viewer.close()
+        assert later(6)["warning"]
+        f.clock.now += 5 * 60
+        f.settle()
+        ended = f.pool.look(s["id"], "vic", False)
+        assert ended["state"] == "ended" and ended["why"] == "nobody on its stream for 10 minutes"
+        assert any("warned: Nobody has been on" in line for line in f.lines)
+    finally:
+        f.close()
+        for listener in listeners.values():
+            listener.close()
+
+
+def test_the_proc_net_tcp_reading_takes_established_connections_of_both_families():
+    tcp = (
+        "  sl  local_address rem_address   st\n"
+        "   0: 0100007F:1F90 0100007F:C350 01 x\n"  # 127.0.0.1:8080 -> 127.0.0.1:50000, established
+        "   1: 0100007F:1F91 00000000:0000 0A x\n"  # listening
+    )
+    tcp6 = (
+        "  sl  local_address rem_address   st\n"
+        "   0: 0000000000000000FFFF00000100007F:1F90 0000000000000000FFFF00000D00000A:C0A0 01 x\n"
+        "   1: 00000000000000000000000001000000:1F90 B80D0120000000000000000001000000:01BB 01 x\n"
+    )
+    assert pool.peers([tcp, tcp6]) == {("127.0.0.1", 50000), ("10.0.0.13", 49312), ("2001:db8::1", 443)}
