@@ -1,0 +1,203 @@
+#!/usr/bin/env python
+"""Benchmark: simulator sessions from the pool on a test fleet of 2 hosts x 4 stand-in instances, the
+first host also the front door (issue 45, item 9).
+
+Prints:
+- the time from a request (POST /api/sessions with a token, through nginx) to its answer with an
+  entrance, while a reset instance is free: p50 and p95 over --requests, beside the API's own round
+  trip (GET /api/sessions, the median of 20), and their ratio;
+- 20 requests at once for 8 free instances: how many were granted and queued, whether the queue's
+  places follow the order the requests were taken in, and how many instances were given twice
+  (from the fleet's own listing of holders);
+- with none free and one person waiting: the time from ending a session to the waiting person's
+  session, less the instance's own reset (the give-back action's time on the host, from its agent),
+  the median of --waits.
+
+A script, not a test: timings on shared machines are noisy. Run after ./tools/bootstrap:
+
+    .venv/bin/python tests/benchmarks/sessions.py [--requests 50] [--waits 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import threading
+import time
+
+from api import Door, docker_ip, door_auth, percentile, play
+from benchhost import bench_host
+
+HOSTS = [f"isaacsim-benchsess-{i}" for i in (1, 2)]
+INSTANCES = 4
+
+
+def call(door: Door, method: str, path: str, body=None) -> tuple:
+    status, data = door.call(method, path, body)
+    try:
+        return status, json.loads(data)
+    except ValueError:
+        return status, {"raw": data[:300].decode("utf-8", "replace")}
+
+
+def wait(what: str, check, timeout: float = 180.0, every: float = 0.1):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        got = check()
+        if got:
+            return got
+        time.sleep(every)
+    sys.exit(f"timed out waiting for {what}")
+
+
+def active_now(door: Door, url: str):
+    s = call(door, "GET", url)[1]
+    return s if s.get("state") == "active" else None
+
+
+def free_count(door: Door) -> int:
+    _s, fleet = call(door, "GET", "/api/fleet")
+    return sum(1 for h in fleet["hosts"] for i in h["instances"] if i["ready"] and not i["holder"])
+
+
+def end_all(door: Door) -> None:
+    """Every session and place of the bench's user ended, and every instance free and ready again."""
+    _s, mine = call(door, "GET", "/api/sessions")
+    for s in mine["mine"]:
+        call(door, "DELETE", s["url"])
+    wait("every session to end", lambda: not call(door, "GET", "/api/sessions")[1]["mine"])
+    wait("every instance to be free and ready", lambda: free_count(door) == len(HOSTS) * INSTANCES)
+
+
+def to_an_entrance(door: Door, requests: int) -> list:
+    """Seconds from each POST to its 201 with an entrance, taking the free instances a round at a time."""
+    took = []
+    while len(took) < requests:
+        for _k in range(min(len(HOSTS) * INSTANCES, requests - len(took))):
+            began = time.monotonic()
+            status, s = call(door, "POST", "/api/sessions", {})
+            if status != 201 or not s.get("entrance"):
+                sys.exit(f"no session with an entrance: {status} {s}")
+            took.append(time.monotonic() - began)
+        end_all(door)
+    return took
+
+
+def burst(door: Door, n: int) -> tuple:
+    """(granted, queued answers) of n requests at once."""
+    answers, lock = [], threading.Lock()
+
+    def ask():
+        got = call(door, "POST", "/api/sessions", {})
+        with lock:
+            answers.append(got)
+
+    threads = [threading.Thread(target=ask) for _k in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    granted = [s for status, s in answers if status == 201]
+    queued = [s for status, s in answers if status == 202]
+    return granted, queued
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--requests", type=int, default=50)
+    parser.add_argument("--waits", type=int, default=5)
+    args = parser.parse_args()
+    with bench_host(HOSTS) as (inv, tmp):
+        door_host, door_ip = HOSTS[0], docker_ip(HOSTS[0])
+        hashed = door_auth().hash_password("bench-secret", 10000)
+        settings = {
+            "isaac_sim_instance_count": INSTANCES,
+            "isaac_sim_web_viewer_image": "",
+            "isaac_sim_rollout_soak": 0,
+            "isaac_sim_status_server_logs_allow": [f"{door_ip}/32"],
+            "isaac_sim_agent_enabled": True,
+            "isaac_sim_agent_allow": [f"{door_ip}/32"],
+            "isaac_sim_agent_ca_dir": str(tmp / "ca"),
+        }
+        door = {
+            "front_door_users": [{"name": "olga", "role": "operator", "password_hash": hashed}],
+            "front_door_ca_dir": str(tmp / "ca"),
+            "front_door_server_name": door_ip,
+            "front_door_turn": False,
+            # one person asks for all of them here: the per-person rule is not what is measured
+            "front_door_sim_per_person": 40,
+        }
+        (inv / "bench.yml").write_text(json.dumps({"isaac_sim_front_door": {"hosts": {door_host: {}}}}))
+        given = ["-e", json.dumps({**settings, **door})]
+        print(f"deploy of {len(HOSTS)} hosts x {INSTANCES} instances: {play(inv, 'deploy.yml', *given):.0f} s")
+        print(f"front door on {door_host} ({door_ip}): {play(inv, 'front_door.yml', *given):.0f} s")
+        made = {
+            "front_door_token_state": "present",
+            "front_door_token_user": "olga",
+            "front_door_token_name": "bench",
+            "front_door_token_scopes": ["read", "use", "operate"],
+            "front_door_token_dir": str(tmp / "tokens"),
+        }
+        play(inv, "front_door_token.yml", *given, "-e", json.dumps(made))
+        [token] = (tmp / "tokens").glob("*-olga-bench.token")
+        api = Door(door_ip, str(tmp / "ca" / "ca.crt"), token.read_text().strip())
+        wait("every instance to be ready behind the door", lambda: free_count(api) == len(HOSTS) * INSTANCES)
+
+        round_trips = []
+        for _k in range(20):
+            began = time.monotonic()
+            call(api, "GET", "/api/sessions")
+            round_trips.append(time.monotonic() - began)
+        trip = statistics.median(round_trips)
+        took = to_an_entrance(api, args.requests)
+        p50, p95 = percentile(took, 0.5), percentile(took, 0.95)
+        print(
+            f"request to an entrance, {len(took)} requests with a free instance: p50 {p50 * 1000:.0f} ms, p95 "
+            f"{p95 * 1000:.0f} ms; the API's own round trip {trip * 1000:.0f} ms; p50/round trip {p50 / trip:.1f}x, "
+            f"p50 beyond it {(p50 - trip) * 1000:+.0f} ms"
+        )
+
+        granted, queued = burst(api, 20)
+        places = sorted(queued, key=lambda s: s["created"])
+        in_order = [s["place"] for s in places] == list(range(1, len(queued) + 1))
+        _s, fleet = call(api, "GET", "/api/fleet")
+        holders = [i["holder"]["id"] for h in fleet["hosts"] for i in h["instances"] if i["holder"]]
+        twice = len(holders) - len(set(holders)) + len(granted) - len({(s["host"], s["instance"]) for s in granted})
+        print(
+            f"20 requests at once for {len(HOSTS) * INSTANCES} free instances: {len(granted)} granted, "
+            f"{len(queued)} queued, places in the order taken: {'yes' if in_order else 'NO'}, "
+            f"instances given twice: {twice}"
+        )
+        for s in queued[1:]:
+            call(api, "DELETE", s["url"])
+
+        beyond = []
+        waiting = min(queued, key=lambda s: s["created"])
+        for k in range(args.waits):
+            _s, mine = call(api, "GET", "/api/sessions")
+            active = [s for s in mine["mine"] if s["state"] == "active"]
+            ended = active[0]
+            began = time.monotonic()
+            call(api, "DELETE", ended["url"])
+            wait("the waiting person's session", lambda w=waiting: active_now(api, w["url"]), every=0.05)
+            waited = time.monotonic() - began
+            _s, actions = call(api, "GET", f"/api/hosts/{ended['host']}/actions")
+            reset = next(
+                a
+                for a in actions["actions"]
+                if a["action"] == "give_back" and a["ids"] == [ended["instance"]] and a.get("ended_at")
+            )
+            beyond.append(waited - (reset["ended_at"] - reset["accepted_at"]))
+            if k + 1 < args.waits:
+                _c, waiting = call(api, "POST", "/api/sessions", {})
+        print(
+            f"the wait beyond the instance's own reset, none free and one waiting, median of {len(beyond)}: "
+            f"{statistics.median(beyond):+.2f} s (max {max(beyond):+.2f} s)"
+        )
+        end_all(api)
+
+
+if __name__ == "__main__":
+    main()
