@@ -102,6 +102,15 @@ options:
     type: float
     default: 0
     version_added: "0.4.0"
+  end_sessions:
+    description:
+      - With O(action=apply) or O(action=restart), end the sessions of people (the front door's simulator sessions)
+        that hold an instance the call would restart, after this many seconds of warning, instead of waiting for
+        them as for a test run. The session's marker says when, so the front door warns its holder in the page;
+        at that time the claim ends on the host and the instance rolls with the others.
+      - Test runs are never ended so. Omitted, sessions are waited for and left as test runs are (O(held_wait)).
+    type: float
+    version_added: "0.4.0"
   defer_running:
     description: With O(action=apply), change nothing on a host where a serving instance would restart.
     type: bool
@@ -202,6 +211,15 @@ left:
   elements: dict
   sample: [{"id": 2, "holder": "session-3f2a"}]
   version_added: "0.4.0"
+ended:
+  description:
+    - Instances whose people's sessions the call ended after their warning (O(end_sessions)), each with the
+      session's C(holder); each then rolled with the others.
+  returned: always
+  type: list
+  elements: dict
+  sample: [{"id": 1, "holder": "session-3f2a"}]
+  version_added: "0.4.0"
 directories:
   description: Directories created or given the container user's owner and mode.
   returned: action is apply
@@ -234,6 +252,7 @@ ARGUMENT_SPEC = dict(
     managed=dict(type="str", default=layout.MANAGED),
     soak_seconds=dict(type="float", default=0),
     held_wait=dict(type="float", default=0),
+    end_sessions=dict(type="float"),
     defer_running=dict(type="bool", default=False),
     remove_others=dict(type="bool", default=True),
     purge=dict(type="bool", default=False),

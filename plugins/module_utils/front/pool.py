@@ -53,9 +53,13 @@ RESET_GUESS_S = 60.0
 METRICS_FILE = "isaac_sim_sessions.prom"
 METRICS_EVERY_S = 15.0
 # the warnings a session's holder is given (sim_sessions.warned): for want of a client, for its maximum duration
-IDLE, MAXIMUM = 1, 2
+IDLE, MAXIMUM, ROLLOUT = 1, 2, 3
 # how often the door looks for a client on each session's stream
 CLIENTS_EVERY_S = 5.0
+# how often the door asks the hosts afresh whether each session still holds its instance there, and
+# how old a claim must be for a host's status to show it (the host and the door each reuse a status
+# read for 2 s)
+VERIFY_EVERY_S, SETTLE_S = 10.0, 10.0
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS sim_sessions (id TEXT PRIMARY KEY, user TEXT NOT NULL, wants TEXT NOT NULL,"
     " host TEXT NOT NULL, instance INTEGER NOT NULL, state TEXT NOT NULL, created REAL NOT NULL,"
@@ -255,7 +259,10 @@ class Pool:
         # host -> when it last answered (since this service started: a host gone across a restart still times out)
         self._seen_up, self._since = {}, clock()
         self._resets = []  # seconds the last give-backs took
-        self.clients, self._looked = clients, None
+        self.clients, self._looked, self._verified = clients, None, None
+        # (host, instance) -> {at, by, holder}: a rollout ends the session there (the host's status says so);
+        # session id -> by: sessions a rollout was seen to end, for the why of their end
+        self._endings, self._rollouts = {}, {}
 
     # --- what a person sees
 
@@ -302,7 +309,15 @@ class Pool:
         return max(row["started"], row.get("client_seen") or 0) + self.rules["idle_minutes"] * 60
 
     def _warning(self, row: dict, now: float):
-        """(IDLE or MAXIMUM, what the page says) while the session's end is near; else None."""
+        """(IDLE, MAXIMUM or ROLLOUT, what the page says) while the session's end is near; else None."""
+        ending = self._endings.get((row["host"], row["instance"]))
+        if ending and ending.get("holder") == HOLDER.format(row["id"]):
+            at = time.strftime("%H:%M:%S UTC", time.gmtime(ending["at"]))
+            return ROLLOUT, (
+                f"A rollout by {ending['by']} restarts this simulator at {at}, in "
+                f"{max(0, round((ending['at'] - now) / 60))} minute(s): save your work where it is kept. This "
+                "session ends then."
+            )
         warn = self.rules["warn_minutes"] * 60
         idle = self._idle_end(row)
         if idle is not None and idle < row["expires"] and idle - now <= warn:
@@ -511,6 +526,13 @@ class Pool:
         for read in reads:
             if read["reachable"]:
                 self._seen_up[read["name"]] = now
+                for inst in read["status"].get("instances") or []:
+                    where = (read["name"], inst.get("id"))
+                    if inst.get("lent_ending"):
+                        self._endings[where] = dict(inst["lent_ending"], holder=inst.get("lent_to"))
+                        self._rollouts[str(inst.get("lent_to")).removeprefix("session-")] = inst["lent_ending"]["by"]
+                    else:
+                        self._endings.pop(where, None)
         return reads
 
     # --- time passing
@@ -518,6 +540,10 @@ class Pool:
     def tick(self) -> None:
         """Warnings, maximum durations, give-backs that ended, hosts gone, places given up; then the queue."""
         now, rules = self.clock(), self.rules
+        if self._verified is None or now - self._verified >= VERIFY_EVERY_S:
+            self._verified = now
+            self.fleet.refresh()
+            self._verify(now)
         up = {r["name"] for r in self._read() if r["reachable"]}
         if self._looked is None or now - self._looked >= CLIENTS_EVERY_S:
             self._looked = now
@@ -551,6 +577,27 @@ class Pool:
             else:
                 self._give_back(row)
         self.dispatch()
+
+    def _verify(self, now: float) -> None:
+        """A session whose instance its host no longer holds for it (given back there by a rollout that
+        ended sessions, an operator, or lost with the host's /run at a reboot) ended there: it is over."""
+        reads = {r["name"]: r for r in self._read() if r["reachable"]}
+        for row in self.store.sessions(("active",)):
+            if row["host"] not in reads or row["started"] > now - SETTLE_S:
+                continue
+            insts = reads[row["host"]]["status"].get("instances") or []
+            inst = next((i for i in insts if i.get("id") == row["instance"] and i.get("configured")), None)
+            holder = inst.get("lent_to") if inst else None
+            if holder == HOLDER.format(row["id"]):
+                continue
+            by = self._rollouts.pop(row["id"], None)
+            why = f"ended for a rollout by {by}" if by and not holder else None
+            why = why or f"{row['host']} no longer holds instance {row['instance']} for it" + (
+                f" (held by {holder})" if holder else " (given back there, or lost with a reboot of the host)"
+            )
+            if self.store.update(row["id"], ("active",), state="ended", ended=now, why=why):
+                self.fleet.refresh()
+                self.log(f"session {row['id']} of user={row['user']} on {row['host']}/{row['instance']} ended: {why}")
 
     def _see_clients(self, now: float) -> None:
         """Each active session whose stream the door relays to someone now was seen in use now."""

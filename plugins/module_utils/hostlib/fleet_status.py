@@ -200,9 +200,10 @@ def read_ready_markers(run_dir: str) -> dict:
     return markers
 
 
-def read_loans(run_dir: str) -> dict:
-    """{id: run} of the instances lent to a test run (lifecycle.lend's marker, a directory whose file
-    `run` names the borrower); a marker being made or unreadable says "a run"."""
+def read_loans(run_dir: str, endings=None) -> dict:
+    """{id: run} of the instances lent to a test run or a session (lifecycle.lend's marker, a directory
+    whose file `run` names the borrower); a marker being made or unreadable says "a run". endings: a
+    dict filled with {id: {at, by}} where a rollout ends the session (lifecycle.held_after's notice)."""
     loans = {}
     for path in glob.glob(os.path.join(run_dir, "instance-*.lent")):
         i = layout.instance_id(layout.LENT_RE, path)
@@ -214,6 +215,13 @@ def read_loans(run_dir: str) -> dict:
         except OSError:
             words = []
         loans[i] = words[0] if words else "a run"
+        if endings is not None:
+            try:
+                with open(os.path.join(path, "ending")) as fh:
+                    notice = json.load(fh)
+                endings[i] = {"at": float(notice["at"]), "by": str(notice.get("by") or "an operator")}
+            except (OSError, ValueError, TypeError, KeyError):
+                pass
     return loans
 
 
@@ -740,10 +748,13 @@ def gather(
         companion_markers=read_companion_markers(run_dir),
         cache_states=read_cache_states(run_dir),
     )
-    loans = read_loans(run_dir)
+    endings = {}
+    loans = read_loans(run_dir, endings)
     for r in records:
-        # the one claim on an instance: a test run's loan (sessions come to the same marker)
+        # the one claim on an instance: a test run's loan or a person's session, the same marker
         r["lent_to"] = loans.get(r["id"]) if r["id"] is not None else None
+        # when a rollout ends the session that holds it (the door warns its holder)
+        r["lent_ending"] = endings.get(r["id"]) if r["id"] is not None else None
     lap("build")
     rc, out, err = events_read()
     if rc != 0:

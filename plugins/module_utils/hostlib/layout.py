@@ -142,6 +142,8 @@ CONTAINER_RE = re.compile(r"^/?(isaac-sim-(\d+|.+))\Z")
 ENV_FILE_RE = re.compile(r"^instance-(\d+)\.env\Z")
 MARKER_RE = re.compile(r"^instance-(\d+)\.ready\Z")
 LENT_RE = re.compile(r"^instance-(\d+)\.lent\Z")
+# the name a person's session (the front door's pool) holds an instance by; any other holder is a test run
+SESSION_RE = re.compile(r"^session-[a-z0-9]{1,32}\Z")
 # "warm" or "cold": whether the instance's caches held anything when its container last started
 CACHE_STATE_RE = re.compile(r"^instance-(\d+)\.cache\Z")
 # companions: a unit template per companion, one unit per instance (isaac-sim-viewer@2.service)

@@ -55,7 +55,7 @@ DRAINS = ("drain", "undrain")
 # a session's claim of one ready instance (the lend marker test runs take) and its end: the instance
 # restarted clean, ready, then free (lifecycle.give_back), as a test run gives one back
 CLAIMS = ("claim", "give_back")
-HOLDER_RE = re.compile(r"^session-[a-z0-9]{1,32}\Z")
+HOLDER_RE = layout.SESSION_RE
 # actions that take serving instances out of service while they run
 TAKES_DOWN = ("stop", "restart", "remove")
 MAX_BODY = 4096

@@ -584,7 +584,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
             for i in to_roll
         },
     }
-    result = {"plan": plan, "done": [], "failed": None, "untouched": [], "left": [], "deferred": False}
+    result = {"plan": plan, "done": [], "failed": None, "untouched": [], "left": [], "ended": [], "deferred": False}
     # who holds each instance that would roll: a dry run says which ones a rollout would leave
     plan["held"] = holders(host, to_roll)
     ports = want.get("reserve")
@@ -759,7 +759,15 @@ def apply(host: Host, want: dict, check=False) -> dict:
         if why:
             return interrupt(host, result, why, wind_down(n))
         # a run or a session has it: its settings change after it is given back, never under it
-        holder = held_after(host, i, None, want.get("held_wait", 0))
+        holder = held_after(
+            host,
+            i,
+            None,
+            want.get("held_wait", 0),
+            end_sessions=want.get("end_sessions"),
+            by=want.get("by", ""),
+            ended=result["ended"],
+        )
         if holder is not None and _in_the_way(i, current, desired, main_env, steps):
             failed = _lent_failure(i, holder, "not changed (a port layout change cannot leave it behind)")
             result.update(failed=failed, untouched=[j for j in wind_down(n) if j != i], changed=True)
@@ -888,19 +896,54 @@ def holders(host: Host, ids, borrower=None) -> dict:
     return {i: h for i in ids for h in [lent_to(host, i)] if h is not None and h != borrower}
 
 
-def held_after(host: Host, i: int, borrower=None, wait_s: float = 0.0, interval: float = 1.0) -> str | None:
+def held_after(
+    host: Host,
+    i: int,
+    borrower=None,
+    wait_s: float = 0.0,
+    interval: float = 1.0,
+    end_sessions=None,
+    by: str = "",
+    ended=None,
+) -> str | None:
     """Who still holds instance i after waiting up to wait_s for them to give it back; None once it is
     free (or held by `borrower`). A loan whose runner is gone is waited for as any other: the next run
-    that wants the instance ends it, never a restart of ours under it."""
+    that wants the instance ends it, never a restart of ours under it.
+
+    end_sessions: seconds of warning after which a person's session (front/pool.py) that holds it is
+    ended for this rollout: its marker says when and by whom (the host's status shows it, the door warns
+    the person), and at that time its claim ends here (None: the instance rolls, restarted as the others;
+    the door sees the claim gone; `ended`, a list, gets {id, holder}). A test run is never ended so. None:
+    sessions are waited for as runs are."""
     deadline = host.now() + max(0.0, float(wait_s or 0))
+    ends_at = None
     while True:
         holder = lent_to(host, i)
         if holder is None or holder == borrower:
             return None
+        if end_sessions is not None and layout.SESSION_RE.match(holder):
+            if ends_at is None:
+                ends_at = host.now() + max(0.0, float(end_sessions))
+                notice = {"at": round(host.wall() + max(0.0, float(end_sessions)), 3), "by": by or "an operator"}
+                host.write(ending_marker(i), json.dumps(notice) + "\n", 0o644)
+            if host.now() >= ends_at:
+                unlend(host, i, holder)
+                if ended is not None:
+                    ended.append(_left(i, holder))
+                return None
+        elif host.now() >= deadline:
+            return holder
         # the controller gone (Ctrl-C, killed) ends the wait too: the rollout then stops at its next step
-        if host.now() >= deadline or host.interrupted():
+        if host.interrupted():
+            if ends_at is not None:
+                host.remove(ending_marker(i))  # the session goes on: nobody ends it now
             return holder
         host.sleep(interval)
+
+
+def ending_marker(i: int) -> str:
+    """In a session's loan marker: when a rollout ends it, and by whom (JSON {at, by})."""
+    return f"{layout.lent_marker(i)}/ending"
 
 
 def _left(i: int, holder: str) -> dict:
@@ -982,7 +1025,15 @@ def give_back(host: Host, i: int, run: str, companions=None) -> str | None:
 
 
 def restart_each(
-    host: Host, ids, soak_seconds: float, check=False, companions=None, borrower=None, held_wait: float = 0.0
+    host: Host,
+    ids,
+    soak_seconds: float,
+    check=False,
+    companions=None,
+    borrower=None,
+    held_wait: float = 0.0,
+    end_sessions=None,
+    by: str = "",
 ) -> dict:
     """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
     companions ({id: [names]}).
@@ -990,10 +1041,11 @@ def restart_each(
     An instance that fails is restarted once more with the same settings (there is
     nothing older to go back to) and the restart stops there. An instance lent to a run
     other than `borrower` is waited for up to held_wait seconds, then left as it is
-    ("left", with its holder) and the restart goes on with the next.
+    ("left", with its holder) and the restart goes on with the next; one a person's session holds is
+    ended after end_sessions seconds of warning where that is given (held_after).
     """
     ids = list(ids)
-    result = {"done": [], "failed": None, "untouched": [], "left": [], "changed": bool(ids)}
+    result = {"done": [], "failed": None, "untouched": [], "left": [], "ended": [], "changed": bool(ids)}
     if check:
         result["left"] = [_left(i, h) for i, h in holders(host, ids, borrower).items()]
         left = {x["id"] for x in result["left"]}
@@ -1003,7 +1055,7 @@ def restart_each(
         why = host.interrupted()
         if why:
             return interrupt(host, result, why, ids[n:])
-        holder = held_after(host, i, borrower, held_wait)
+        holder = held_after(host, i, borrower, held_wait, end_sessions=end_sessions, by=by, ended=result["ended"])
         if holder is not None:
             result["left"].append(_left(i, holder))
             continue
@@ -1055,7 +1107,7 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
 
     outcomes: {host: isaac_sim_lifecycle result (success or failure), or {} when the host was not reached}
     """
-    rolled, unchanged, reverted, untouched, left, why = [], [], [], [], [], None
+    rolled, unchanged, reverted, untouched, left, ended, why = [], [], [], [], [], [], None
     for host in targets:
         out = outcomes.get(host)
         if not out:
@@ -1087,6 +1139,8 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
         if out.get("left"):
             held = ", ".join(f"{layout.container(x['id'])} (held by {x['holder']})" for x in out["left"])
             left.append(f"{host}: {held}")
+        if out.get("ended"):
+            ended.append(f"{host}: " + ", ".join(f"{layout.container(x['id'])} ({x['holder']})" for x in out["ended"]))
     lines = ["rolled: " + ("; ".join(rolled) or "none")]
     if unchanged:
         lines.append("already current: " + ", ".join(unchanged))
@@ -1095,6 +1149,9 @@ def summary(outcomes: dict, targets: list, stopped_on: str | None = None) -> lis
     if left:
         # not a failure: each runs as it was until its holder gives it back; the next rollout rolls it
         lines.append("left for their holders: " + "; ".join(left))
+    if ended:
+        # the operator asked for it (isaac_sim_rollout_end_sessions): each holder was warned first
+        lines.append("sessions ended for this rollout: " + "; ".join(ended))
     if stopped_on or why:
         lines.append(f"stopped: {why or stopped_on}")
     else:

@@ -92,6 +92,7 @@ def _want(host: Host, p: dict, found: dict) -> dict:
         "data_root": plan["layout"]["data_root"],
         "soak": p["soak_seconds"],
         "held_wait": p.get("held_wait", 0),
+        "end_sessions": p.get("end_sessions"),
         "defer_running": p["defer_running"],
         "reserve": plan.get("reserved_ports", []),
         "managed": p["managed"],
@@ -229,7 +230,13 @@ def _would(p: dict, out: dict) -> dict:
 def _restart(host: Host, p: dict, out: dict, found: dict, check: bool) -> dict:
     """action=restart: one instance at a time, each ready (and soaked) before the next."""
     result = lifecycle.restart_each(
-        host, p["ids"], p["soak_seconds"], check=check, companions=found, held_wait=p.get("held_wait", 0)
+        host,
+        p["ids"],
+        p["soak_seconds"],
+        check=check,
+        companions=found,
+        held_wait=p.get("held_wait", 0),
+        end_sessions=p.get("end_sessions"),
     )
     out["changed"] = result["changed"]
     return result
@@ -315,7 +322,7 @@ def call(host: Host, p: dict, check: bool = False, diff: bool = False, lock: str
 
 
 def _call(host: Host, p: dict, check: bool, diff: bool, run: str, record: str) -> dict:
-    out = dict(changed=False, done=[], failed_instance=None, failed_instances=[], untouched=[], left=[])
+    out = dict(changed=False, done=[], failed_instance=None, failed_instances=[], untouched=[], left=[], ended=[])
     found = hostprobe.existing_companions(layout.CONFIG_DIR, host.find)
 
     if p["action"] == "apply":
@@ -331,6 +338,7 @@ def _call(host: Host, p: dict, check: bool, diff: bool, run: str, record: str) -
         failed_instances=failures,
         untouched=result["untouched"],
         left=result.get("left", []),
+        ended=result.get("ended", []),
     )
     if result.get("interrupted"):
         runlock.record(

@@ -117,7 +117,8 @@ class Fleet:
         scripted = self.scripted[name]
         instances = [
             {"id": i, "configured": True, "ready": i in scripted.markers, "release": "5.0",
-             "lent_to": lifecycle.lent_to(scripted.host, i)}
+             "lent_to": lifecycle.lent_to(scripted.host, i),
+             "lent_ending": json.loads(scripted.files.get(lifecycle.ending_marker(i), ("null",))[0])}
             for i in range(4)
         ]  # fmt: skip
         return json.dumps({"instances": instances, "drained": self.agents[name].drained_by()}).encode()
@@ -401,3 +402,50 @@ def test_the_proc_net_tcp_reading_takes_established_connections_of_both_families
         "   1: 00000000000000000000000001000000:1F90 B80D0120000000000000000001000000:01BB 01 x\n"
     )
     assert pool.peers([tcp, tcp6]) == {("127.0.0.1", 50000), ("10.0.0.13", 49312), ("2001:db8::1", 443)}
+
+
+def test_a_session_whose_host_no_longer_holds_its_instance_is_over_once_the_host_says_so(fleet):
+    _c, s = fleet.pool.request("vic", {})
+    _c, t = fleet.pool.request("u1", {})
+    scripted = fleet.scripted[s["host"]]
+    # the host's /run lost with a reboot: its marker is gone (an operator's give-back on the host is the same)
+    lifecycle.unlend(scripted.host, s["instance"], s["holder"])
+    fleet.pool.tick()
+    assert fleet.pool.look(s["id"], "vic", False)["state"] == "active"  # a claim this young is not judged yet
+    fleet.clock.now += pool.SETTLE_S + pool.VERIFY_EVERY_S
+    fleet.pool.tick()
+    over = fleet.pool.look(s["id"], "vic", False)
+    assert over["state"] == "ended" and over["why"] == (
+        f"{s['host']} no longer holds instance {s['instance']} for it (given back there, or lost with a reboot of "
+        "the host)"
+    )
+    # the other session is untouched, and the instance is free for the next request
+    assert fleet.pool.look(t["id"], "u1", False)["state"] == "active"
+    _c, again = fleet.pool.request("u2", {})
+    assert (again["host"], again["instance"]) == (s["host"], s["instance"])
+
+
+def test_a_rollout_that_ends_sessions_warns_the_holder_in_the_page_then_the_session_ends_for_it(fleet):
+    fleet.clock.now = fleet.scripted["gpu-1"].host.wall()  # the door's and the hosts' clocks agree (NTP)
+    _c, s = fleet.pool.request("vic", {})
+    scripted, n = fleet.scripted[s["host"]], s["instance"]
+    seen = []
+
+    def sleep(seconds):
+        scripted.clock += seconds
+        if not seen:  # the door looks while the rollout waits out its warning
+            fleet.pool.tick()
+            seen.append(fleet.pool.look(s["id"], "vic", False))
+
+    scripted.host.sleep = sleep
+    rolled = lifecycle.restart_each(scripted.host, [n], 0, end_sessions=120, by="olga")
+    assert [d["id"] for d in rolled["done"]] == [n] and rolled["left"] == []
+    assert seen[0]["state"] == "active" and seen[0]["warning"].startswith(
+        "A rollout by olga restarts this simulator at "
+    )
+    assert "in 2 minute(s): save your work" in seen[0]["warning"]
+    assert any("warned: A rollout by olga" in line for line in fleet.lines)
+    fleet.clock.now += pool.SETTLE_S + pool.VERIFY_EVERY_S
+    fleet.pool.tick()
+    over = fleet.pool.look(s["id"], "vic", False)
+    assert over["state"] == "ended" and over["why"] == "ended for a rollout by olga"

@@ -420,6 +420,17 @@ def test_each_instance_says_which_test_run_holds_it(tmp_path):
     (run_dir / "instance-2.lent").mkdir()
     (run_dir / "instance-x.lent").mkdir()
     assert fleet_status.read_loans(str(run_dir)) == {1: "nightly-7", 2: "a run"}
+    # a session a rollout ends says when and by whom; an unreadable notice says nothing
+    (run_dir / "instance-3.lent").mkdir()
+    (run_dir / "instance-3.lent" / "run").write_text("session-ab12\n\n")
+    (run_dir / "instance-3.lent" / "ending").write_text('{"at": 1795000120.5, "by": "olga"}\n')
+    (run_dir / "instance-2.lent" / "ending").write_text("{half")
+    endings = {}
+    assert fleet_status.read_loans(str(run_dir), endings)[3] == "session-ab12"
+    assert endings == {3: {"at": 1795000120.5, "by": "olga"}}
+    for marker in ("instance-3.lent/ending", "instance-3.lent/run", "instance-2.lent/ending"):
+        (run_dir / marker).unlink()
+    (run_dir / "instance-3.lent").rmdir()
     config = tmp_path / "etc"
     config.mkdir()
     for i in range(3):

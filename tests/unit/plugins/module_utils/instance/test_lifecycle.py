@@ -1110,6 +1110,49 @@ def test_a_controller_gone_while_a_rollout_waits_for_a_holder_ends_the_wait_and_
     assert h.commands("restart") == []
 
 
+def test_an_operator_s_end_sessions_warns_a_session_then_ends_its_claim_and_rolls_it_but_never_a_test_run_s():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 0, "session-olga")
+    lifecycle.lend(h.host, 2, "run-a")
+    notices, waited = [], []
+
+    def sleep(s):
+        waited.append(s)
+        h.clock += s
+        notices.append(h.files.get(lifecycle.ending_marker(0), (None,))[0])
+
+    h.host.sleep = sleep
+    result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}) | {"end_sessions": 120, "by": "olga"})
+    # the session's marker said when and by whom the whole time it was warned, then its claim ended and it rolled
+    assert json.loads(notices[0]) == {"at": round(1795000000 + 1000 + 120, 3), "by": "olga"}
+    assert sum(waited) >= 120 and notices.count(notices[0]) == len(notices)
+    assert [d["id"] for d in result["done"]] == [0, 1] and lifecycle.lent_to(h.host, 0) is None
+    assert h.files[layout.env_file(0)][0] == NEW and lifecycle.ending_marker(0) not in h.files
+    # a test run is left as always (held_wait 0)
+    assert result["left"] == [{"id": 2, "holder": "run-a"}] and h.files[layout.env_file(2)][0] == OLD
+    assert result["ended"] == [{"id": 0, "holder": "session-olga"}]
+    assert "sessions ended for this rollout: h1: isaac-sim-0 (session-olga)" in lifecycle.summary(
+        {"h1": result}, ["h1"]
+    )
+
+
+def test_a_controller_gone_while_a_session_is_warned_takes_the_warning_back_and_ends_nothing():
+    h = ScriptedHost(2)
+    lifecycle.lend(h.host, 0, "session-olga")
+    waited = []
+
+    def sleep(s):
+        waited.append(s)
+        h.clock += s
+
+    h.host.sleep = sleep
+    h.host.interrupted = lambda: "the controller is gone" if len(waited) >= 3 else ""
+    result = lifecycle.restart_each(h.host, [0, 1], 0, end_sessions=300)
+    assert result["left"] == [{"id": 0, "holder": "session-olga"}] and result["interrupted"] == "the controller is gone"
+    assert lifecycle.lent_to(h.host, 0) == "session-olga" and lifecycle.ending_marker(0) not in h.files
+    assert h.commands("restart") == []
+
+
 def test_a_deploy_leaves_an_instance_lent_to_a_run_as_it_was_and_rolls_the_others():
     h = ScriptedHost(3)
     lifecycle.lend(h.host, 1, "run-a")
