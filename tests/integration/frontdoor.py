@@ -40,6 +40,11 @@ UNITS = (
 USERS = [
     {"name": "olga", "role": "operator", "password_hash": door_auth.hash_password("op-secret", 10000)},
     {"name": "vic", "role": "viewer", "password_hash": door_auth.hash_password("view-secret", 10000)},
+    # more people, each asking for a simulator of their own (the sessions' tests)
+    *(
+        {"name": name, "role": "viewer", "password_hash": door_auth.hash_password("view-secret", 10000)}
+        for name in ("ana", "ben", "cy", "val")
+    ),
 ]
 
 
@@ -89,6 +94,22 @@ def session(address, user, password) -> str:
     response = login(address, user, password)
     assert response.status == 303, response.status
     return response.getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
+
+
+def as_person(address, method, path, cookie, body=None):
+    """(status, answer) of the fleet API for a logged-in person, as the door's own page asks it (its
+    Origin and the session's CSRF token)."""
+    context = ssl.create_default_context(cafile=str(ca_dir() / "ca.crt"))
+    headers = {"Cookie": f"__Host-fleet_session={cookie}"}
+    conn = http.client.HTTPSConnection(address, 443, context=context, timeout=30)
+    conn.request("GET", "/session", headers=headers)
+    csrf = json.loads(conn.getresponse().read())["csrf"]
+    headers.update({"Origin": f"https://{address}", "X-Fleet-CSRF": csrf, "Content-Type": "application/json"})
+    conn.request(method, path, body=json.dumps(body) if body is not None else None, headers=headers)
+    response = conn.getresponse()
+    answer = json.loads(response.read() or b"{}")
+    conn.close()
+    return response.status, answer
 
 
 def relay_credentials(address, cookie) -> dict:

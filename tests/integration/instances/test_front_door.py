@@ -13,6 +13,7 @@ import socket
 import ssl
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -20,7 +21,7 @@ import urllib.request
 import pytest
 import testbed
 from browser import chromium, console_errors
-from frontdoor import UNITS, ca_dir, door_inventory, login, request, settings
+from frontdoor import UNITS, as_person, ca_dir, door_inventory, login, request, session, settings
 from selenium.common.exceptions import NoAlertPresentException
 from testbed import INSTANCES, sh, wait_for
 
@@ -46,8 +47,13 @@ def in_journal(host, unit, line):
 
 
 def simulator_in_chromium(driver, host, address):
-    """A person's simulator page: ask, hold one with its time left, end it; it is reset behind, and the
-    page says how it ended."""
+    """People at once: three take three instances, vic's page gets the last one with its time left, val's
+    page waits first in the queue; vic ends it, and val's page gets that instance, restarted (reset)
+    first. Each page says how its session ended."""
+    others = {name: session(address, name, "view-secret") for name in ("ana", "ben", "cy")}
+    held = [as_person(address, "POST", "/api/sessions", cookie, {}) for cookie in others.values()]
+    assert [code for code, _s in held] == [201] * 3, held
+    assert len({s["instance"] for _c, s in held}) == 3
     driver.get(f"https://{address}/simulator.html")
     body = driver.find_element("tag name", "body")
     wait_for(lambda: body.get_attribute("data-ready") == "yes", timeout=15, what="the simulator page")
@@ -56,16 +62,41 @@ def simulator_in_chromium(driver, host, address):
     wait_for(lambda: body.get_attribute("data-state") == "active", timeout=15, what="a simulator for vic")
     state = driver.find_element("id", "state").text
     assert state.startswith(f"Your simulator: {testbed.name(host)}, instance "), state
+    n = int(state.rsplit(" ", 1)[1].rstrip("."))
+    assert n not in {s["instance"] for _c, s in held}
     assert driver.find_element("id", "left").text.startswith("Time left: 3:59:")
     driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-simulator.png"))
-    driver.find_element("id", "end").click()
-    wait_for(
-        lambda: body.get_attribute("data-state") == "ended",
-        timeout=120,
-        what="the session to end, its simulator reset",
-    )
-    assert driver.find_element("id", "state").text == "Your session ended (ended by its holder)."
+    before = testbed.container_id(host, f"isaac-sim-{n}")
+    with chromium(trust_ca=ca_dir() / "ca.crt") as other:
+        other.get(f"https://{address}/simulator.html")
+        wait_for(lambda: "/login?next=/simulator.html" in other.current_url, timeout=15, what="val's login page")
+        other.find_element("name", "user").send_keys("val")
+        other.find_element("name", "password").send_keys("view-secret")
+        other.find_element("css selector", "button[type=submit]").click()
+        wait_for(
+            lambda: other.current_url == f"https://{address}/simulator.html"
+            and other.find_element("tag name", "body").get_attribute("data-ready") == "yes",
+            timeout=15,
+            what="val's simulator page",
+        )
+        waiting = other.find_element("tag name", "body")
+        other.find_element("id", "ask").click()
+        wait_for(lambda: waiting.get_attribute("data-state") == "queued", timeout=15, what="val in the queue")
+        assert other.find_element("id", "state").text.startswith("You are number 1 of 1 in the queue")
+        driver.find_element("id", "end").click()
+        wait_for(lambda: body.get_attribute("data-state") == "ended", timeout=120, what="vic's session to end")
+        assert driver.find_element("id", "state").text == "Your session ended (ended by its holder)."
+        wait_for(lambda: waiting.get_attribute("data-state") == "active", timeout=60, what="val's simulator")
+        assert other.find_element("id", "state").text == f"Your simulator: {testbed.name(host)}, instance {n}."
+        # the one vic had, reset (a fresh container) before val got it
+        assert testbed.container_id(host, f"isaac-sim-{n}") not in ("", before)
+        other.find_element("id", "end").click()
+        wait_for(lambda: waiting.get_attribute("data-state") == "ended", timeout=120, what="val's session to end")
+        assert console_errors(other) == []
+    for (_c, s), cookie in zip(held, others.values()):
+        assert as_person(address, "DELETE", s["url"], cookie)[0] == 200
     assert console_errors(driver) == []
+    testbed.all_ready(host)
 
 
 def dashboard_in_chromium(host, address, tmp_path):
@@ -467,33 +498,70 @@ def check_a_session(host, address, token):
     own marker names the session, an action on it is refused, a restart of the API keeps it; ended, the
     instance is restarted and only then free."""
     name = testbed.name(host)
-    code, session = api_call(address, "POST", "/api/sessions", token, {})
-    assert code == 201 and session["host"] == name and session["state"] == "active", session
-    n, holder = session["instance"], session["holder"]
+    code, first = api_call(address, "POST", "/api/sessions", token, {})
+    assert code == 201 and first["host"] == name and first["state"] == "active", first
+    n, holder = first["instance"], first["holder"]
     assert api_call(address, "POST", "/api/sessions", token, {})[0] == 409  # one each
     code, refused = api_call(address, "POST", f"/api/hosts/{name}/instances/{n}/restart", token)
     assert code == 409 and f"held by {holder}" in refused["error"], refused
     wait_for(
         lambda: api_call(address, "GET", f"/api/hosts/{name}/instances/{n}", token)[1]["holder"]
-        == {"kind": "session", "id": session["id"]},
+        == {"kind": "session", "id": first["id"]},
         timeout=15,
         what="the fleet's listing to name the session as the instance's holder",
     )
     started = journal(host, f"isaac-sim@{n}.service").count("Started")
     sh(host, f"systemctl restart {UNITS[3]}")
-    wait_for(lambda: api_call(address, "GET", session["url"], token)[0] == 200, timeout=30, what="the API back")
-    assert api_call(address, "GET", session["url"], token)[1]["state"] == "active"
-    code, ended = api_call(address, "DELETE", session["url"], token)
+    wait_for(lambda: api_call(address, "GET", first["url"], token)[0] == 200, timeout=30, what="the API back")
+    assert api_call(address, "GET", first["url"], token)[1]["state"] == "active"
+    code, ended = api_call(address, "DELETE", first["url"], token)
     assert code == 200 and ended["state"] == "ending" and ended["why"] == "ended by its holder", ended
     wait_for(
-        lambda: api_call(address, "GET", session["url"], token)[1]["state"] == "ended",
+        lambda: api_call(address, "GET", first["url"], token)[1]["state"] == "ended",
         timeout=120,
         what="the session's instance to be reset and given back",
     )
     assert testbed.instance_ready(host, n)
     assert journal(host, f"isaac-sim@{n}.service").count("Started") > started
-    in_journal(host, UNITS[3], f"session {session['id']} of user=olga started on {name}/{n}")
-    in_journal(host, UNITS[3], f"session {session['id']} of user=olga ended (ended by its holder)")
+    in_journal(host, UNITS[3], f"session {first['id']} of user=olga started on {name}/{n}")
+    in_journal(host, UNITS[3], f"session {first['id']} of user=olga ended (ended by its holder)")
+
+    # an operator's rollout that ends sessions: the holder is warned in the session first, then its claim ends
+    # on the host and the instance rolls; the door says why it ended
+    code, second = api_call(address, "POST", "/api/sessions", token, {})
+    assert code == 201, second
+    m, rolled = second["instance"], {}
+    settings = {
+        "isaac_sim_rollout_end_sessions": True,
+        "isaac_sim_rollout_end_sessions_warning": 20,
+        "isaac_sim_instances_selected": [m],
+        "isaac_sim_rollout_soak": 0,
+    }
+    before = testbed.container_id(host, f"isaac-sim-{m}")
+    roll = threading.Thread(
+        target=lambda: rolled.update(out=testbed.run_playbook(host, settings, playbook="playbooks/rolling_restart.yml"))
+    )
+    roll.start()
+    try:
+        wait_for(
+            lambda: (api_call(address, "GET", second["url"], token)[1].get("warning") or "").startswith(
+                "A rollout by an operator restarts this simulator at "
+            ),
+            timeout=90,
+            what="the rollout's warning in the session",
+        )
+    finally:
+        roll.join(timeout=300)
+    said = " ".join((rolled["out"].stdout + rolled["out"].stderr).split())
+    assert rolled["out"].returncode == 0, said[-3000:]
+    assert f"sessions ended for this rollout: {name}: isaac-sim-{m} ({second['holder']})" in said, said[-3000:]
+    assert testbed.container_id(host, f"isaac-sim-{m}") not in ("", before)
+    wait_for(
+        lambda: api_call(address, "GET", second["url"], token)[1]["state"] == "ended",
+        timeout=45,
+        what="the door to see the session's claim gone",
+    )
+    assert api_call(address, "GET", second["url"], token)[1]["why"] == "ended for a rollout by an operator"
 
 
 def check_sessions_and_tokens(host, address, status_path, operator, tmp):
