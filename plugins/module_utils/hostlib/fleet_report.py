@@ -282,7 +282,9 @@ def table(report: dict) -> list:
                 rows.append((h["host"], str(i["id"]), "", "", "", "", "", f"why: {i['down_reason']}"))
             # its one claim: nothing but its borrower restarts it until the run gives it back
             if i.get("lent_to"):
-                rows.append((h["host"], str(i["id"]), "", "", "", "", "", f"held by: test run {i['lent_to']}"))
+                held = i["lent_to"]
+                who = f"session {held[8:]}" if held.startswith("session-") else f"test run {held}"
+                rows.append((h["host"], str(i["id"]), "", "", "", "", "", f"held by: {who}"))
             # each companion on a line of its own under its instance: 2/ros-bridge
             for c in i.get("companions") or []:
                 rows.append(

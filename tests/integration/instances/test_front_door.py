@@ -22,7 +22,11 @@ import pytest
 import testbed
 from browser import chromium, console_errors
 from frontdoor import UNITS, as_person, ca_dir, door_inventory, login, request, session, settings
-from selenium.common.exceptions import NoAlertPresentException
+from selenium.common.exceptions import (
+    NoAlertPresentException,
+    NoSuchElementException,
+    StaleElementReferenceException,
+)
 from testbed import INSTANCES, sh, wait_for
 
 
@@ -188,6 +192,14 @@ def dashboard_in_chromium(host, address, tmp_path):
     in_journal(host, UNITS[1], "login refused user=vic")
 
 
+def asked(driver):
+    """The page's confirmation, once it is there."""
+    try:
+        return driver.switch_to.alert
+    except NoAlertPresentException:
+        return None
+
+
 def actions_in_the_console(driver, host):
     """An operator restarts an instance from its card: the progress line moves to the end, the instance
     is ready again, the host's last actions say who did it. With another instance stopped, the page
@@ -197,14 +209,7 @@ def actions_in_the_console(driver, host):
     def run_action(card, action, confirm=False):
         card.find_element("css selector", f'.actions button[data-action="{action}"]').click()
         if confirm:
-
-            def asked():
-                try:
-                    return driver.switch_to.alert
-                except NoAlertPresentException:
-                    return None
-
-            alert = wait_for(asked, timeout=20, interval=0.2, what="the confirmation")
+            alert = wait_for(lambda: asked(driver), timeout=20, interval=0.2, what="the confirmation")
             assert "below N-1" in alert.text, alert.text
             alert.accept()
         seen = set()
@@ -218,6 +223,33 @@ def actions_in_the_console(driver, host):
         line = card.find_element("css selector", "p.progress")
         assert line.get_attribute("data-state") == "succeeded", line.text
         return seen
+
+    # a person's session: the card says whose it is, and the operator ends it from there
+    address = testbed.host_ip(host)
+    vic = session(address, "vic", "view-secret")
+    code, held = as_person(address, "POST", "/api/sessions", vic, {})
+    assert code == 201, held
+    art = driver.find_element("css selector", f'.instance-card[data-instance="{held["instance"]}"]')
+
+    def text_of(css):
+        try:
+            return art.find_element("css selector", css).text
+        except (NoSuchElementException, StaleElementReferenceException):
+            return None
+
+    wait_for(lambda: text_of("dd.f-holder") == f"session {held['id']} of vic", timeout=20, what="the card's holder")
+    art.find_element("css selector", "button.end-session").click()
+    alert = wait_for(lambda: asked(driver), timeout=20, interval=0.2, what="the confirmation")
+    assert alert.text.startswith(f"End the session of vic on isaac-sim-{held['instance']}?"), alert.text
+    alert.accept()
+    wait_for(lambda: (text_of("p.progress") or "").endswith("ended by the operator olga"), timeout=20)
+    wait_for(
+        lambda: as_person(address, "GET", held["url"], vic)[1]["state"] == "ended",
+        timeout=120,
+        what="vic's session ended by the operator, its instance reset",
+    )
+    wait_for(lambda: text_of("dd.f-holder") is None, timeout=20, what="the card to show no holder")
+    testbed.all_ready(host)
 
     card = driver.find_element("css selector", '.instance-card[data-instance="2"]')
     seen = run_action(card, "restart")

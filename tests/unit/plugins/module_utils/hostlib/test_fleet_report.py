@@ -40,6 +40,10 @@ def test_an_instance_a_test_run_holds_says_so_under_its_line():
     lines = fleet_report.table(fleet_report.build({"gpu-node-1": result}, ["gpu-node-1"]))
     rows = [line.split() for line in lines[1:-1]]
     assert [r[1] for r in rows][:3] == ["0", "1", "1"] and " ".join(rows[2][2:]) == "held by: test run nightly-7"
+    # a person's session by its id (the door knows whose)
+    result["instances"][1]["lent_to"] = "session-0a1b2c3d4e5f"
+    lines = fleet_report.table(fleet_report.build({"gpu-node-1": result}, ["gpu-node-1"]))
+    assert " ".join(lines[3].split()[2:]) == "held by: session 0a1b2c3d4e5f"
 
 
 def test_durations():
