@@ -816,7 +816,7 @@ class Api:
                     body = json.loads(raw or b"{}")
                 except (ValueError, RecursionError):
                     return _json(400, {"error": 'the body: not JSON. Fix: {} or {"release": "5.0"}.'})
-                code, answer = self.pool.request(user, body)
+                code, answer = self.pool.request(user, body, who.get("role") or "")
                 return _json(code, answer)
             if route == "sessions":
                 answer = {"user": user, "mine": self.pool.mine(user)}

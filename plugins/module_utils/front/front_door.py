@@ -85,6 +85,21 @@ def _sim_errors(sim: dict) -> list:
         value = _port(sim.get(key, example))
         if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
             errors.append(f"{var}: {value!r} is not a whole number of {low}-{high}. Fix: e.g. {example}.")
+    limits = sim.get("limits") or {}
+    if not isinstance(limits, dict):
+        errors.append(
+            f"front_door_sim_limits: {limits!r} is not a mapping. Fix: e.g. {{'role:operator': 3, 'user:olga': 2}}."
+        )
+        limits = {}
+    for key, value in limits.items():
+        value = _port(value)
+        if not re.fullmatch(r"(user|role):[A-Za-z0-9._@-]{1,64}", str(key)):
+            errors.append(
+                f"front_door_sim_limits: {key!r} is neither user:NAME nor role:ROLE. Fix: e.g. role:operator or "
+                "user:olga."
+            )
+        elif not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= 100:
+            errors.append(f"front_door_sim_limits: {key}: {value!r} is not a whole number of 0-100. Fix: e.g. 2.")
     warn = _port(sim.get("warn_minutes", 5))
     for key in ("max_minutes", "idle_minutes"):
         end = _port(sim.get(key, _SIM[key][3]))
@@ -98,7 +113,10 @@ def _sim_errors(sim: dict) -> list:
 
 def sim_rules(p: dict) -> dict:
     """The pool's rules as api.json gives them to the API (checked: _sim_errors)."""
-    return {key: int(_port((p.get("sim") or {}).get(key, example))) for key, (_v, _l, _h, example) in _SIM.items()}
+    sim = p.get("sim") or {}
+    rules = {key: int(_port(sim.get(key, example))) for key, (_v, _l, _h, example) in _SIM.items()}
+    rules["limits"] = {str(k): int(_port(v)) for k, v in (sim.get("limits") or {}).items()}
+    return rules
 
 
 def _port(value):

@@ -346,7 +346,13 @@ class Pool:
 
     # --- asking, looking, ending
 
-    def request(self, user: str, body) -> tuple:
+    def limit(self, user: str, role: str = "") -> int:
+        """How many sessions and places the user may hold at once: the user's own number, else the role's,
+        else per_person."""
+        given = self.rules.get("limits") or {}
+        return int(given.get(f"user:{user}", given.get(f"role:{role}", self.rules["per_person"])))
+
+    def request(self, user: str, body, role: str = "") -> tuple:
         """(201, the session) where an instance was free; (202, the place in the queue) where not."""
         errors = wants_errors(body)
         if errors:
@@ -354,7 +360,7 @@ class Pool:
         wants = {k: body[k] for k in WANTS if body.get(k)}
         if wants:
             self._offered(wants)
-        ident = self.store.enqueue(user, wants, int(self.rules["per_person"]))
+        ident = self.store.enqueue(user, wants, self.limit(user, role))
         self.log(
             f"session {ident} asked by user={user}" + (f" wants={json.dumps(wants, sort_keys=True)}" if wants else "")
         )

@@ -59,6 +59,8 @@ def test_good_settings_pass():
         ({"login_rate": "10/m"}, "front_door_login_rate: '10/m'"),
         ({"session_hours": 0}, "front_door_session_hours: 0"),
         ({"metrics_dir": "var/lib/x"}, "front_door_metrics_textfile_dir: 'var/lib/x' is not an absolute path"),
+        ({"sim": {"limits": {"olga": 2}}}, "front_door_sim_limits: 'olga' is neither user:NAME nor role:ROLE"),
+        ({"sim": {"limits": {"role:operator": -1}}}, "front_door_sim_limits: role:operator: -1 is not a whole number"),
         ({"sim": {"per_person": 0}}, "front_door_sim_per_person: 0 is not a whole number of 1-100"),
         ({"sim": {"max_minutes": "2h"}}, "front_door_sim_max_minutes: '2h' is not a whole number"),
         ({"sim": {"queue_grace_s": 5}}, "front_door_sim_queue_grace_seconds: 5 is not a whole number of 10-86400"),
@@ -424,6 +426,7 @@ def test_the_api_keeps_sessions_in_the_login_service_s_store_with_the_pool_s_rul
         "warn_minutes": 5,
         "queue_grace_s": 120,
         "host_gone_s": 120,
+        "limits": {},
     }
     assert json.loads(front_door.api_json(VIEWERS))["signals"]["gpu-2"]["3"] == "10.0.0.13:49100"
     unit = front_door.files(p, "managed", "CERT", "KEY", CODE)[front_door.API_UNIT]

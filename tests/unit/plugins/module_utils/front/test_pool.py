@@ -449,3 +449,16 @@ def test_a_rollout_that_ends_sessions_warns_the_holder_in_the_page_then_the_sess
     fleet.pool.tick()
     over = fleet.pool.look(s["id"], "vic", False)
     assert over["state"] == "ended" and over["why"] == "ended for a rollout by olga"
+
+
+def test_a_role_or_a_person_may_hold_another_number_of_sessions(tmp_path, pki):
+    f = Fleet(tmp_path, pki, {"limits": {"role:operator": 3, "user:vic": 0, "user:olga": 2}})
+    try:
+        assert (f.pool.limit("u1", "viewer"), f.pool.limit("u2", "operator")) == (1, 3)
+        assert (f.pool.limit("olga", "operator"), f.pool.limit("vic", "viewer")) == (2, 0)
+        op = f.door.store.make_token("olga", "o", ["read", "use"], 1, HASH)[0]
+        assert [call(f.port, "/api/sessions", token=op, body={})[0] for _k in range(3)] == [201, 201, 409]
+        code, refused = call(f.port, "/api/sessions", token=f.token("vic"), body={})
+        assert code == 409 and "the most allowed (0)" in refused["error"]
+    finally:
+        f.close()
