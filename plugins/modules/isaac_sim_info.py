@@ -203,11 +203,19 @@ instances:
       sample: "failed (exit-code): read journalctl -u isaac-sim@2.service"
     lent_to:
       description: >-
-        The test run that holds the instance (experience.yml, test_suite.yml), its one claim; nothing but that
-        run restarts it until the run gives it back. Null when nothing holds it.
+        The test run (experience.yml, test_suite.yml) or the person's session (C(session-ID), the front door's)
+        that holds the instance, its one claim; nothing but its holder restarts it until it is given back. Null
+        when nothing holds it.
       type: str
       version_added: 0.4.0
       sample: nightly-7
+    lent_ending:
+      description: >-
+        Where a rollout ends the session that holds the instance (isaac_sim_rollout_end_sessions) - C(at) (epoch
+        seconds) and C(by); null otherwise.
+      type: dict
+      version_added: 0.4.0
+      sample: {"at": 1795000120.5, "by": "an operator"}
     active_since:
       description: When the unit became active (epoch seconds).
       type: int
