@@ -565,7 +565,7 @@ def check_a_session(host, address, token):
     m, rolled = second["instance"], {}
     settings = {
         "isaac_sim_rollout_end_sessions": True,
-        "isaac_sim_rollout_end_sessions_warning": 20,
+        "isaac_sim_rollout_end_sessions_warning": 12,
         "isaac_sim_instances_selected": [m],
         "isaac_sim_rollout_soak": 0,
     }
