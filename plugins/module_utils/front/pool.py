@@ -489,14 +489,17 @@ class Pool:
                     if not any(h == host and i is inst for h, i in free):
                         continue  # its host was left out meanwhile
                     code, answer = self._claim(entry, host, inst["id"])
-                    if code is None or "holder" in answer or answer.get("drained"):
-                        # the host did not answer, is held (a deploy, an action) or drained: none of it this time
-                        free = [(h, i) for h, i in free if h != host]
-                        continue
-                    free = [(h, i) for h, i in free if (h, i["id"]) != (host, inst["id"])]
                     if code == 200:
+                        free = [(h, i) for h, i in free if (h, i["id"]) != (host, inst["id"])]
                         granted += 1
                         break
+                    if code is None or "holder" in answer or answer.get("drained"):
+                        # the host did not answer, is held (a deploy, an action: the refusal names its holder) or
+                        # drained: none of it this time
+                        free = [(h, i) for h, i in free if h != host]
+                        continue
+                    # this instance was taken meanwhile (a test run), or is not ready: the next one
+                    free = [(h, i) for h, i in free if (h, i["id"]) != (host, inst["id"])]
             return granted
 
     def _claim(self, entry: dict, host: str, n: int) -> tuple:

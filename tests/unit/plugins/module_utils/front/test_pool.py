@@ -172,6 +172,8 @@ def test_twenty_requests_at_once_for_eight_free_instances_grant_eight_and_queue_
     granted = {u: a for u, (code, a) in answers.items() if code == 201}
     queued = {u: a for u, (code, a) in answers.items() if code == 202}
     assert len(granted) == 8 and len(queued) == 12, answers
+    # nothing was restarted: each claim took a free instance, and none was taken and given back
+    assert [fleet.scripted[h].commands("restart") for h in HOSTS] == [[], []]
     # eight different instances, four on each host (the least loaded first), and each host's own marker agrees
     places = {(a["host"], a["instance"]) for a in granted.values()}
     assert len(places) == 8
