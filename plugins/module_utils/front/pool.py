@@ -54,6 +54,8 @@ METRICS_FILE = "isaac_sim_sessions.prom"
 METRICS_EVERY_S = 15.0
 # the warnings a session's holder is given (sim_sessions.warned): for want of a client, for its maximum duration
 IDLE, MAXIMUM, ROLLOUT = 1, 2, 3
+# _claim's status where the request left the queue while its instance was claimed (given back at once)
+LEFT = 410
 # how often the door looks for a client on each session's stream
 CLIENTS_EVERY_S = 5.0
 # how often the door asks the hosts afresh whether each session still holds its instance there, and
@@ -256,6 +258,8 @@ class Pool:
         self.rules = dict(RULES, **(rules or {}))
         # one dispatcher at a time: the queue is served in its order
         self._lock = threading.Lock()
+        # the sessions whose give-back is being asked for now (a request's end and a tick never ask twice)
+        self._asking, self._asking_lock = set(), threading.Lock()
         # host -> when it last answered (since this service started: a host gone across a restart still times out)
         self._seen_up, self._since = {}, clock()
         self._resets = []  # seconds the last give-backs took
@@ -430,6 +434,17 @@ class Pool:
 
     def _give_back(self, row: dict) -> None:
         """Ask the host's agent to give the instance back; where it cannot be reached, the next tick asks again."""
+        with self._asking_lock:
+            if row["id"] in self._asking:
+                return
+            self._asking.add(row["id"])
+        try:
+            self._ask_give_back(row)
+        finally:
+            with self._asking_lock:
+                self._asking.discard(row["id"])
+
+    def _ask_give_back(self, row: dict) -> None:
         request = {
             "host": row["host"],
             "action": "give_back",
@@ -489,6 +504,8 @@ class Pool:
                     if not any(h == host and i is inst for h, i in free):
                         continue  # its host was left out meanwhile
                     code, answer = self._claim(entry, host, inst["id"])
+                    if code == LEFT:
+                        break  # it left the queue meanwhile: nothing more for it
                     if code == 200:
                         free = [(h, i) for h, i in free if (h, i["id"]) != (host, inst["id"])]
                         granted += 1
@@ -522,7 +539,7 @@ class Pool:
         if not self.store.grant(entry, host, n, expires):
             # it left the queue while its claim was made: the instance goes back at once
             self._give_back({"id": entry["id"], "user": entry["user"], "host": host, "instance": n})
-            return 409, {}
+            return LEFT, {}
         waited = self.clock() - entry["created"]
         self.log(
             f"session {entry['id']} of user={entry['user']} started on {host}/{n} after {waited:.1f} s in the queue"

@@ -193,6 +193,8 @@ class Agent:
         self.actions_dir = os.path.join(state_dir, "actions")
         os.makedirs(self.actions_dir, mode=0o700, exist_ok=True)
         self._cv = threading.Condition()
+        # one give-back of an instance at a time, however often it is asked for
+        self._giving = threading.Lock()
         self._pruning = threading.Lock()
         self._live = {}
         self._threads = []
@@ -485,8 +487,21 @@ class Agent:
         if now != holder:
             self.journal(f"refused give_back of {layout.container(i)} for {holder} by {who}: held by {now}")
             raise RefusedError(409, f"{layout.container(i)} is held by {now}, not {holder}; nothing was done")
-        self._event(rec, f"accepted: {rec['what']} by {who} (the end of {holder})", progress=0)
-        answer = self._launch(rec, self._run_give_back, (rec, host, who, holder))
+        with self._giving:
+            # asked again while it runs (the door asking twice): the same action, never a second restart
+            with self._cv:
+                running = next(
+                    (
+                        r
+                        for r in self._live.values()
+                        if r["action"] == "give_back" and r["ids"] == rec["ids"] and r.get("holder") == holder
+                    ),
+                    None,
+                )
+            if running is not None:
+                return 202, {k: v for k, v in running.items() if k != "events"}
+            self._event(rec, f"accepted: {rec['what']} by {who} (the end of {holder})", progress=0)
+            answer = self._launch(rec, self._run_give_back, (rec, host, who, holder))
         self.journal(f"action {rec['id']} accepted: {rec['what']} for {holder} by {who}")
         return 202, answer
 

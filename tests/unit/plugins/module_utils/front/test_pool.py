@@ -464,3 +464,22 @@ def test_a_role_or_a_person_may_hold_another_number_of_sessions(tmp_path, pki):
         assert code == 409 and "the most allowed (0)" in refused["error"]
     finally:
         f.close()
+
+
+def test_an_end_and_a_tick_at_the_same_moment_ask_for_one_give_back(fleet):
+    _c, s = fleet.pool.request("vic", {})
+    ask, asked = fleet.pool.agents.ask, []
+
+    def counting(host, method, path, body=None):
+        if body and body.get("action") == "give_back":
+            asked.append(body["holder"])
+            if len(asked) == 1:  # the service's tick comes while the end's own request is on its way
+                fleet.pool.tick()
+        return ask(host, method, path, body)
+
+    fleet.pool.agents.ask = counting
+    fleet.pool.end(s["id"], "vic", False)
+    fleet.settle()
+    assert asked == [s["holder"]] and fleet.scripted[s["host"]].commands("restart") == [
+        f"systemctl restart {layout.unit(s['instance'])}"
+    ]

@@ -323,6 +323,27 @@ def test_a_give_back_restarts_the_instance_clean_and_only_then_frees_it(tmp_path
     assert len(h.commands("restart")) == 1
 
 
+def test_a_give_back_asked_again_while_it_runs_is_the_same_action_and_restarts_once(tmp_path):
+    a, h, _lines = make(tmp_path)
+    a.submit(req("claim", ids=[1], holder="session-ab12"))
+    started, go_on = threading.Event(), threading.Event()
+    start = h._start
+
+    def slow(i):
+        started.set()
+        go_on.wait(10)
+        return start(i)
+
+    h._start = slow
+    code, first = a.submit(req("give_back", ids=[1], holder="session-ab12"))
+    assert code == 202 and started.wait(10)
+    again = [a.submit(req("give_back", ids=[1], holder="session-ab12")) for _k in range(3)]
+    go_on.set()
+    a.wait()
+    assert {(c, b["id"]) for c, b in again} == {(202, first["id"])}
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(1)}"] and lifecycle.lent_to(h.host, 1) is None
+
+
 @pytest.mark.parametrize(
     ("over", "words"),
     [
