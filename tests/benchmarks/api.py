@@ -138,6 +138,44 @@ def on_the_host(host: str, command: str) -> float:
     return time.monotonic() - began
 
 
+def door_fleet(inv, tmp, hosts: list, instances: int, scopes: list, door_settings=None) -> Door:
+    """Deploys the hosts (instances each, with their action agents), the front door on the first, and
+    makes olga's token of those scopes: the API as that token reaches it."""
+    door_host, door_ip = hosts[0], docker_ip(hosts[0])
+    hashed = door_auth().hash_password("bench-secret", 10000)
+    settings = {
+        "isaac_sim_instance_count": instances,
+        "isaac_sim_web_viewer_image": "",
+        "isaac_sim_rollout_soak": 0,
+        "isaac_sim_status_server_logs_allow": [f"{door_ip}/32"],
+        "isaac_sim_agent_enabled": True,
+        "isaac_sim_agent_allow": [f"{door_ip}/32"],
+        "isaac_sim_agent_ca_dir": str(tmp / "ca"),
+    }
+    door = {
+        "front_door_users": [{"name": "olga", "role": "operator", "password_hash": hashed}],
+        "front_door_ca_dir": str(tmp / "ca"),
+        "front_door_server_name": door_ip,
+        "front_door_turn": False,
+        **(door_settings or {}),
+    }
+    # the door's group; every setting as extra vars, which win over the demo's group_vars
+    (inv / "bench.yml").write_text(json.dumps({"isaac_sim_front_door": {"hosts": {door_host: {}}}}))
+    given = ["-e", json.dumps({**settings, **door})]
+    print(f"deploy of {len(hosts)} hosts x {instances} instances: {play(inv, 'deploy.yml', *given):.0f} s")
+    print(f"front door on {door_host} ({door_ip}): {play(inv, 'front_door.yml', *given):.0f} s")
+    made = {
+        "front_door_token_state": "present",
+        "front_door_token_user": "olga",
+        "front_door_token_name": "bench",
+        "front_door_token_scopes": scopes,
+        "front_door_token_dir": str(tmp / "tokens"),
+    }
+    play(inv, "front_door_token.yml", *given, "-e", json.dumps(made))
+    [token] = (tmp / "tokens").glob("*-olga-bench.token")
+    return Door(door_ip, str(tmp / "ca" / "ca.crt"), token.read_text().strip())
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--clients", type=int, default=20)
@@ -145,38 +183,7 @@ def main():
     parser.add_argument("--restarts", type=int, default=5)
     args = parser.parse_args()
     with bench_host(HOSTS) as (inv, tmp):
-        door_host, door_ip = HOSTS[0], docker_ip(HOSTS[0])
-        hashed = door_auth().hash_password("bench-secret", 10000)
-        settings = {
-            "isaac_sim_instance_count": INSTANCES,
-            "isaac_sim_web_viewer_image": "",
-            "isaac_sim_rollout_soak": 0,
-            "isaac_sim_status_server_logs_allow": [f"{door_ip}/32"],
-            "isaac_sim_agent_enabled": True,
-            "isaac_sim_agent_allow": [f"{door_ip}/32"],
-            "isaac_sim_agent_ca_dir": str(tmp / "ca"),
-        }
-        door = {
-            "front_door_users": [{"name": "olga", "role": "operator", "password_hash": hashed}],
-            "front_door_ca_dir": str(tmp / "ca"),
-            "front_door_server_name": door_ip,
-            "front_door_turn": False,
-        }
-        # the door's group; every setting as extra vars, which win over the demo's group_vars
-        (inv / "bench.yml").write_text(json.dumps({"isaac_sim_front_door": {"hosts": {door_host: {}}}}))
-        given = ["-e", json.dumps({**settings, **door})]
-        print(f"deploy of {len(HOSTS)} hosts x {INSTANCES} instances: {play(inv, 'deploy.yml', *given):.0f} s")
-        print(f"front door on {door_host} ({door_ip}): {play(inv, 'front_door.yml', *given):.0f} s")
-        made = {
-            "front_door_token_state": "present",
-            "front_door_token_user": "olga",
-            "front_door_token_name": "bench",
-            "front_door_token_scopes": ["read", "act", "operate"],
-            "front_door_token_dir": str(tmp / "tokens"),
-        }
-        play(inv, "front_door_token.yml", *given, "-e", json.dumps(made))
-        [token] = (tmp / "tokens").glob("*-olga-bench.token")
-        api = Door(door_ip, str(tmp / "ca" / "ca.crt"), token.read_text().strip())
+        api = door_fleet(inv, tmp, HOSTS, INSTANCES, ["read", "act", "operate"])
 
         status, data = api.call("GET", "/api/fleet")
         fleet = json.loads(data)

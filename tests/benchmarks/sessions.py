@@ -30,7 +30,7 @@ import sys
 import threading
 import time
 
-from api import Door, docker_ip, door_auth, percentile, play
+from api import Door, door_fleet, percentile
 from benchhost import bench_host
 
 HOSTS = [f"isaacsim-benchsess-{i}" for i in (1, 2)]
@@ -129,39 +129,8 @@ def main():
     parser.add_argument("--waits", type=int, default=5)
     args = parser.parse_args()
     with bench_host(HOSTS) as (inv, tmp):
-        door_host, door_ip = HOSTS[0], docker_ip(HOSTS[0])
-        hashed = door_auth().hash_password("bench-secret", 10000)
-        settings = {
-            "isaac_sim_instance_count": INSTANCES,
-            "isaac_sim_web_viewer_image": "",
-            "isaac_sim_rollout_soak": 0,
-            "isaac_sim_status_server_logs_allow": [f"{door_ip}/32"],
-            "isaac_sim_agent_enabled": True,
-            "isaac_sim_agent_allow": [f"{door_ip}/32"],
-            "isaac_sim_agent_ca_dir": str(tmp / "ca"),
-        }
-        door = {
-            "front_door_users": [{"name": "olga", "role": "operator", "password_hash": hashed}],
-            "front_door_ca_dir": str(tmp / "ca"),
-            "front_door_server_name": door_ip,
-            "front_door_turn": False,
-            # one person asks for all of them here: the per-person rule is not what is measured
-            "front_door_sim_per_person": 40,
-        }
-        (inv / "bench.yml").write_text(json.dumps({"isaac_sim_front_door": {"hosts": {door_host: {}}}}))
-        given = ["-e", json.dumps({**settings, **door})]
-        print(f"deploy of {len(HOSTS)} hosts x {INSTANCES} instances: {play(inv, 'deploy.yml', *given):.0f} s")
-        print(f"front door on {door_host} ({door_ip}): {play(inv, 'front_door.yml', *given):.0f} s")
-        made = {
-            "front_door_token_state": "present",
-            "front_door_token_user": "olga",
-            "front_door_token_name": "bench",
-            "front_door_token_scopes": ["read", "use", "operate"],
-            "front_door_token_dir": str(tmp / "tokens"),
-        }
-        play(inv, "front_door_token.yml", *given, "-e", json.dumps(made))
-        [token] = (tmp / "tokens").glob("*-olga-bench.token")
-        api = Door(door_ip, str(tmp / "ca" / "ca.crt"), token.read_text().strip())
+        # one person asks for all of them here: the per-person rule is not what is measured
+        api = door_fleet(inv, tmp, HOSTS, INSTANCES, ["read", "use", "operate"], {"front_door_sim_per_person": 40})
         wait("every instance to be ready behind the door", lambda: free_count(api) == len(HOSTS) * INSTANCES)
 
         round_trips = []
