@@ -1093,16 +1093,24 @@ def test_a_rolling_restart_waits_for_a_holder_up_to_its_bound_and_restarts_what_
     assert result["left"] == [{"id": 1, "holder": "session-piet"}] and sum(waited) == 3
 
 
-def test_a_controller_gone_while_a_rollout_waits_for_a_holder_ends_the_wait_and_the_rollout():
-    h = ScriptedHost(3)
-    lifecycle.lend(h.host, 0, "session-olga")
+def sleeps(h, then=None) -> list:
+    """The host's sleeps pass on its clock at once, each written down (then: called after each)."""
     waited = []
 
     def sleep(s):
         waited.append(s)
         h.clock += s
+        if then is not None:
+            then()
 
     h.host.sleep = sleep
+    return waited
+
+
+def test_a_controller_gone_while_a_rollout_waits_for_a_holder_ends_the_wait_and_the_rollout():
+    h = ScriptedHost(3)
+    lifecycle.lend(h.host, 0, "session-olga")
+    waited = sleeps(h)
     h.host.interrupted = lambda: "the controller is gone" if len(waited) >= 2 else ""
     result = lifecycle.restart_each(h.host, [0, 1, 2], 0, held_wait=600)
     assert len(waited) == 2 and result["left"] == [{"id": 0, "holder": "session-olga"}]
@@ -1114,14 +1122,8 @@ def test_an_operator_s_end_sessions_warns_a_session_then_ends_its_claim_and_roll
     h = ScriptedHost(3)
     lifecycle.lend(h.host, 0, "session-olga")
     lifecycle.lend(h.host, 2, "run-a")
-    notices, waited = [], []
-
-    def sleep(s):
-        waited.append(s)
-        h.clock += s
-        notices.append(h.files.get(lifecycle.ending_marker(0), (None,))[0])
-
-    h.host.sleep = sleep
+    notices = []
+    waited = sleeps(h, lambda: notices.append(h.files.get(lifecycle.ending_marker(0), (None,))[0]))
     result = lifecycle.apply(h.host, want({i: NEW for i in range(3)}) | {"end_sessions": 120, "by": "olga"})
     # the session's marker said when and by whom the whole time it was warned, then its claim ended and it rolled
     assert json.loads(notices[0]) == {"at": round(1795000000 + 1000 + 120, 3), "by": "olga"}
@@ -1139,13 +1141,7 @@ def test_an_operator_s_end_sessions_warns_a_session_then_ends_its_claim_and_roll
 def test_a_controller_gone_while_a_session_is_warned_takes_the_warning_back_and_ends_nothing():
     h = ScriptedHost(2)
     lifecycle.lend(h.host, 0, "session-olga")
-    waited = []
-
-    def sleep(s):
-        waited.append(s)
-        h.clock += s
-
-    h.host.sleep = sleep
+    waited = sleeps(h)
     h.host.interrupted = lambda: "the controller is gone" if len(waited) >= 3 else ""
     result = lifecycle.restart_each(h.host, [0, 1], 0, end_sessions=300)
     assert result["left"] == [{"id": 0, "holder": "session-olga"}] and result["interrupted"] == "the controller is gone"
