@@ -96,6 +96,13 @@ def session(address, user, password) -> str:
     return response.getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
 
 
+def log_in(driver, user, password):
+    """Fills the front door's login page in a browser and sends it."""
+    driver.find_element("name", "user").send_keys(user)
+    driver.find_element("name", "password").send_keys(password)
+    driver.find_element("css selector", "button[type=submit]").click()
+
+
 def as_person(address, method, path, cookie, body=None):
     """(status, answer) of the fleet API for a logged-in person, as the door's own page asks it (its
     Origin and the session's CSRF token)."""

@@ -21,7 +21,7 @@ import urllib.request
 import pytest
 import testbed
 from browser import chromium, console_errors
-from frontdoor import UNITS, as_person, ca_dir, door_inventory, login, request, session, settings
+from frontdoor import UNITS, as_person, ca_dir, door_inventory, log_in, login, request, session, settings
 from selenium.common.exceptions import (
     NoAlertPresentException,
     NoSuchElementException,
@@ -74,9 +74,7 @@ def simulator_in_chromium(driver, host, address):
     with chromium(trust_ca=ca_dir() / "ca.crt") as other:
         other.get(f"https://{address}/simulator.html")
         wait_for(lambda: "/login?next=/simulator.html" in other.current_url, timeout=15, what="val's login page")
-        other.find_element("name", "user").send_keys("val")
-        other.find_element("name", "password").send_keys("view-secret")
-        other.find_element("css selector", "button[type=submit]").click()
+        log_in(other, "val", "view-secret")
         wait_for(
             lambda: other.current_url == f"https://{address}/simulator.html"
             and other.find_element("tag name", "body").get_attribute("data-ready") == "yes",
@@ -128,19 +126,14 @@ def dashboard_in_chromium(host, address, tmp_path):
         # no session: the login page, over a certificate the browser trusts (else an interstitial)
         wait_for(lambda: "/login?next=/dashboard.html" in driver.current_url, timeout=15, what="the login page")
 
-        def log_in(user, password):
-            driver.find_element("name", "user").send_keys(user)
-            driver.find_element("name", "password").send_keys(password)
-            driver.find_element("css selector", "button[type=submit]").click()
-
-        log_in("vic", "wrong")
+        log_in(driver, "vic", "wrong")
         wait_for(lambda: "Wrong user name or password" in driver.page_source, timeout=10, what="the refusal")
         # the refusal's own 401 is the one console error so far
         refusal = "the server responded with a status of 401 (Unauthorized)"
         assert [e["message"] for e in console_errors(driver)] == [
             f"https://{address}/login - Failed to load resource: {refusal}"
         ]
-        log_in("vic", "view-secret")
+        log_in(driver, "vic", "view-secret")
         wait_for(lambda: driver.current_url == f"https://{address}/dashboard.html", timeout=10, what="the dashboard")
         section = driver.find_element("css selector", "section.host")
         # live: the page reads the host's status through the front door, behind the same login
@@ -161,7 +154,7 @@ def dashboard_in_chromium(host, address, tmp_path):
         # the page kept nothing in the browser's cache (Cache-Control: no-store): the login again
         driver.get(f"https://{address}/dashboard.html")
         wait_for(lambda: "/login?next=/dashboard.html" in driver.current_url, timeout=15, what="the login page")
-        log_in("olga", "op-secret")
+        log_in(driver, "olga", "op-secret")
         wait_for(lambda: driver.current_url == f"https://{address}/dashboard.html", timeout=10, what="the dashboard")
         wait_for(lambda: driver.find_elements(*direct), timeout=15, what="the direct addresses")
         assert driver.find_element("tag name", "body").get_attribute("data-role") == "operator"

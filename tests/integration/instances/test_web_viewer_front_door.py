@@ -29,6 +29,7 @@ from frontdoor import (
     ca_dir,
     check_a_stream_from_outside_the_lan,
     door_inventory,
+    log_in,
     relay_credentials,
     relayed_exchange,
     request,
@@ -99,9 +100,7 @@ def test_viewers_open_behind_the_login_signal_over_wss_through_the_door_and_answ
         with chromium(trust_ca=ca_dir() / "ca.crt") as driver:
             driver.get(f"https://{address}/viewers/{name}/1/")
             wait_for(lambda: "/login?next=/viewers/" in driver.current_url, timeout=15, what="the login page")
-            driver.find_element("name", "user").send_keys("vic")
-            driver.find_element("name", "password").send_keys("view-secret")
-            driver.find_element("css selector", "button[type=submit]").click()
+            log_in(driver, "vic", "view-secret")
 
             def body(name):
                 # the login page is still there a moment after the click, then goes: ask again
