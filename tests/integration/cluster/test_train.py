@@ -16,7 +16,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
-from clusterhosts import CONTROLLER, playbook, sh, squash
+import testbed
+from clusterhosts import CONTROLLER, PLAIN, playbook, sh, squash
 from testbed import ROOT, client
 
 FIXTURE = ROOT / "tests" / "fixtures" / "isaac-lab"
@@ -55,11 +56,26 @@ def lab(tmp_path_factory):
     return {"code": code, "id": build_image(1)}
 
 
-def train(lab, extra=None, **over):
+def asked(lab, extra=None, **over) -> dict:
     given = {"train_code_dir": str(lab["code"]), "train_image": IMAGE, "train_env": ["SLURMD_NODENAME"]}
     given.update(extra or {})
     given.update(over)
-    return playbook("train.yml", given)
+    return given
+
+
+def train(lab, extra=None, **over):
+    return playbook("train.yml", asked(lab, extra, **over))
+
+
+def train_written_as_it_goes(lab, out, **over) -> subprocess.Popen:
+    """train() in the background, its output written to the file out as Ansible prints it (unbuffered,
+    whatever Ansible's own flushing), for a test that acts on a line of it."""
+    cmd = ["ansible-playbook", "-i", testbed.inventory(), str(ROOT / "playbooks" / "train.yml")]
+    cmd += ["-e", json.dumps(asked(lab, **over))]
+    with out.open("w") as stdout, out.with_suffix(".err").open("w") as stderr:
+        return subprocess.Popen(
+            cmd, stdout=stdout, stderr=stderr, text=True, env=dict(PLAIN, PYTHONUNBUFFERED="1"), cwd=ROOT
+        )
 
 
 def jobs_known() -> str:
@@ -114,20 +130,44 @@ def test_bad_requests_fail_with_every_error_before_anything_reaches_the_cluster(
     assert "absent" in sh(CONTROLLER, f"test -e {LAB} || echo absent")
 
 
-def test_a_training_job_outlives_a_slurmctld_outage_writes_logs_and_checkpoints_and_its_logs_come_back(lab):
+def test_a_training_job_outlives_a_slurmctld_outage_writes_logs_and_checkpoints_and_its_logs_come_back(lab, tmp_path):
     args = ["--task=Isaac-Ant-v0", "--max_iterations=3", NOTE, "--headless", "--sleep=5"]
-    with ThreadPoolExecutor(1) as pool:
-        running = pool.submit(train, lab, train_cpus_per_node=2, train_poll_interval=3, train_args=args)
+    out = tmp_path / "train.out"
+    running = train_written_as_it_goes(lab, out, train_cpus_per_node=2, train_poll_interval=3, train_args=args)
+    try:
         # once the training runs (its srun step, which slurmctld must create, exists), slurmctld goes
-        # away for 45 s: the job ends meanwhile, its end waits on slurmd. Stopped earlier, the job
-        # script's srun (and its scontrol) would fail on the missing controller: Slurm's behaviour
-        deadline = time.monotonic() + 120
-        while not re.search(r"^\d+\.0$", sh(CONTROLLER, "squeue -h -s -o %i"), re.M) and time.monotonic() < deadline:
-            time.sleep(0.5)
+        # away until the playbook has said it does not answer and the job has ended meanwhile (its caches
+        # copied back to the shared ones: the node script's last step), or for 45 s at most, as it did
+        # before (the first job loads its image on the node); the job's end waits on slurmd. Stopped
+        # earlier, the job script's srun (and its scontrol) would fail on the missing controller: Slurm's
+        # behaviour
+        step = testbed.wait_for(
+            lambda: re.search(r"^(\d+)\.0$", sh(CONTROLLER, "squeue -h -s -o %i"), re.M),
+            timeout=120,
+            interval=0.5,
+            what="the training's srun step",
+        )
+        stepped = step.group(1)
+        shared = f"cat {LAB}/cache/cache/main/standin-shaders 2>/dev/null; true"
         sh(CONTROLLER, "systemctl stop slurmctld")
-        time.sleep(45)
-        sh(CONTROLLER, "systemctl start slurmctld")
-        done = running.result()
+        stopped = time.monotonic()
+        try:
+            testbed.wait_for(
+                lambda: "slurmctld does not answer" in out.read_text()
+                and (time.monotonic() - stopped >= 45 or stepped in sh(CONTROLLER, shared).split()),
+                timeout=60,
+                what=f"the playbook to find slurmctld away (and job {stepped} to end)",
+            )
+        finally:
+            sh(CONTROLLER, "systemctl start slurmctld")
+        running.wait(timeout=600)
+    finally:
+        if running.poll() is None:
+            running.kill()
+            running.wait()
+    done = subprocess.CompletedProcess(
+        running.args, running.returncode, out.read_text(), out.with_suffix(".err").read_text()
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr
     text = squash(done.stdout)
     job = submitted_id(done)

@@ -3,6 +3,7 @@ commands inside a host, and what each host's instances are doing."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -16,11 +17,18 @@ INSTANCES = 4
 SIGNAL = 49100
 
 
-def hosts() -> list:
+@functools.cache
+def _hosts() -> tuple:
     out = subprocess.run(
         ["ansible-inventory", "-i", testbed.inventory(), "--list"], capture_output=True, text=True, check=True, cwd=ROOT
     )
-    return sorted(json.loads(out.stdout)["isaac_sim_hosts"]["hosts"])
+    return tuple(sorted(json.loads(out.stdout)["isaac_sim_hosts"]["hosts"]))
+
+
+def hosts() -> list:
+    """The fleet's hosts, sorted. Read once per test session: the inventory does not change during one,
+    and each ansible-inventory call is an Ansible start-up, seconds on a slow machine."""
+    return list(_hosts())
 
 
 def sh(host: str, command: str) -> str:

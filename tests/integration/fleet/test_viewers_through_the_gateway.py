@@ -3,12 +3,13 @@ it), in front of the three hosts' status endpoints and the first host's web view
 this machine as a browser outside the fleet would reach it, and its TURN relay carrying a host's
 stream to a peer that can reach nothing but the gateway's TLS port.
 
-Runs last of the fleet's modules (file order). Its deploy of the first host asks for a web viewer
-beside each instance, lets the host's signal and viewer ports answer the gateway alone and gives
-its journal to the gateway (isaac_sim_status_server_logs_allow); after test_unwanted_traffic.py,
-which left those viewers, the deploy changes the firewall and the status endpoint and restarts no
-instance. The third host runs two instances by then (that module's scale-down), so the fixture
-waits for the first host's four alone.
+Runs last of the fleet's modules (file order), and leaves the front door running (destroy
+follows; its removal is tests/integration/instances' test_front_door's). Its deploy of the first host
+asks for a web viewer beside each instance, lets the host's signal and viewer ports answer the
+gateway alone and gives its journal to the gateway (isaac_sim_status_server_logs_allow); after
+test_unwanted_traffic.py, which left those viewers, the deploy changes the firewall and the
+status endpoint and restarts no instance. The third host runs two instances by then (that
+module's firewalld deploy scales it down), so the fixture waits for the first host's four alone.
 """
 
 from __future__ import annotations
@@ -78,44 +79,33 @@ def test_one_gateway_serves_every_host_and_its_viewers_behind_its_login(fleet, t
     testbed.wait_for(lambda: answers(DOOR), timeout=120, what=f"{first}'s viewer to answer the gateway")
 
     ok(front_door(settings(front_door_server_name=door)))
-    try:
-        operator = session(door, "olga", "op-secret")
-        for host in fleet:
-            path = f"/hosts/{host}/status"
-            # no session: the login page; with one: that host's own answer, read by the gateway
-            assert request(door, "GET", path)[0].status == 302
-            response, data, _v = request(door, "GET", path, cookie=operator)
-            assert response.status == 200, data[:300]
-            assert json.loads(data)["host"] == host, host
-        viewer = session(door, "vic", "view-secret")
-        check_the_logs(door, first, operator, viewer)
-        in_chromium(door, first, fleet, tmp_path / "report")
-        # a host's stream reaches a peer that can reach only the gateway's TLS port, relayed by the gateway
-        check_a_stream_from_outside_the_lan(door, operator, first, (ip(first), 47998 + 1))
+    operator = session(door, "olga", "op-secret")
+    for host in fleet:
+        path = f"/hosts/{host}/status"
+        # no session: the login page; with one: that host's own answer, read by the gateway
+        assert request(door, "GET", path)[0].status == 302
+        response, data, _v = request(door, "GET", path, cookie=operator)
+        assert response.status == 200, data[:300]
+        assert json.loads(data)["host"] == host, host
+    viewer = session(door, "vic", "view-secret")
+    check_the_logs(door, first, operator, viewer)
+    in_chromium(door, first, fleet, tmp_path / "report")
+    # a host's stream reaches a peer that can reach only the gateway's TLS port, relayed by the gateway
+    check_a_stream_from_outside_the_lan(door, operator, first, (ip(first), 47998 + 1))
 
-        again = ok(front_door(settings(front_door_server_name=door)))
-        assert re.search(rf"{DOOR}\s*:.*changed=0", again.stdout), again.stdout[-2000:]
-        # a run that could not read a host behind it changes nothing and says which and why
-        conf = sh(DOOR, "cat /etc/isaac-sim/front-door/nginx.conf")
-        limited = front_door(settings(front_door_server_name=door), limit=f"{DOOR},{fleet[0]},{fleet[1]}")
-        assert limited.returncode != 0
-        assert f"front_door_hosts: {fleet[2]} did not say where they serve their status" in squash(
-            limited.stdout + limited.stderr
-        )
-        assert sh(DOOR, "cat /etc/isaac-sim/front-door/nginx.conf") == conf
-        assert request(door, "GET", f"/hosts/{fleet[2]}/status", cookie=operator)[0].status == 200
-    finally:
-        gone = front_door(settings(front_door_state="absent"))
-    ok(gone)
-    assert "isaac-sim-front-door" not in sh(
-        DOOR, "systemctl list-unit-files 'isaac-sim-front-door*' --no-legend || true"
+    again = ok(front_door(settings(front_door_server_name=door)))
+    assert re.search(rf"{DOOR}\s*:.*changed=0", again.stdout), again.stdout[-2000:]
+    # a run that could not read a host behind it changes nothing and says which and why
+    conf = sh(DOOR, "cat /etc/isaac-sim/front-door/nginx.conf")
+    limited = front_door(settings(front_door_server_name=door), limit=f"{DOOR},{fleet[0]},{fleet[1]}")
+    assert limited.returncode != 0
+    assert f"front_door_hosts: {fleet[2]} did not say where they serve their status" in squash(
+        limited.stdout + limited.stderr
     )
-    # the direct mode again: the gateway's ports closed, the viewer and signalling as before (the
-    # firewall, the deploy's setting, still lets the front door's host alone reach them; instance 1
-    # may be restarting: its streaming session ended 30 s after the browser left, quitOnSessionEnded)
-    closed = probe(second, door, [("tcp", 443, ""), ("tcp", DOOR_VIEWER + 1, "")])
-    assert set(closed.values()) == {"ConnectionRefusedError"}, closed
-    testbed.wait_for(lambda: answers(DOOR), timeout=120, what=f"{first}'s viewer to answer directly")
+    assert sh(DOOR, "cat /etc/isaac-sim/front-door/nginx.conf") == conf
+    assert request(door, "GET", f"/hosts/{fleet[2]}/status", cookie=operator)[0].status == 200
+    # no run with front_door_state absent (destroy follows): tests/integration/instances' test_front_door ends
+    # with one (units gone, 443 and 5349 closed), test_web_viewer_front_door with one (the viewers' ports closed)
 
 
 def check_the_logs(door: str, first: str, operator: str, viewer: str) -> None:
