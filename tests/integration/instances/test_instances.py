@@ -144,22 +144,16 @@ def test_instances_come_back_after_dockerd_restarts(host, ip):
 
 
 def test_instances_come_back_whenever_docker_comes_back(host, ip):
+    # (dockerd killed, which systemd restarts, and the instances with it: test_web_viewer.py's
+    # test_three_sigkills_of_dockerd..., the viewers too)
     since = sh(host, "date +%s").stdout.strip()
     # stopped with its socket, as an operator or a package upgrade does: the instances stop with it
     sh(host, "systemctl stop docker.socket docker")
+    # "inactive", not "activating" (a restart systemd would have scheduled): they stay down with Docker
     states = {i: unit_show(host, f"isaac-sim@{i}.service")["ActiveState"] for i in range(INSTANCES)}
     assert set(states.values()) == {"inactive"}, states
-    time.sleep(5)
+    time.sleep(1)
     sh(host, "systemctl start docker")
-    all_ready(host)
-    old = {i: container_id(host, f"isaac-sim-{i}") for i in range(INSTANCES)}
-    # dockerd killed: systemd restarts Docker (Debian's unit: Restart=always), and the instances follow
-    sh(host, "pkill -KILL -x dockerd")
-    wait_for(
-        lambda: all(container_id(host, f"isaac-sim-{i}") not in ("", old[i]) for i in range(INSTANCES)),
-        timeout=180,
-        what="new containers after dockerd was killed",
-    )
     all_ready(host)
     for i in range(INSTANCES):
         assert tcp_answers(ip, SIGNAL_BASE + i)
@@ -258,7 +252,9 @@ def test_no_outgoing_connection_of_the_host_can_take_an_instance_port(host):
 # of Docker's default bridge when another scenario starts hosts meanwhile (seen with molecule/trixie beside
 # the cluster scenario's create); the instances then cannot bind the deployed public address
 def test_instances_come_back_after_a_reboot(host, ip):
-    testbed.client().containers.get(testbed.name(host)).restart(timeout=30)
+    # a power cut: systemd as PID 1 takes Docker's SIGTERM for a re-exec, so Docker kills it at the
+    # timeout in any case; 0 spares the 30 s wait for the same end
+    testbed.client().containers.get(testbed.name(host)).restart(timeout=0)
     wait_for(
         lambda: sh(host, "systemctl is-system-running --wait", check=False).stdout.strip() in ("running", "degraded"),
         timeout=120,
@@ -308,11 +304,13 @@ def viewer_session(ip, port):
 
 def test_session_ends_restart_for_ever_while_a_crash_loop_hits_the_start_limit_and_a_deploy_recovers_it(host):
     # start from the deployed state: after the reboot above the host may have a new
-    # address, which rightly changes every instance's configuration
-    synced = testbed.run_playbook(host)
-    assert synced.returncode == 0, synced.stdout[-3000:] + synced.stderr
-    all_ready(host)
+    # address, which rightly changes every instance's configuration (a deploy then), else it has it
     ip = testbed.host_ip(host)
+    deployed = sh(host, "sed -n 's/^ISAAC_SIM_PUBLIC_ADDRESS=//p' /etc/isaac-sim/instance-*.env | sort -u").stdout
+    if deployed.split() != [f'"{ip}"']:
+        synced = testbed.run_playbook(host)
+        assert synced.returncode == 0, synced.stdout[-3000:] + synced.stderr
+    all_ready(host)
     # instance 3's app quits 1 s after its last viewer left (6.x: 30 s), behind the role's back
     sh(
         host,
@@ -358,7 +356,8 @@ def test_session_ends_restart_for_ever_while_a_crash_loop_hits_the_start_limit_a
     assert journal().count("Scheduled restart job") == 3
     assert "isaac-sim-3 crashed (exit status 1): counted against the start limit" in journal()
     assert "session ended" not in journal()
-    time.sleep(5)
+    # a restart systemd still meant to make would show at once ("activating"): a moment is enough
+    time.sleep(2)
     assert unit_show(host, "isaac-sim@3.service")["ActiveState"] == "failed"
     assert container_id(host, "isaac-sim-3") == ""
     # systemctl status and the status module both say why it is down

@@ -1,7 +1,8 @@
 """The one lifecycle on a real systemd host: a deploy that breaks an instance goes back
 and stops, as does one whose container Docker makes other than the plan read it (the
 container policy's check before the start); an app that quits by itself comes back; values typed on the command line
-reach systemd as numbers; a size with a space reaches Docker as one word.
+reach systemd as numbers; a size with a space reaches Docker as one word; a changed setting and a secret reach each
+instance with one restart of each (the same deploy as the typed values: one rolling deploy for both).
 
 Runs in molecule's verify step on molecule/default; each test leaves every instance ready.
 """
@@ -77,8 +78,10 @@ def test_two_deploys_at_once_one_waits_or_is_refused_and_a_dead_runs_lock_never_
     testbed.wait_for(
         lambda: all(i["ready"] for i in testbed.info(host)["instances"]), timeout=180, what="every instance ready"
     )
-    # a rolling restart holds the host for a minute or so
-    first = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 10}, playbook="playbooks/rolling_restart.yml")
+    # a rolling restart holds the host for its four restarts and 4 x 4 s soak (about 60 s here): time
+    # enough for the refused deploy and for the waiting one to ask (about 20 s here); the restarts, the
+    # bulk of the hold, slow down with the machine as the two deploys do (if it ends early: raised below)
+    first = testbed.start_playbook(host, {"isaac_sim_rollout_soak": 4}, playbook="playbooks/rolling_restart.yml")
     third = None
     try:
         # held by the rolling restart itself (the lock names its ansible-playbook's pid): a lock file alone may be
@@ -177,7 +180,10 @@ def test_an_app_that_quits_by_itself_with_status_0_is_restarted(host):
     assert "isaac-sim-1: session ended (the app exited 0 after it was ready)" in journal
 
 
-def test_values_typed_on_the_command_line_reach_systemd_and_docker_typed(host):
+def test_values_typed_on_the_command_line_a_changed_setting_and_a_secret_restart_each_instance_once(host):
+    """One rolling deploy (and one restore) for what each would restart every instance for: values typed on
+    the command line reach systemd and Docker typed; a changed setting and a secret reach each instance
+    exactly, the secret written nowhere else; every instance restarts once and ends ready."""
     raw = [
         "isaac_sim_start_limit_burst=4",
         "isaac_sim_ready_timeout=60",
@@ -188,9 +194,15 @@ def test_values_typed_on_the_command_line_reach_systemd_and_docker_typed(host):
         "isaac_sim_rollout_soak=1",
         'isaac_sim_extra_docker_args="--label=from-the-command-line=a b"',
     ]
+    old = ids(host)
+    # the journal's position now: what follows is the deploy's
+    cursor = sh(host, "journalctl -n 0 --show-cursor --no-pager").stdout.strip().split("cursor: ", 1)[1]
+    secret = 'nvapi-$ecret"with`quotes\\and$HOME'
+    changed = {"isaac_sim_env": {"SCENE": "warehouse"}, "isaac_sim_secret_env": {"OMNI_PASS": secret}}
     try:
-        run = testbed.run_playbook(host, raw_vars=raw)
+        run = testbed.run_playbook(host, changed, raw_vars=raw)
         assert run.returncode == 0, run.stdout[-3000:] + run.stderr
+        assert secret not in run.stdout + run.stderr
         testbed.all_ready(host)
         verify = sh(host, "systemd-analyze verify /etc/systemd/system/isaac-sim@.service isaac-sim@0.service 2>&1")
         assert "isaac-sim" not in verify.stdout, verify.stdout
@@ -210,10 +222,26 @@ def test_values_typed_on_the_command_line_reach_systemd_and_docker_typed(host):
         inspect = sh(host, "docker inspect -f '{{.HostConfig.Memory}} {{json .Config.Labels}}' isaac-sim-0").stdout
         assert inspect.startswith("1073741824 ")
         assert '"from-the-command-line":"a b"' in inspect
+        for i in range(INSTANCES):
+            assert testbed.instance_ready(host, i)
+            cid = container_id(host, f"isaac-sim-{i}")
+            assert cid and cid != old[i]
+            assert "SCENE=warehouse" in sh(host, f"docker inspect -f '{{{{.Config.Env}}}}' isaac-sim-{i}").stdout
+            assert sh(host, f"stat -c %a /etc/isaac-sim/instance-{i}.env").stdout.strip() == "600"
+            env = sh(host, f"docker exec isaac-sim-{i} env").stdout.splitlines()
+            assert f"OMNI_PASS={secret}" in env
+            # passed by name: the value is not on any command line
+            assert secret not in sh(host, "ps -eo args").stdout
+            # once: one start of its app since the deploy began
+            journal = f"journalctl -u isaac-sim@{i} --no-pager --after-cursor='{cursor}'"
+            starts = sh(host, f"{journal} | grep -c 'starting as uid'")
+            assert starts.stdout.strip() == "1", i
     finally:
         restored = testbed.run_playbook(host)
         assert restored.returncode == 0, restored.stdout[-3000:] + restored.stderr
         testbed.all_ready(host)
+    for i in range(INSTANCES):
+        assert sh(host, f"stat -c %a /etc/isaac-sim/instance-{i}.env").stdout.strip() == "644"
 
 
 def test_a_port_held_by_another_process_keeps_the_instance_from_starting(host):

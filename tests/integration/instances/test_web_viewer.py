@@ -11,6 +11,7 @@ import base64
 import ipaddress
 import json
 import re
+import socket
 import time
 import urllib.request
 
@@ -110,30 +111,33 @@ def test_a_stopped_instance_brings_its_viewer_when_started_as_at_boot(host, ip):
     assert "Isaac Sim web viewer" in fetch(f"http://{ip}:8212/")
 
 
-def test_five_sigkills_of_dockerd_leave_every_unit_active_and_the_next_deploy_unblocked(host, ip, viewers):
-    """dockerd killed five times, each at another moment of its coming back (at once, and while the
-    instances and viewers restart): every instance and viewer is active and serving again, no task of
-    ours runs that Docker does not know, and the next deploy goes through (it was refused for every host
-    once a viewer's lost task held its port)."""
+def test_three_sigkills_of_dockerd_leave_every_unit_active_and_the_next_deploy_unblocked(host, ip, viewers):
+    """dockerd killed three times, each at another moment of its coming back (with everything serving, at
+    once, and 4 s later, while the instances and viewers restart): every instance and viewer is active and
+    serving again, no task of ours runs that Docker does not know, and the next deploy goes through (it was
+    refused for every host once a viewer's lost task held its port)."""
     since = sh(host, "date +%s").stdout.strip()
-    for n in range(5):
+    # the waits leave room for a CI machine two or three times slower than a workstation, and busy
+    for pause in (0, 4, 8):
         sh(host, "pkill -KILL -x dockerd")
         wait_for(
             lambda: sh(host, "docker info >/dev/null 2>&1 && echo up", check=False).stdout.strip() == "up",
-            timeout=90,
+            timeout=180,
             what="systemd to bring dockerd back",
         )
         # Debian's docker.service allows 3 starts a minute (StartLimitBurst=3): the site's setting, not ours,
         # flushed here instead of waiting minutes between the kills
         sh(host, "systemctl reset-failed docker.service")
-        time.sleep(2 * n)
-    all_ready(host)
+        time.sleep(pause)
+    all_ready(host, timeout=300)
     units = [f"isaac-sim@{i}.service" for i in range(INSTANCES)] + [
         f"isaac-sim-viewer@{i}.service" for i in range(INSTANCES)
     ]
-    wait_for(lambda: {unit_show(host, u)["ActiveState"] for u in units} == {"active"}, timeout=180, what="every unit")
+    wait_for(lambda: {unit_show(host, u)["ActiveState"] for u in units} == {"active"}, timeout=300, what="every unit")
     for i in range(INSTANCES):
         assert "Isaac Sim web viewer" in fetch(f"http://{ip}:{8210 + i}/")
+        # and the instance itself, on its signal port
+        socket.create_connection((ip, 49100 + i), timeout=5).close()
     known = set(sh(host, "docker ps -q --no-trunc").stdout.split())
     tasks = set(sh(host, "ctr -n moby tasks ls -q").stdout.split())
     assert tasks <= known, tasks - known
@@ -205,10 +209,6 @@ def check_every_answering_port_is_reported(host, ip):
     assert answering | walled | reachable_listeners(host, "udp") == reported
 
 
-def test_every_port_that_answers_from_outside_the_host_is_reported(host, ip):
-    check_every_answering_port_is_reported(host, ip)
-
-
 def test_a_headless_instance_has_no_stream_no_viewer_and_no_link(host, viewers, tmp_path):
     before = {i: container_id(host, f"isaac-sim-{i}") for i in range(3)}
     result = testbed.run_playbook(
@@ -225,6 +225,8 @@ def test_a_headless_instance_has_no_stream_no_viewer_and_no_link(host, viewers, 
     assert inst["urls"] == {} and inst["companions"] == []
     # nothing listens on its block, and its viewer is gone
     assert sh(host, "ss -Hltnu | grep -E ':(49103|48001|8213) ' | wc -l").stdout.strip() == "0"
+    # every port that answers from outside the host is reported (one scan of all 65535, here only: the
+    # streaming instances' ports are all of a kind, so four of them before this deploy would prove no more)
     check_every_answering_port_is_reported(host, testbed.host_ip(host))
     assert container_id(host, "isaac-sim-3-viewer") == ""
     assert unit_show(host, "isaac-sim-viewer@3.service")["UnitFileState"] != "enabled"
