@@ -10,9 +10,6 @@ import testbed
 import testinfra
 from testbed import INSTANCES, ROOT, sh
 
-# on the trixie scenario's host (molecule/trixie), not the default one: the CI lane with room for them
-pytestmark = pytest.mark.trixie_host
-
 NVIDIA_SMI = ROOT / "tests" / "fixtures" / "nvidia-driver" / "nvidia-smi"
 
 
