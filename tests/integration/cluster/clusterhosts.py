@@ -32,9 +32,15 @@ def squash(text: str) -> str:
     return re.sub(r"\s+", " ", text)
 
 
-def playbook(name: str, extra: dict | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
-    """A playbook of the collection on the cluster's inventory, as an operator runs it."""
+def playbook_command(name: str, extra: dict | None = None) -> list:
+    """The command line of a playbook of the collection on the cluster's inventory."""
     cmd = ["ansible-playbook", "-i", testbed.inventory(), str(ROOT / "playbooks" / name)]
     if extra:
         cmd += ["-e", json.dumps(extra)]
+    return cmd
+
+
+def playbook(name: str, extra: dict | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
+    """A playbook of the collection on the cluster's inventory, as an operator runs it."""
+    cmd = playbook_command(name, extra)
     return subprocess.run(cmd, capture_output=True, text=True, env=PLAIN, cwd=ROOT, timeout=timeout, check=False)

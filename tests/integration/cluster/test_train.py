@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import testbed
-from clusterhosts import CONTROLLER, PLAIN, playbook, sh, squash
+from clusterhosts import CONTROLLER, PLAIN, playbook, playbook_command, sh, squash
 from testbed import ROOT, client
 
 FIXTURE = ROOT / "tests" / "fixtures" / "isaac-lab"
@@ -70,8 +70,7 @@ def train(lab, extra=None, **over):
 def train_written_as_it_goes(lab, out, **over) -> subprocess.Popen:
     """train() in the background, its output written to the file out as Ansible prints it (unbuffered,
     whatever Ansible's own flushing), for a test that acts on a line of it."""
-    cmd = ["ansible-playbook", "-i", testbed.inventory(), str(ROOT / "playbooks" / "train.yml")]
-    cmd += ["-e", json.dumps(asked(lab, **over))]
+    cmd = playbook_command("train.yml", asked(lab, **over))
     with out.open("w") as stdout, out.with_suffix(".err").open("w") as stderr:
         return subprocess.Popen(
             cmd, stdout=stdout, stderr=stderr, text=True, env=dict(PLAIN, PYTHONUNBUFFERED="1"), cwd=ROOT
