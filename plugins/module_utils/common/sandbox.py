@@ -94,20 +94,22 @@ def docker_client(localhost=False) -> tuple:
     )
 
 
-def agent() -> tuple:
+def agent(data_root: str = layout.DATA_ROOT) -> tuple:
     """The host's action agent: the day-2 actions of the one lifecycle, as root (systemctl over D-Bus,
     Docker's socket, the env files root owns). It writes the instances' env files (a remove), the
     host's reserved ports (sysctl, with the last instance removed: CAP_NET_ADMIN, as for nft), the
-    host's lock under /run, its own state, and nothing else; no capability but CAP_NET_ADMIN."""
+    host's lock under /run, its own state, and under data_root a session's Documents moved aside at its
+    end (lifecycle.take_files) and the empty one made in its place: the container user's directory,
+    so CAP_DAC_OVERRIDE, CAP_CHOWN and CAP_FOWNER (it has Docker's socket, which is root already)."""
     return (
         *(entry for entry in _COMMON if entry[0] != "ProtectKernelTunables"),
-        ("CapabilityBoundingSet", "CAP_NET_ADMIN"),
+        ("CapabilityBoundingSet", "CAP_NET_ADMIN CAP_DAC_OVERRIDE CAP_CHOWN CAP_FOWNER"),
         ("ProtectHome", "yes"),
         ("PrivateTmp", "yes"),
         ("PrivateDevices", "yes"),
         ("ProtectKernelModules", "yes"),
         ("RestrictAddressFamilies", "AF_UNIX AF_NETLINK AF_INET AF_INET6"),
-        ("ReadWritePaths", f"{layout.CONFIG_DIR} /etc/sysctl.d /run /proc/sys/net/ipv4"),
+        ("ReadWritePaths", f"{layout.CONFIG_DIR} /etc/sysctl.d /run /proc/sys/net/ipv4 {data_root}"),
         ("StateDirectory", layout.AGENT_STATE_DIR[len("/var/lib/") :]),
         ("StateDirectoryMode", "0700"),
         ("UMask", "0077"),

@@ -144,6 +144,12 @@ MARKER_RE = re.compile(r"^instance-(\d+)\.ready\Z")
 LENT_RE = re.compile(r"^instance-(\d+)\.lent\Z")
 # the name a person's session (the front door's pool) holds an instance by; any other holder is a test run
 SESSION_RE = re.compile(r"^session-[a-z0-9]{1,32}\Z")
+# a person's files: the instance's directory mounted as the container user's Documents (the key of the
+# releases' mounts), and where a session's end moves it, whole, for the front door to take (lifecycle.take_files)
+DOCUMENTS = "documents"
+FILES_DIR = "files"
+# a stash, or a later one of the same session beside it (session-ab12.2): a rename never lands on another
+FILES_STASH_RE = re.compile(r"^(session-[a-z0-9]{1,32})(?:\.([2-9]|[1-9][0-9]{1,5}))?\Z")
 # "warm" or "cold": whether the instance's caches held anything when its container last started
 CACHE_STATE_RE = re.compile(r"^instance-(\d+)\.cache\Z")
 # companions: a unit template per companion, one unit per instance (isaac-sim-viewer@2.service)
@@ -216,6 +222,23 @@ def marker(i: int, run_dir: str = RUN_DIR) -> str:
 
 def data_dir(i: int, data_root: str = DATA_ROOT) -> str:
     return os.path.join(data_root, f"instance-{i}")
+
+
+def documents_dir(i: int, data_root: str = DATA_ROOT) -> str:
+    """The host directory mounted as instance i's Documents (plan.py mounts data_dir/DOCUMENTS)."""
+    return os.path.join(data_dir(i, data_root), DOCUMENTS)
+
+
+def files_dir(holder: str, data_root: str = DATA_ROOT) -> str:
+    """Where a session's Documents go when its instance is reset (holder: a session's name, else ValueError)."""
+    if not isinstance(holder, str) or not SESSION_RE.match(holder):
+        raise ValueError(f"{holder!r} is not a session's name (session- and 1-32 lowercase letters and digits)")
+    return os.path.join(data_root, FILES_DIR, holder)
+
+
+def files_stash(holder: str, n: int = 1, data_root: str = DATA_ROOT) -> str:
+    """The session's n-th stash: files_dir itself, then files_dir.2, .3 for later ones while it is still there."""
+    return files_dir(holder, data_root) + (f".{n}" if n > 1 else "")
 
 
 def companion_template(name: str) -> str:

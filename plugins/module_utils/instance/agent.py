@@ -6,7 +6,9 @@ host's instances, so the door holds no SSH key to the fleet and a host offers no
 It answers over TLS and only a client that shows a certificate of the collection's CA whose
 name is the front door's (CLIENT_NAME, for client authentication) from an allowed network.
 It offers a fixed list of actions: start, stop, restart and remove instances (the day-2 actions
-of lifecycle_call.py, the same code a deploy runs) and drain or undrain the host.
+of lifecycle_call.py, the same code a deploy runs) and drain or undrain the host; and a session's
+files (/files/HOLDER): the Documents its give-back moved aside (lifecycle.take_files) read as a tar and
+removed, and a tar put into the Documents of the instance the session holds now.
 
 An action is acknowledged at once (202 and its id) and runs here, in this process, whoever
 asked and whatever becomes of them: it holds the host's lock (runlock.py) as a playbook run
@@ -21,15 +23,20 @@ The standard library only, like the status endpoint: a host needs nothing from P
 from __future__ import annotations
 
 import contextlib
+import errno
 import ipaddress
 import json
 import os
 import re
 import secrets
+import shutil
 import socket
 import ssl
+import stat
 import subprocess
 import sys
+import tarfile
+import tempfile
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -67,6 +74,15 @@ RENEW_S = 5.0
 KEEP = 100
 ACTION_ID_RE = re.compile(r"^[a-f0-9]{16}\Z")
 NAME_RE = re.compile(r"^[A-Za-z0-9._@-]{1,64}\Z")
+# a session's files (/files/HOLDER): the largest tar a PUT takes (--files-max-bytes), and what GET sends
+# unless the door asks for less (?max=); a stash's directories deeper than this are left out of a GET (said)
+FILES_MAX_BYTES = 1 << 30
+FILES_DEPTH = 128
+FILES_PATH_RE = re.compile(r"^/files/([^/]+)\Z")
+# a put's tar runs inside the container; this long at most
+PUT_TIMEOUT_S = 1800
+# a refused body up to this size is read to its end first, so the client reads the answer
+DRAIN_BYTES = 64 << 20
 # host: the host the door means (this agent refuses a request for another, whatever its certificate said)
 _FIELDS = {"host": str, "action": str, "ids": list, "confirm": bool, "user": str, "token": str, "holder": str}
 _NEEDED = ("host", "action", "user")
@@ -155,6 +171,186 @@ def below_n1(action: str, ids, states: dict) -> str:
     )
 
 
+def parse_query(query: str, names) -> dict:
+    """{name: int} of a query string whose parameters are among `names`, each at most once, each a
+    decimal number; RefusedError(400) naming the first one that is not."""
+    out = {}
+    for part in query.split("&") if query else ():
+        key, sep, value = part.partition("=")
+        if key not in names:
+            said = ", ".join(names) or "none"
+            raise RefusedError(400, f"{key or part!r}: not a parameter of this path (its parameters: {said})")
+        if key in out:
+            raise RefusedError(400, f"{key}: given twice")
+        if not sep or not re.fullmatch(r"[0-9]{1,18}", value):
+            raise RefusedError(400, f"{key}: {value!r} is not a number")
+        out[key] = int(value)
+    return out
+
+
+def files_holder(path: str) -> str:
+    """The session a /files/HOLDER path names; RefusedError 404 (another path) or 400 (not a session's name)."""
+    m = FILES_PATH_RE.match(path)
+    if not m:
+        raise RefusedError(404, f"no such path: {path}")
+    if not layout.SESSION_RE.match(m.group(1)):
+        raise RefusedError(400, "holder: a session's name, session- and 1-32 lowercase letters and digits")
+    return m.group(1)
+
+
+def run_piped(argv, stdin, timeout: float = PUT_TIMEOUT_S) -> tuple:
+    """(rc, stdout, stderr) of a command fed `stdin` (an open file), without a shell."""
+    path = shutil.which(argv[0]) or shutil.which(argv[0], path="/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin")
+    if not path:
+        return 127, "", f"{argv[0]}: not found"
+    try:
+        done = subprocess.run([path] + list(argv[1:]), stdin=stdin, capture_output=True, check=False, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return 124, "", f"{argv[0]}: still running after {timeout:.0f} s; stopped"
+    return done.returncode, done.stdout.decode(errors="replace"), done.stderr.decode(errors="replace")
+
+
+# what opening a name with O_NOFOLLOW (and O_DIRECTORY) says when it is gone, a link or not a directory
+_NOT_A_DIRECTORY = (errno.ENOENT, errno.ELOOP, errno.ENOTDIR)
+
+
+def _tar_member(name: str, st, kind: bytes) -> tarfile.TarInfo:
+    """A member with the entry's mode bits and time, and no owner: uid/gid 0, no names."""
+    info = tarfile.TarInfo(name)
+    info.type, info.mode, info.mtime = kind, stat.S_IMODE(st.st_mode) & 0o777, int(st.st_mtime)
+    info.uid = info.gid = 0
+    info.uname = info.gname = ""
+    info.size = st.st_size if kind == tarfile.REGTYPE else 0
+    return info
+
+
+def tar_stashes(tops, out, max_bytes: int) -> dict:
+    """Write into `out` (an open binary file) a tar of the directories `tops`, newest first, their paths
+    relative to each: {"bytes": the regular files' total, "members", "skipped", "over": total > max_bytes;
+    then nothing more is written, the total is still counted}.
+
+    Root reads here what a person wrote: every name is opened relative to its directory's descriptor with
+    O_NOFOLLOW, so no symbolic link is ever followed, whatever changes meanwhile. Only regular files and
+    directories go in; left out, and counted: symbolic links, fifos, sockets, devices, a second name of a
+    file already in (a hard link: its content is in once), directories deeper than FILES_DEPTH, and what an
+    older stash has under a name a newer one has (the newer wins, file or directory)."""
+    kept, inodes = {}, set()
+    res = {"bytes": 0, "members": 0, "skipped": 0, "over": False}
+    flags = os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC
+    with tarfile.open(fileobj=out, mode="w", format=tarfile.PAX_FORMAT) as tar:
+        for top in tops:
+            try:
+                fd = os.open(top, flags | os.O_DIRECTORY)
+            except OSError as exc:
+                # gone meanwhile, or not a directory (a link): nothing of it is read. Any other error (no
+                # right to read it) is raised: an empty answer would say there is nothing to keep
+                if exc.errno in _NOT_A_DIRECTORY:
+                    continue
+                raise
+            stack = [(fd, "", iter(sorted(os.listdir(fd))))]
+            try:
+                while stack:
+                    dfd, rel, names = stack[-1]
+                    name = next(names, None)
+                    if name is None:
+                        os.close(dfd)
+                        stack.pop()
+                        continue
+                    arc = f"{rel}/{name}" if rel else name
+                    try:
+                        st = os.stat(name, dir_fd=dfd, follow_symlinks=False)
+                    except FileNotFoundError:
+                        continue
+                    if stat.S_ISDIR(st.st_mode):
+                        if kept.get(arc, "dir") != "dir" or len(stack) > FILES_DEPTH:
+                            res["skipped"] += 1
+                            continue
+                        try:
+                            sub = os.open(name, flags | os.O_DIRECTORY, dir_fd=dfd)
+                        except OSError as exc:  # replaced by a link meanwhile; else raised, as above
+                            if exc.errno not in _NOT_A_DIRECTORY:
+                                raise
+                            res["skipped"] += 1
+                            continue
+                        stack.append((sub, arc, iter(sorted(os.listdir(sub)))))
+                        if arc not in kept:
+                            kept[arc] = "dir"
+                            res["members"] += 1
+                            if not res["over"]:
+                                tar.addfile(_tar_member(arc, st, tarfile.DIRTYPE))
+                    elif stat.S_ISREG(st.st_mode) and arc not in kept and (st.st_dev, st.st_ino) not in inodes:
+                        kept[arc] = "file"
+                        inodes.add((st.st_dev, st.st_ino))
+                        res["bytes"] += st.st_size
+                        res["members"] += 1
+                        res["over"] = res["over"] or res["bytes"] > max_bytes
+                        if not res["over"]:
+                            _add_file(tar, dfd, name, arc, st)
+                    else:
+                        res["skipped"] += 1
+            finally:
+                for dfd, _rel, _names in stack:
+                    os.close(dfd)
+    return res
+
+
+def _add_file(tar: tarfile.TarFile, dfd: int, name: str, arc: str, st) -> None:
+    """One regular file into the tar, opened without following a link (O_NONBLOCK: a fifo put in its
+    place meanwhile does not hold the read); RefusedError(409) when it is not the file seen a moment ago."""
+    try:
+        fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, dir_fd=dfd)
+    except OSError as exc:
+        if exc.errno not in _NOT_A_DIRECTORY + (errno.ENXIO,):
+            raise
+        raise RefusedError(409, f"{arc} changed while the stash was read ({exc.strerror}); ask again") from exc
+    with os.fdopen(fd, "rb") as fh:
+        now = os.fstat(fd)
+        if not stat.S_ISREG(now.st_mode) or (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
+            raise RefusedError(409, f"{arc} changed while the stash was read; ask again")
+        try:
+            tar.addfile(_tar_member(arc, st, tarfile.REGTYPE), fh)
+        except OSError as exc:
+            if exc.errno is not None:  # the tar's own write (a full disk)
+                raise
+            # tarfile's "unexpected end of data": shorter than it was
+            raise RefusedError(409, f"{arc} changed while the stash was read ({exc}); ask again") from exc
+
+
+def check_tar(fh) -> int:
+    """The number of members of the tar in `fh` (read from where it is, then put back there): only
+    regular files and directories with relative names that stay below where they go; RefusedError(400)
+    naming the first other one."""
+    start = fh.tell()
+    n = 0
+    try:
+        with tarfile.open(fileobj=fh, mode="r:") as tar:
+            for member in tar:
+                name = member.name
+                parts = name.split("/")
+                if not (member.isreg() or member.isdir()):
+                    raise RefusedError(400, f"{name!r}: only regular files and directories are put")
+                # "." only as a directory (tar -C DIR -cf - . makes one): the Documents itself
+                if name.startswith("/") or ".." in parts or "\0" in name or not (name.strip("/.") or member.isdir()):
+                    raise RefusedError(400, f"{name!r}: not a relative path below the Documents")
+                n += 1
+    except tarfile.TarError as exc:
+        raise RefusedError(400, f"the body is not a tar: {exc}") from exc
+    fh.seek(start)
+    return n
+
+
+class _Counted:
+    """A body, and how much of it was read."""
+
+    def __init__(self, raw):
+        self.raw, self.n = raw, 0
+
+    def read(self, size: int) -> bytes:
+        data = self.raw.read(size)
+        self.n += len(data)
+        return data
+
+
 def _unit_step(argv) -> tuple:
     """(verb, units) of a systemctl command that starts, stops or restarts instances; else (None, [])."""
     if len(argv) >= 3 and argv[0] == "systemctl" and argv[1] in ("start", "restart", "stop"):
@@ -183,6 +379,8 @@ class Agent:
         drained: str = layout.DRAINED,
         journal=None,
         renew_s: float = RENEW_S,
+        files_max_bytes: int = FILES_MAX_BYTES,
+        pipe=run_piped,
     ):
         self.name, self.state_dir, self.host = name, state_dir, host
         self.soak, self.data_root = soak_seconds, data_root
@@ -190,8 +388,16 @@ class Agent:
         self.lock, self.guard, self.record, self.drained = lock, guard or runlock.guard_of(lock), record, drained
         self.journal = journal or say
         self.renew_s = renew_s
+        # a put's tar goes to `pipe(argv, stdin)` (docker exec -i): run_piped, a fake in the tests
+        self.files_max_bytes, self.pipe = files_max_bytes, pipe
         self.actions_dir = os.path.join(state_dir, "actions")
         os.makedirs(self.actions_dir, mode=0o700, exist_ok=True)
+        # the tars of /files in and out, on disk rather than in memory; what a killed agent left goes
+        self.tmp_dir = os.path.join(state_dir, "tmp")
+        os.makedirs(self.tmp_dir, mode=0o700, exist_ok=True)
+        for entry in os.listdir(self.tmp_dir):
+            with contextlib.suppress(OSError):
+                os.unlink(os.path.join(self.tmp_dir, entry))
         self._cv = threading.Condition()
         # one give-back of an instance at a time, however often it is asked for
         self._giving = threading.Lock()
@@ -441,7 +647,7 @@ class Agent:
                     409, f"{self.name} is drained (by {drained.get('by') or '?'}): it takes no new claim", drained=True
                 )
             try:
-                other = lifecycle.lend(host, i, holder)
+                other = lifecycle.lend(host, i, holder, data_root=self.data_root)
             except lifecycle.DrainedError as exc:
                 raise RefusedError(409, str(exc), drained=True) from exc
             if other is not None:
@@ -509,17 +715,147 @@ class Agent:
         i = rec["ids"][0]
         self._event(rec, f"restart: {layout.container(i)} (a fresh container; waits for its ready line)", 10, "running")
         try:
-            why = lifecycle.give_back(host, i, holder)
+            why = lifecycle.give_back(host, i, holder, data_root=self.data_root)
         except Exception as exc:  # pylint: disable=broad-exception-caught
             why = f"{type(exc).__name__}: {exc}"
         ok = why is None
-        rec["result"] = {
-            "ok": ok,
-            "message": f"{layout.container(i)} given back by {holder}: restarted and free"
-            if ok
-            else f"{layout.container(i)} given back by {holder}, but its restart failed: {why}",
-        }
+        # its files could not be moved aside (lifecycle.give_back): it stays the session's; the door asks again
+        held = not ok and lifecycle.lent_to(host, i) == holder
+        if ok:
+            message = f"{layout.container(i)} given back by {holder}: restarted and free"
+        elif held:
+            message = f"{layout.container(i)} not given back by {holder}: {why}"
+        else:
+            message = f"{layout.container(i)} given back by {holder}, but its restart failed: {why}"
+        rec["result"] = {"ok": ok, "message": message, "held": held}
         self._end(rec, who, "succeeded" if ok else "failed")
+
+    # --- a session's files (lifecycle.take_files moved them aside at its end)
+
+    def stashes(self, holder: str) -> list:
+        """The paths of the session's stashes, the newest first."""
+        root = os.path.join(self.data_root, layout.FILES_DIR)
+        try:
+            entries = os.listdir(root)
+        except FileNotFoundError:
+            return []
+        found = []
+        for entry in entries:
+            m = layout.FILES_STASH_RE.match(entry)
+            if m and m.group(1) == holder:
+                found.append(int(m.group(2) or 1))
+        return [layout.files_stash(holder, n, self.data_root) for n in sorted(found, reverse=True)]
+
+    def files_tar(self, holder: str, max_bytes: int) -> tuple:
+        """(path of a temporary tar of the session's stashes, what tar_stashes said); the caller removes
+        the file. RefusedError 404 without a stash, 413 (with "bytes") over max_bytes."""
+        tops = self.stashes(holder)
+        if not tops:
+            raise RefusedError(404, f"no files of {holder} on {self.name}")
+        fd, path = tempfile.mkstemp(prefix="get-", suffix=".tar", dir=self.tmp_dir)
+        try:
+            with os.fdopen(fd, "wb") as out:
+                said = tar_stashes(tops, out, max_bytes)
+            if said["over"]:
+                self.journal(f"files of {holder}: {said['bytes']} bytes, over the {max_bytes} asked for; not sent")
+                raise RefusedError(
+                    413, f"the files of {holder} are {said['bytes']} bytes, over {max_bytes}", bytes=said["bytes"]
+                )
+        except BaseException:
+            os.unlink(path)
+            raise
+        left = f", {said['skipped']} left out (links, devices, fifos, hard links, too deep)" if said["skipped"] else ""
+        self.journal(f"files of {holder}: {said['members']} sent ({said['bytes']} bytes){left}")
+        return path, said
+
+    def files_remove(self, holder: str) -> bool:
+        """Remove the session's stashes (rmtree works through descriptors: it follows no link inside);
+        whether there was one."""
+        tops = self.stashes(holder)
+        for top in tops:
+            if os.path.isdir(top) and not os.path.islink(top):
+                shutil.rmtree(top)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(top)
+        self.journal(f"files of {holder}: " + ("removed" if tops else "none to remove"))
+        return bool(tops)
+
+    def _documents(self, host, holder: str, i: int) -> dict:
+        """Where a put goes, as Docker has it: instance i lent to `holder` and its container running with
+        the instance's Documents directory bind-mounted read-write; {id, user, destination}. Else
+        RefusedError (409: held by another or by none, not running, no such mount; 502: Docker failed)."""
+        name = layout.container(i)
+        now = lifecycle.lent_to(host, i)
+        if now != holder:
+            raise RefusedError(409, f"{name} is held by {now or 'nobody'}, not {holder}; nothing was put", held_by=now)
+        rc, out, err = host.run(["docker", "inspect", "--type", "container", name])
+        try:
+            found = json.loads(out) if rc == 0 else None
+            c = found[0]
+            running, cid = c["State"]["Running"], c["Id"]
+            user, mounts = c["Config"].get("User") or "", c.get("Mounts") or []
+        except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+            raise RefusedError(502, f"docker inspect {name}: {(err or out).strip()[-300:] or exc}") from exc
+        if not running:
+            raise RefusedError(409, f"{name} is not running; nothing was put")
+        docs = layout.documents_dir(i, self.data_root)
+        sources = {os.path.normpath(docs), os.path.realpath(docs)}
+        mount = next((m for m in mounts if m.get("Type") == "bind" and m.get("Source") in sources), None)
+        if mount is None or not mount.get("RW") or not mount.get("Destination"):
+            said = "is mounted read-only" if mount else "is not mounted"
+            raise RefusedError(409, f"{docs} {said} in {name}: there is no Documents to put files into")
+        return {"id": cid, "user": user, "destination": mount["Destination"]}
+
+    def files_put_ready(self, holder: str, i: int, length: int) -> tuple:
+        """(host, where) for a put of `length` bytes into instance i for `holder`, before a byte of it is
+        read; RefusedError 413, 404 or 409 (as _documents) otherwise."""
+        if length > self.files_max_bytes:
+            raise RefusedError(413, f"the tar is {length} bytes, over {self.files_max_bytes}", bytes=length)
+        host = self.host()
+        if i not in _configured(host):
+            raise RefusedError(404, f"instance: {layout.container(i)} not on {self.name}")
+        return host, self._documents(host, holder, i)
+
+    def files_put(self, holder: str, i: int, body, length: int) -> dict:
+        """Put the tar `body` (a file of `length` bytes) into the Documents of instance i, which `holder`
+        holds: extracted by tar inside its running container, as the container's own user, in the
+        directory the instance's Documents is mounted at, so it can reach nothing of the host but that
+        directory. {"put": members, "bytes": length}; RefusedError: 404 (no such instance), 409, 400 (not
+        a tar of regular files and directories), 413, 502 (Docker or tar failed: the door keeps the files).
+
+        The image has a tar (Isaac Sim's are Ubuntu's)."""
+        name = layout.container(i)
+        host, where = self.files_put_ready(holder, i, length)
+        fd, path = tempfile.mkstemp(prefix="put-", suffix=".tar", dir=self.tmp_dir)
+        try:
+            with os.fdopen(fd, "w+b") as spool:
+                left = length
+                while left:
+                    chunk = body.read(min(left, 1 << 20))
+                    if not chunk:
+                        raise RefusedError(400, f"the body ended after {length - left} of {length} bytes")
+                    spool.write(chunk)
+                    left -= len(chunk)
+                spool.seek(0)
+                members = check_tar(spool)
+                # the claim may have ended while the body came: the container is the one inspected, by its id
+                now = lifecycle.lent_to(host, i)
+                if now != holder:
+                    raise RefusedError(409, f"{name} is held by {now or 'nobody'} now, not {holder}; nothing was put")
+            user = ["--user", where["user"]] if where["user"] else []
+            argv = ["docker", "exec", "-i", *user, where["id"], "tar", "--no-same-owner", "-C"]
+            # opened again: the command reads the descriptor from its start, whatever the buffer above it read
+            with open(path, "rb") as tar:
+                rc, out, err = self.pipe(argv + [where["destination"], "-xf", "-"], tar)
+        finally:
+            os.unlink(path)
+        if rc != 0:
+            last = " / ".join(line for line in (err or out).strip().splitlines()[-5:])
+            self.journal(f"files of {holder}: put into {name} failed (exit {rc}): {last}", layout.unit(i))
+            raise RefusedError(502, f"tar in {name} failed (exit {rc}): {last}", rc=rc, stderr=last)
+        self.journal(f"files of {holder}: {members} put into {name} ({length} bytes)", layout.unit(i))
+        return {"put": members, "bytes": length}
 
     def _done(self, rec: dict, who: str, text: str) -> tuple:
         """An action that needed no lifecycle call, written down as succeeded."""
@@ -721,17 +1057,22 @@ def handler(agent: Agent):
         server_version = "isaac-sim-agent"
         sys_version = ""
         timeout = 30
+        # HTTP/1.1 for Expect: 100-continue (a put refused before its body is sent); one request a connection
+        protocol_version = "HTTP/1.1"
 
         def _send(self, code: int, body: dict) -> None:
             data = (json.dumps(body, sort_keys=True) + "\n").encode()
             self.send_response(code)
             self.send_header("Content-Type", "application/json")
             self.send_header("Content-Length", str(len(data)))
+            self.send_header("Connection", "close")
             self.end_headers()
             self.wfile.write(data)
 
         def do_GET(self):  # noqa: N802 - http.server's naming
             path, _sep, query = self.path.partition("?")
+            if path.startswith("/files/"):
+                return self._files("GET", path, query)
             if path == "/health":
                 return self._send(200, {"status": "ok", "host": agent.name, "drained": agent.drained_by()})
             if path == "/actions":
@@ -749,6 +1090,7 @@ def handler(agent: Agent):
             action ends (the connection's end is the stream's)."""
             self.send_response(200)
             self.send_header("Content-Type", "application/x-ndjson")
+            self.send_header("Connection", "close")
             self.end_headers()
             seen = 0
             while True:
@@ -778,6 +1120,103 @@ def handler(agent: Agent):
                 code, body = 500, {"error": "the agent failed; its journal says why (nothing was started)"}
             return self._send(code, body)
 
+        def do_DELETE(self):  # noqa: N802
+            path, _sep, query = self.path.partition("?")
+            return self._files("DELETE", path, query)
+
+        def do_PUT(self):  # noqa: N802
+            path, _sep, query = self.path.partition("?")
+            return self._files("PUT", path, query)
+
+        def _files(self, method: str, path: str, query: str) -> None:
+            """A session's files: GET (?max=BYTES) the tar of its stashes, DELETE them, PUT (?instance=N)
+            a tar into the Documents of the instance it holds."""
+            sent = _Counted(self.rfile)
+            try:
+                holder = files_holder(path)
+                if method == "GET":
+                    asked = parse_query(query, ("max",))
+                    tar, said = agent.files_tar(holder, asked.get("max", agent.files_max_bytes))
+                    try:
+                        self._send_file(tar, said)
+                    except OSError as exc:  # the door went away while it was sent: nothing to answer
+                        agent.journal(f"GET {path}: not sent whole: {exc}")
+                    finally:
+                        os.unlink(tar)
+                    return None
+                if method == "DELETE":
+                    parse_query(query, ())
+                    return self._send(200, {"removed": agent.files_remove(holder)})
+                holder, i, length = self._put_request(query)
+                code, body = 200, agent.files_put(holder, i, sent, length)
+            except RefusedError as refused:
+                code, body = refused.code, refused.body
+                if code != 404 or method != "GET":
+                    agent.journal(f"refused {method} {path}: {refused}")
+            except Exception as exc:  # pylint: disable=broad-exception-caught
+                agent.journal(f"error on {method} {path}: {type(exc).__name__}: {exc}")
+                code, body = 500, {"error": "the agent failed; its journal says why"}
+            self._drain(sent)
+            return self._send(code, body)
+
+        def _put_request(self, query: str) -> tuple:
+            """(holder, instance, length) of a PUT /files/HOLDER?instance=N; RefusedError otherwise."""
+            holder = files_holder(self.path.partition("?")[0])
+            asked = parse_query(query, ("instance",))
+            if "instance" not in asked or not 0 <= asked["instance"] <= 99:
+                raise RefusedError(400, "instance: the number (0-99) of the instance the session holds")
+            length = self.headers.get("Content-Length")
+            if self.headers.get("Transfer-Encoding") or length is None:
+                raise RefusedError(411, "Content-Length: needed (the tar's size)")
+            if not length.strip().isdigit():
+                raise RefusedError(400, "Content-Length: not a number")
+            return holder, asked["instance"], int(length)
+
+        def handle_expect_100(self):
+            """A put that will be refused is refused before its body is sent (the door waits for 100 Continue)."""
+            if self.command == "PUT":
+                path, _sep, query = self.path.partition("?")
+                try:
+                    holder, i, length = self._put_request(query)
+                    agent.files_put_ready(holder, i, length)
+                except RefusedError as refused:
+                    agent.journal(f"refused PUT {path}: {refused}")
+                    self._send(refused.code, refused.body)
+                    return False
+                except Exception as exc:  # pylint: disable=broad-exception-caught
+                    agent.journal(f"error on PUT {path}: {type(exc).__name__}: {exc}")
+                    self._send(500, {"error": "the agent failed; its journal says why"})
+                    return False
+            return super().handle_expect_100()
+
+        def _drain(self, sent) -> None:
+            """A body refused before it was read is read to its end, up to DRAIN_BYTES, so the client gets
+            the answer (a socket closed with bytes unread is reset, the answer lost); a larger one is not."""
+            length = self.headers.get("Content-Length", "").strip()
+            left = int(length) - sent.n if length.isdigit() else 0
+            if left <= 0:
+                return
+            if left > DRAIN_BYTES:
+                self.close_connection = True
+                return
+            with contextlib.suppress(OSError):
+                while left > 0:
+                    chunk = self.rfile.read(min(left, 1 << 16))
+                    if not chunk:
+                        break
+                    left -= len(chunk)
+
+        def _send_file(self, tar: str, said: dict) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "application/x-tar")
+            self.send_header("Content-Length", str(os.path.getsize(tar)))
+            self.send_header("X-Files-Bytes", str(said["bytes"]))
+            self.send_header("X-Files-Skipped", str(said["skipped"]))
+            self.send_header("Connection", "close")
+            self.end_headers()
+            with open(tar, "rb") as fh:
+                shutil.copyfileobj(fh, self.wfile, 1 << 20)
+
         def log_message(self, *args):
             pass
 
@@ -796,9 +1235,18 @@ def main(argv=None):
     parser.add_argument("--state-dir", default=layout.AGENT_STATE_DIR)
     parser.add_argument("--soak", type=float, default=0.0, help="seconds a restarted instance soaks")
     parser.add_argument("--data-root", default=layout.DATA_ROOT)
+    parser.add_argument(
+        "--files-max-bytes", type=int, default=FILES_MAX_BYTES, help="the largest tar of a session's files put"
+    )
     args = parser.parse_args(argv)
     networks = [ipaddress.ip_network(n, strict=False) for n in args.allow]
-    agent = Agent(args.name, args.state_dir, soak_seconds=args.soak, data_root=args.data_root)
+    agent = Agent(
+        args.name,
+        args.state_dir,
+        soak_seconds=args.soak,
+        data_root=args.data_root,
+        files_max_bytes=args.files_max_bytes,
+    )
     ctx = tls_context(*(os.path.join(args.tls_dir, f) for f in ("agent.crt", "agent.key", "ca.crt")))
     server = Server((args.address or "0.0.0.0", args.port), handler(agent), ctx, networks)
     say(

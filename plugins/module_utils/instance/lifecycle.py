@@ -767,6 +767,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
             end_sessions=want.get("end_sessions"),
             by=want.get("by", ""),
             ended=result["ended"],
+            data_root=want.get("data_root", layout.DATA_ROOT),
         )
         if holder is not None and _in_the_way(i, current, desired, main_env, steps):
             failed = _lent_failure(i, holder, "not changed (a port layout change cannot leave it behind)")
@@ -905,6 +906,7 @@ def held_after(
     end_sessions=None,
     by: str = "",
     ended=None,
+    data_root: str = layout.DATA_ROOT,
 ) -> str | None:
     """Who still holds instance i after waiting up to wait_s for them to give it back; None once it is
     free (or held by `borrower`). A loan whose runner is gone is waited for as any other: the next run
@@ -914,7 +916,9 @@ def held_after(
     ended for this rollout: its marker says when and by whom (the host's status shows it, the door warns
     the person), and at that time its claim ends here (None: the instance rolls, restarted as the others;
     the door sees the claim gone; `ended`, a list, gets {id, holder}). A test run is never ended so. None:
-    sessions are waited for as runs are."""
+    sessions are waited for as runs are. The session's Documents are moved aside for it first
+    (take_files, under data_root); where they cannot be, its claim is not ended: the instance is left for
+    it (its holder returned, the warning taken back, the reason in the journal), so no one else gets them."""
     deadline = host.now() + max(0.0, float(wait_s or 0))
     ends_at = None
     while True:
@@ -927,6 +931,12 @@ def held_after(
                 notice = {"at": round(host.wall() + max(0.0, float(end_sessions)), 3), "by": by or "an operator"}
                 host.write(ending_marker(i), json.dumps(notice) + "\n", 0o644)
             if host.now() >= ends_at:
+                try:
+                    take_files(host, i, holder, data_root)
+                except OSError as exc:
+                    host.remove(ending_marker(i))
+                    host.run(["logger", "-t", "isaac-sim-lifecycle", f"{layout.container(i)} left for {holder}: {exc}"])
+                    return holder
                 unlend(host, i, holder)
                 if ended is not None:
                     ended.append(_left(i, holder))
@@ -974,7 +984,16 @@ def drained(host: Host) -> str:
         return "(its record unreadable)"
 
 
-def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.0, pid=None, companions=None):
+def lend(
+    host: Host,
+    i: int,
+    run: str,
+    wait_s: float = 0.0,
+    interval: float = 1.0,
+    pid=None,
+    companions=None,
+    data_root: str = layout.DATA_ROOT,
+):
     """Lend instance i to `run` (its runner's process `pid`), waiting up to wait_s for the run
     that has it to give it back. Returns None once lent, else the run that still has it. A loan
     whose runner's process is gone is ended first, as its runner would have (restart, then free).
@@ -999,11 +1018,98 @@ def lend(host: Host, i: int, run: str, wait_s: float = 0.0, interval: float = 1.
             if not host.exists(layout.lent_marker(i)):
                 raise OSError(f"cannot lend {layout.container(i)}: {err.strip()}")
         elif holder_pid and not host.exists(f"/proc/{holder_pid}"):
-            give_back(host, i, holder, companions)
-            continue
+            give_back(host, i, holder, companions, data_root)
+            if lent_to(host, i) != holder:
+                continue
+            # still its holder's (its files could not be moved aside): waited for as a live loan
         if host.now() >= deadline:
             return lent_to(host, i) or "a run"
         host.sleep(interval)
+
+
+class FilesError(OSError):
+    """A session's files could not be moved aside: the reason names the path and the fix."""
+
+
+def _stat(host: Host, *paths) -> list:
+    """[(uid, gid, mode, device, mount point, type)] of each path itself (a link is not followed), or
+    FilesError naming what stat said."""
+    # two lines a path: the type ("regular file") and the mount point may have spaces
+    rc, out, err = host.run(["stat", "--printf", "%u %g %a %d %F\n%m\n"] + list(paths))
+    lines = out.split("\n")
+    if rc != 0 or len(lines) != 2 * len(paths) + 1:
+        raise FilesError(f"stat {' '.join(paths)}: {(err or out).strip() or f'exit {rc}'}")
+    found = []
+    for n in range(len(paths)):
+        uid, gid, mode, dev, kind = lines[2 * n].split(" ", 4)
+        found.append((uid, gid, mode, dev, lines[2 * n + 1], kind))
+    return found
+
+
+def _fresh_documents(host: Host, docs: str, like: tuple) -> None:
+    """An empty Documents directory with the owner, group and mode of the one moved aside: the container
+    user must write it (Docker would make a missing bind source root's)."""
+    uid, gid, mode = like[:3]
+    rc, out, err = host.run(["install", "-d", "-o", uid, "-g", gid, "-m", mode, docs])
+    if rc != 0:
+        raise FilesError(
+            f"could not make an empty {docs} again (owner {uid}:{gid}, mode {mode}): {(err or out).strip()}. "
+            "Fix: make it by hand with that owner and mode, then give the instance back again"
+        )
+
+
+def take_files(host: Host, i: int, holder: str, data_root: str = layout.DATA_ROOT) -> str | None:
+    """Move instance i's Documents aside for the session `holder`, so the next person never sees them:
+    the directory is renamed, whole, to layout.files_dir(holder) (on the same filesystem: root never
+    reads, copies or follows anything inside it), then an empty one with the same owner, group and mode
+    takes its place. Returns the stash's path; None when there was nothing to move (a test run's holder,
+    no Documents directory, or an empty one: moved all the same, then removed if still empty, so a file the
+    person's container writes meanwhile goes with them).
+
+    Again after a crash between the two steps (no Documents, the stash there), it only makes the empty
+    directory. It never writes over a stash: one the front door has not taken yet stays, and this one
+    goes beside it, files_dir(holder).2, .3 (the agent's GET /files merges them, the newest first).
+    A failure raises FilesError: the caller must not give the instance to anyone while its Documents
+    may still hold this person's files."""
+    if not isinstance(holder, str) or not layout.SESSION_RE.match(holder):
+        return None
+    docs = layout.documents_dir(i, data_root)
+    root = os.path.join(data_root, layout.FILES_DIR)
+    stashes = []
+    while host.exists(layout.files_stash(holder, len(stashes) + 1, data_root)):
+        stashes.append(layout.files_stash(holder, len(stashes) + 1, data_root))
+    if not host.exists(docs):
+        if not stashes:
+            return None
+        # moved before a crash: the newest stash is that directory, with its owner and mode
+        _fresh_documents(host, docs, _stat(host, stashes[-1])[0])
+        return stashes[-1]
+    # only root may enter: a stash is the front door's to take, through the agent
+    rc, out, err = host.run(["install", "-d", "-m", "0700", root])
+    if rc != 0:
+        raise FilesError(f"could not make {root}: {(err or out).strip()}. Fix: make it (root's, mode 0700)")
+    old, where = _stat(host, docs, root)
+    if old[5] != "directory":
+        raise FilesError(f"{docs} is a {old[5]}, not a directory; left as it is. Fix: look at it, remove it by hand")
+    # a rename only: mv copies across filesystems (as root, inside the person's tree), and that it must not
+    if old[3:5] != where[3:5]:
+        raise FilesError(
+            f"{docs} (mount {old[4]}) and {root} (mount {where[4]}) are not on one filesystem, so its files "
+            f"cannot be moved aside by a rename. Fix: keep {data_root} on one filesystem"
+        )
+    stash = layout.files_stash(holder, len(stashes) + 1, data_root)
+    # -T: onto that name, never into a directory of that name; a non-empty one there makes it fail
+    rc, out, err = host.run(["mv", "-T", docs, stash])
+    if rc != 0:
+        raise FilesError(
+            f"could not move {docs} to {stash}: {(err or out).strip()}. Fix: free disk space or the name, "
+            "then give the instance back again"
+        )
+    _fresh_documents(host, docs, old)
+    # empty (the fresh one of a give-back done before): no stash of nothing. rmdir removes an empty
+    # directory only, so whatever the container wrote into it after the rename stays
+    rc, _out, _err = host.run(["rmdir", stash])
+    return None if rc == 0 else stash
 
 
 def unlend(host: Host, i: int, run: str) -> None:
@@ -1012,16 +1118,33 @@ def unlend(host: Host, i: int, run: str) -> None:
         host.remove(layout.lent_marker(i))
 
 
-def give_back(host: Host, i: int, run: str, companions=None) -> str | None:
-    """The end of a loan, in this order: instance i restarted clean, ready, then free, so the
-    next borrower never gets what the last one left. Returns why the restart failed (the
-    instance is free all the same: a failed instance is not ready, so it is not lent again)."""
+def give_back(host: Host, i: int, run: str, companions=None, data_root: str = layout.DATA_ROOT) -> str | None:
+    """The end of a loan, in this order: a session's Documents moved aside for it (take_files), instance
+    i restarted clean, ready, then free, so the next borrower never gets what the last one left. Returns
+    why the restart failed (the instance is free all the same: a failed instance is not ready, so it is
+    not lent again).
+
+    When a session's files cannot be moved aside, the instance is restarted all the same (the person's
+    container ends) but stays lent to `run`: nobody else is lent what may still hold their files, and
+    nothing of theirs is removed. The reason, which names the path and the fix, is returned; the same
+    give_back again, once that is fixed, finishes it."""
     holder = lent_to(host, i)
     if holder != run:
         return f"{layout.container(i)} is lent to {holder or 'no run'}, not to {run}; left alone"
-    outcome = restart_each(host, [i], 0, companions=companions, borrower=run)
+    kept = None
+    try:
+        take_files(host, i, run, data_root)
+    except OSError as exc:
+        kept = str(exc)
+    outcome = restart_each(host, [i], 0, companions=companions, borrower=run, data_root=data_root)
+    failed = outcome["failed"]["reason"] if outcome["failed"] else None
+    if kept is not None:
+        host.run(["logger", "-t", "isaac-sim-lifecycle", f"{layout.container(i)} stays lent to {run}: {kept}"])
+        return f"{kept}; {layout.container(i)} stays lent to {run}" + (
+            f" (its restart failed: {failed})" if failed else ""
+        )
     host.remove(layout.lent_marker(i))
-    return outcome["failed"]["reason"] if outcome["failed"] else None
+    return failed
 
 
 def restart_each(
@@ -1034,6 +1157,7 @@ def restart_each(
     held_wait: float = 0.0,
     end_sessions=None,
     by: str = "",
+    data_root: str = layout.DATA_ROOT,
 ) -> dict:
     """A rolling restart of a host: each instance in turn restarted, ready and soaked, with its
     companions ({id: [names]}).
@@ -1042,7 +1166,8 @@ def restart_each(
     nothing older to go back to) and the restart stops there. An instance lent to a run
     other than `borrower` is waited for up to held_wait seconds, then left as it is
     ("left", with its holder) and the restart goes on with the next; one a person's session holds is
-    ended after end_sessions seconds of warning where that is given (held_after).
+    ended after end_sessions seconds of warning where that is given (held_after; its Documents under
+    data_root moved aside for it first).
     """
     ids = list(ids)
     result = {"done": [], "failed": None, "untouched": [], "left": [], "ended": [], "changed": bool(ids)}
@@ -1055,7 +1180,9 @@ def restart_each(
         why = host.interrupted()
         if why:
             return interrupt(host, result, why, ids[n:])
-        holder = held_after(host, i, borrower, held_wait, end_sessions=end_sessions, by=by, ended=result["ended"])
+        holder = held_after(
+            host, i, borrower, held_wait, end_sessions=end_sessions, by=by, ended=result["ended"], data_root=data_root
+        )
         if holder is not None:
             result["left"].append(_left(i, holder))
             continue

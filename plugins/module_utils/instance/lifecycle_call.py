@@ -237,6 +237,7 @@ def _restart(host: Host, p: dict, out: dict, found: dict, check: bool) -> dict:
         companions=found,
         held_wait=p.get("held_wait", 0),
         end_sessions=p.get("end_sessions"),
+        data_root=p.get("data_root") or layout.DATA_ROOT,
     )
     out["changed"] = result["changed"]
     return result

@@ -323,7 +323,7 @@ def render_agent_unit(agent: dict, managed: str = layout.MANAGED) -> str:
         ("RestartSec", 5),
         # an action in hand ends with the process; systemd finishes the instance's own job
         ("KillMode", "mixed"),
-        *sandbox.agent(),
+        *sandbox.agent(agent["data_root"]),
         ("MemoryMax", "256M"),
         ("TasksMax", 64),
     ]

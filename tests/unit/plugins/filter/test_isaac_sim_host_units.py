@@ -64,7 +64,7 @@ def test_the_agent_runs_from_its_copy_of_the_code_for_the_front_door_s_networks(
         "ExecStart=/usr/bin/python3 -m ansible_collections.isaacsim.fleet.plugins.module_utils.instance.agent"
         " --name 'gpu host 1' --port 8291 --allow 10.0.0.9/32 --soak 30.0 --data-root /data/isaac"
     )
-    for key, value in sandbox.agent():
+    for key, value in sandbox.agent("/data/isaac"):
         assert f"{key}={value}" in text
 
 

@@ -91,3 +91,24 @@ def test_parse_shown_reads_systemctl_show_by_unit():
         "b.timer": {"Id": "b.timer", "ActiveState": "inactive", "X": "1=2"},
     }
     assert layout.parse_shown("") == {} and layout.parse_shown(None) == {}
+
+
+def test_a_session_s_files_go_beside_the_instances_under_its_own_name_and_only_a_session_s_name():
+    assert (
+        layout.documents_dir(3, "/d") == "/d/instance-3/documents" == f"{layout.data_dir(3, '/d')}/{layout.DOCUMENTS}"
+    )
+    assert layout.files_dir("session-ab12") == "/var/lib/isaac-sim/files/session-ab12"
+    assert layout.files_stash("session-ab12", 1, "/d") == "/d/files/session-ab12"
+    assert layout.files_stash("session-ab12", 2, "/d") == "/d/files/session-ab12.2"
+    for bad in ("run-a", "session-", "session-AB", "session-a/../../etc", "../session-a", "session-a\n", None):
+        with pytest.raises(ValueError):
+            layout.files_dir(bad)
+    found = {n: layout.FILES_STASH_RE.match(n) for n in ("session-a", "session-a.2", "session-a.10", "session-a.1")}
+    assert {n: m and (m.group(1), m.group(2)) for n, m in found.items()} == {
+        "session-a": ("session-a", None),
+        "session-a.2": ("session-a", "2"),
+        "session-a.10": ("session-a", "10"),
+        # never made: files_stash(holder, 1) is the name without a number
+        "session-a.1": None,
+    }
+    assert not layout.FILES_STASH_RE.match("session-a.02") and not layout.FILES_STASH_RE.match("run-a.2")

@@ -6,19 +6,26 @@ certificates made with openssl)."""
 from __future__ import annotations
 
 import http.client
+import io
 import json
 import os
 import socket
 import ssl
 import subprocess
+import tarfile
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
 from ansible_collections.isaacsim.fleet.plugins.module_utils.instance import agent, lifecycle, runlock
 from ansible_collections.isaacsim.fleet.tests.unit.helpers import make_pki
-from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import ScriptedHost
+from ansible_collections.isaacsim.fleet.tests.unit.plugins.module_utils.instance.test_lifecycle import (
+    ScriptedHost,
+    documents,
+    real_files,
+)
 
 
 def make(tmp_path, n=4, running=True, **over):
@@ -505,7 +512,7 @@ def pki(tmp_path_factory):
 
 @pytest.fixture
 def channel(tmp_path, pki):
-    a, h, lines = make(tmp_path)
+    a, h, lines = make(tmp_path, data_root=str(tmp_path / "data"), pipe=Container(tmp_path / "inside"))
     said = []
     ctx = agent.tls_context(str(pki / "agent.crt"), str(pki / "agent.key"), str(pki / "ca.crt"))
     server = agent.Server(
@@ -692,3 +699,460 @@ def test_more_clients_at_once_than_the_agent_serves_are_closed_and_the_next_one_
             time.sleep(0.2)
     else:
         raise AssertionError("not served again once the others went")
+
+
+# --- a session's files: GET and DELETE its stashes, PUT a tar into the instance it holds
+
+HOLDER = "session-ab12"
+PASSWD = Path("/etc/passwd").read_bytes()
+
+
+class Container:
+    """docker exec -i ... tar ... -C DEST -xf - as the container would run it: the real tar, with `inside`
+    for DEST (what the container's Documents mount is); each call written down. answer: (rc, out, err)
+    instead of running it."""
+
+    def __init__(self, inside, answer=None):
+        self.inside, self.answer, self.calls = inside, answer, []
+
+    def __call__(self, argv, stdin):
+        self.calls.append(list(argv))
+        if self.answer:
+            return self.answer
+        os.makedirs(self.inside, exist_ok=True)
+        tar = argv[argv.index("tar") :]
+        tar[tar.index("-C") + 1] = str(self.inside)
+        done = subprocess.run(tar, stdin=stdin, capture_output=True, text=True, check=False)
+        return done.returncode, done.stdout, done.stderr
+
+
+def files_agent(tmp_path, answer=None, **over):
+    """An agent whose data root is in tmp_path, its containers' put done by a Container."""
+    box = Container(tmp_path / "inside", answer)
+    a, h, lines = make(tmp_path, data_root=str(tmp_path / "data"), pipe=box, **over)
+    return a, h, lines, box
+
+
+def docker(h, a, i=2, running=True, source=None, rw=True, user="1234:1234"):
+    """docker inspect of instance i's container as Docker answers it: its documents directory mounted."""
+    c = {
+        "Id": "c0ffee" + "0" * 58,
+        "State": {"Running": running},
+        "Config": {"User": user},
+        "Mounts": [
+            {
+                "Type": "bind",
+                "Source": f"{a.data_root}/instance-{i}/logs",
+                "Destination": "/isaac-sim/logs",
+                "RW": True,
+            },
+            {
+                "Type": "bind",
+                "Source": source or layout.documents_dir(i, a.data_root),
+                "Destination": "/isaac-sim/Documents",
+                "RW": rw,
+            },
+        ],
+    }
+    run = h.host.run
+
+    def inspect(argv):
+        if argv[:2] == ["docker", "inspect"]:
+            if argv[-1] != layout.container(i):
+                return 1, "[]", f"Error: No such container: {argv[-1]}"
+            return 0, json.dumps([c]), ""
+        return run(argv)
+
+    h.host.run = inspect
+    return c
+
+
+def stash(a, files, n=1, holder=HOLDER):
+    """A stash of `holder` with files {relative path: bytes or text}."""
+    top = layout.files_stash(holder, n, a.data_root)
+    os.makedirs(top)
+    for rel, data in files.items():
+        os.makedirs(os.path.dirname(os.path.join(top, rel)), exist_ok=True)
+        with open(os.path.join(top, rel), "wb") as fh:
+            fh.write(data.encode() if isinstance(data, str) else data)
+    return top
+
+
+def members(path) -> dict:
+    """{name: (type, mode, uid, gid, uname, gname, content or None)} of a tar file."""
+    out = {}
+    with tarfile.open(path) as tar:
+        for m in tar:
+            data = tar.extractfile(m).read() if m.isreg() else None
+            out[m.name] = (m.type, m.mode, m.uid, m.gid, m.uname, m.gname, data)
+    return out
+
+
+def tar_of(entries) -> bytes:
+    """A tar of [(name, type, content)] made here (the door's side)."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, kind, data in entries:
+            info = tarfile.TarInfo(name)
+            info.type = kind
+            if kind == tarfile.SYMTYPE:
+                info.linkname = data
+                tar.addfile(info)
+            elif kind == tarfile.DIRTYPE:
+                info.mode = 0o755
+                tar.addfile(info)
+            else:
+                info.size, info.mode = len(data), 0o644
+                tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def test_get_files_is_a_tar_of_the_stash_with_relative_names_no_owner_and_regular_files_and_directories_only(
+    tmp_path,
+):
+    a, _h, lines, _box = files_agent(tmp_path)
+    top = stash(a, {"a.txt": "hello", "sub/b.bin": b"\x00\x01\x02"})
+    os.chmod(os.path.join(top, "a.txt"), 0o4755)
+    # hostile: links to the host's files and directories, a fifo, a second name of a file
+    os.symlink("/etc/passwd", os.path.join(top, "passwd"))
+    os.symlink("/etc", os.path.join(top, "etc"))
+    os.symlink("../../../../../../../etc/passwd", os.path.join(top, "sub", "up"))
+    os.mkfifo(os.path.join(top, "sub", "pipe"))
+    os.link(os.path.join(top, "a.txt"), os.path.join(top, "z-again.txt"))
+    path, said = a.files_tar(HOLDER, 10**6)
+    try:
+        got = members(path)
+        assert os.path.dirname(path) == a.tmp_dir
+    finally:
+        os.unlink(path)
+    assert sorted(got) == ["a.txt", "sub", "sub/b.bin"]
+    assert got["a.txt"] == (tarfile.REGTYPE, 0o755, 0, 0, "", "", b"hello")
+    assert got["sub"][:6] == (tarfile.DIRTYPE, 0o755, 0, 0, "", "")
+    assert got["sub/b.bin"][6] == b"\x00\x01\x02"
+    assert not any(PASSWD in (m[6] or b"") for m in got.values())
+    assert said == {"bytes": 8, "members": 3, "skipped": 5, "over": False}
+    assert (
+        "",
+        f"files of {HOLDER}: 3 sent (8 bytes), 5 left out (links, devices, fifos, hard links, too deep)",
+    ) in lines
+    # the stash stays as it is until the door removes it
+    assert sorted(os.listdir(top)) == ["a.txt", "etc", "passwd", "sub", "z-again.txt"]
+
+
+def test_a_stash_that_is_itself_a_link_is_not_read(tmp_path):
+    a, _h, _lines, _box = files_agent(tmp_path)
+    os.makedirs(os.path.join(a.data_root, layout.FILES_DIR))
+    os.symlink("/etc", layout.files_dir(HOLDER, a.data_root))
+    path, said = a.files_tar(HOLDER, 10**9)
+    try:
+        assert members(path) == {} and said["members"] == 0
+    finally:
+        os.unlink(path)
+
+
+def test_get_files_over_max_is_413_with_the_total_and_none_is_404_and_no_tar_is_left(tmp_path):
+    a, _h, _lines, _box = files_agent(tmp_path)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.files_tar(HOLDER, 10)
+    assert exc.value.code == 404 and exc.value.body == {"error": f"no files of {HOLDER} on gpu-1"}
+    stash(a, {"a": "12345", "b/c": "678901"})
+    with pytest.raises(agent.RefusedError) as exc:
+        a.files_tar(HOLDER, 10)
+    assert exc.value.code == 413 and exc.value.body["bytes"] == 11 and "over 10" in exc.value.body["error"]
+    assert os.listdir(a.tmp_dir) == []
+
+
+def test_get_files_merges_a_later_stash_over_an_earlier_one_so_nothing_is_lost(tmp_path):
+    a, _h, _lines, _box = files_agent(tmp_path)
+    stash(a, {"x": "old", "only-old": "o", "d/inner": "gone under a file", "f": "was a file"})
+    stash(a, {"x": "new", "d": "a file now", "f/inside": "a directory now"}, n=2)
+    path, _said = a.files_tar(HOLDER, 10**6)
+    try:
+        got = {name: m[6] for name, m in members(path).items()}
+    finally:
+        os.unlink(path)
+    assert got == {"d": b"a file now", "f": None, "f/inside": b"a directory now", "only-old": b"o", "x": b"new"}
+
+
+def test_delete_files_removes_every_stash_of_the_session_and_nothing_a_link_in_it_names(tmp_path):
+    a, _h, lines, _box = files_agent(tmp_path)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "keep").write_text("not theirs")
+    top = stash(a, {"a": "1"})
+    os.symlink(str(outside), os.path.join(top, "out"))
+    stash(a, {"b": "2"}, n=2)
+    other = stash(a, {"c": "3"}, holder="session-cd34")
+    assert a.files_remove(HOLDER) is True
+    assert os.listdir(os.path.join(a.data_root, layout.FILES_DIR)) == ["session-cd34"] and os.path.isdir(other)
+    assert (outside / "keep").read_text() == "not theirs"
+    assert a.files_remove(HOLDER) is False
+    assert [line for _unit, line in lines[-2:]] == [f"files of {HOLDER}: removed", f"files of {HOLDER}: none to remove"]
+
+
+def test_put_files_extracts_in_the_running_container_as_its_user_into_its_documents_mount(tmp_path):
+    a, h, lines, box = files_agent(tmp_path)
+    lifecycle.lend(h.host, 2, HOLDER)
+    c = docker(h, a)
+    body = tar_of(
+        [
+            ("notes.txt", tarfile.REGTYPE, b"mine\n"),
+            ("scenes", tarfile.DIRTYPE, None),
+            ("scenes/a.usd", tarfile.REGTYPE, b"#usda 1.0\n"),
+        ]
+    )
+    assert a.files_put(HOLDER, 2, io.BytesIO(body), len(body)) == {"put": 3, "bytes": len(body)}
+    # the very container inspected (its id), its configured user, the destination of the documents mount
+    assert box.calls == [
+        ["docker", "exec", "-i", "--user", "1234:1234", c["Id"], "tar", "--no-same-owner", "-C", "/isaac-sim/Documents"]
+        + ["-xf", "-"]
+    ]
+    assert (tmp_path / "inside" / "scenes" / "a.usd").read_text() == "#usda 1.0\n"
+    assert (layout.unit(2), f"files of {HOLDER}: 3 put into isaac-sim-2 ({len(body)} bytes)") in lines
+    assert os.listdir(a.tmp_dir) == []
+    # a container that runs as the image's user (root on 4.x): no --user, docker exec runs as it does
+    docker(h, a, user="")
+    a.files_put(HOLDER, 2, io.BytesIO(body), len(body))
+    assert "--user" not in box.calls[-1]
+
+
+class NotRead(io.RawIOBase):
+    def read(self, *_args):
+        raise AssertionError("the body was read")
+
+
+@pytest.mark.parametrize(
+    ("why", "code", "words"),
+    [
+        ("lent to nobody", 409, "isaac-sim-2 is held by nobody, not session-ab12"),
+        ("lent to another", 409, "isaac-sim-2 is held by session-cd34, not session-ab12"),
+        ("too big", 413, "over 20000"),
+        ("not configured", 404, "isaac-sim-7 not on gpu-1"),
+        ("not mounted", 409, "documents is not mounted in isaac-sim-2"),
+        ("read-only", 409, "documents is mounted read-only in isaac-sim-2"),
+        ("stopped", 409, "isaac-sim-2 is not running"),
+        ("a link", 400, "'notes.txt': only regular files and directories"),
+        ("a way out", 400, "'../escape': not a relative path"),
+        ("absolute", 400, "'/etc/cron.d/x': not a relative path"),
+        ("not a tar", 400, "the body is not a tar"),
+        ("tar fails", 502, "tar in isaac-sim-2 failed (exit 2): tar: scenes: Cannot mkdir: Disk quota exceeded"),
+    ],
+)
+def test_put_files_is_refused_with_nothing_run_in_the_container(tmp_path, why, code, words):
+    answer = (2, "", "tar: scenes: Cannot mkdir: Disk quota exceeded\ntar: Exiting with failure status")
+    a, h, lines, box = files_agent(tmp_path, answer if why == "tar fails" else None, files_max_bytes=20000)
+    i = 7 if why == "not configured" else 2
+    if why != "lent to nobody":
+        lifecycle.lend(h.host, 2, "session-cd34" if why == "lent to another" else HOLDER)
+    docker(
+        h,
+        a,
+        running=why != "stopped",
+        rw=why != "read-only",
+        source="/var/lib/elsewhere" if why == "not mounted" else None,
+    )
+    entries = [("notes.txt", tarfile.REGTYPE, b"mine\n")]
+    if why == "a link":
+        entries = [("notes.txt", tarfile.SYMTYPE, "/etc/passwd")]
+    elif why == "a way out":
+        entries.append(("../escape", tarfile.REGTYPE, b"x"))
+    elif why == "absolute":
+        entries.append(("/etc/cron.d/x", tarfile.REGTYPE, b"x"))
+    body = b"hello, not a tar" * 40 if why == "not a tar" else tar_of(entries)
+    length = 20001 if why == "too big" else len(body)
+    with pytest.raises(agent.RefusedError) as exc:
+        a.files_put(HOLDER, i, NotRead() if why == "too big" else io.BytesIO(body), length)
+    assert exc.value.code == code and words in exc.value.body["error"], exc.value.body
+    assert len(box.calls) == (why == "tar fails") and os.listdir(a.tmp_dir) == []
+    if why == "tar fails":
+        assert exc.value.body["stderr"].endswith("tar: Exiting with failure status")
+        assert lines[-1] == (
+            layout.unit(2),
+            f"files of {HOLDER}: put into isaac-sim-2 failed (exit 2): tar: scenes: Cannot mkdir: Disk quota exceeded"
+            " / tar: Exiting with failure status",
+        )
+
+
+def test_put_files_of_a_claim_that_ended_while_its_body_came_puts_nothing(tmp_path):
+    a, h, _lines, box = files_agent(tmp_path)
+    lifecycle.lend(h.host, 2, HOLDER)
+    docker(h, a)
+    body = tar_of([("notes.txt", tarfile.REGTYPE, b"mine\n")])
+
+    class EndsTheClaim(io.BytesIO):
+        def read(self, *args):
+            lifecycle.unlend(h.host, 2, HOLDER)
+            lifecycle.lend(h.host, 2, "session-cd34")
+            return super().read(*args)
+
+    with pytest.raises(agent.RefusedError) as exc:
+        a.files_put(HOLDER, 2, EndsTheClaim(body), len(body))
+    assert exc.value.code == 409 and "held by session-cd34 now" in exc.value.body["error"] and box.calls == []
+
+
+@pytest.mark.parametrize(
+    ("query", "names", "words"),
+    [
+        ("max=1&x=2", ("max",), "'x': not a parameter"),
+        ("max=1&max=2", ("max",), "max: given twice"),
+        ("max=-1", ("max",), "max: '-1' is not a number"),
+        ("max", ("max",), "max: '' is not a number"),
+        ("instance=1", (), "(its parameters: none)"),
+    ],
+)
+def test_a_query_is_strict(query, names, words):
+    with pytest.raises(agent.RefusedError) as exc:
+        agent.parse_query(query, names)
+    assert exc.value.code == 400 and words in exc.value.body["error"]
+    assert agent.parse_query("max=10&instance=2", ("max", "instance")) == {"max": 10, "instance": 2}
+
+
+def test_a_give_back_through_the_agent_moves_the_session_s_files_and_a_failed_move_keeps_the_claim(tmp_path):
+    a, h, _lines, _box = files_agent(tmp_path)
+    real_files(h, a.data_root)
+    docs = documents(a.data_root, 3)
+    a.submit(req("claim", ids=[3], holder=HOLDER))
+    _code, body = a.submit(req("give_back", ids=[3], holder=HOLDER))
+    a.wait()
+    assert a.get(body["id"])["result"] == {
+        "ok": True,
+        "message": f"isaac-sim-3 given back by {HOLDER}: restarted and free",
+        "held": False,
+    }
+    assert os.listdir(docs) == [] and "notes.txt" in os.listdir(layout.files_dir(HOLDER, a.data_root))
+    # the stash there, the same session's later files could not move: it stays the session's
+    documents(a.data_root, 1)
+    real_files(h, a.data_root, fail={"mv": (1, "", "mv: No space left on device")})
+    a.submit(req("claim", ids=[1], holder=HOLDER))
+    _code, body = a.submit(req("give_back", ids=[1], holder=HOLDER))
+    a.wait()
+    result = a.get(body["id"])["result"]
+    assert (
+        not result["ok"]
+        and result["held"] is True
+        and result["message"].startswith(f"isaac-sim-1 not given back by {HOLDER}: could not move")
+    )
+    assert lifecycle.lent_to(h.host, 1) == HOLDER
+
+
+def send(server, ctx, method, path, data=b"", headers=None):
+    conn = http.client.HTTPSConnection("127.0.0.1", server.server_address[1], context=ctx, timeout=10)
+    try:
+        conn.request(method, path, body=data, headers=headers or {})
+        answer = conn.getresponse()
+        return answer.status, dict(answer.getheaders()), answer.read()
+    finally:
+        conn.close()
+
+
+def test_the_files_endpoints_over_the_channel(channel, pki):
+    server, a, h, said = channel
+    ctx = client(pki, door(pki))
+    stash(a, {"notes.txt": "mine\n"})
+    os.symlink("/etc/passwd", os.path.join(layout.files_dir(HOLDER, a.data_root), "passwd"))
+    status, headers, data = send(server, ctx, "GET", f"/files/{HOLDER}")
+    assert status == 200 and headers["Content-Type"] == "application/x-tar"
+    assert int(headers["Content-Length"]) == len(data) and headers["X-Files-Skipped"] == "1"
+    with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+        assert tar.getnames() == ["notes.txt"] and tar.extractfile("notes.txt").read() == b"mine\n"
+    assert PASSWD not in data and os.listdir(a.tmp_dir) == []
+    for path, code, words in [
+        (f"/files/{HOLDER}?max=2", 413, "over 2"),
+        (f"/files/{HOLDER}?max=2&all=1", 400, "'all': not a parameter"),
+        ("/files/olga", 400, "holder: a session's name"),
+        ("/files/session-ab12/x", 404, "no such path"),
+        ("/files/session-cd34", 404, "no files of session-cd34"),
+    ]:
+        status, _headers, data = send(server, ctx, "GET", path)
+        assert status == code and words in json.loads(data)["error"], (path, data)
+    # a put into the instance the session holds
+    lifecycle.lend(h.host, 2, HOLDER)
+    docker(h, a)
+    body = tar_of([("back.txt", tarfile.REGTYPE, b"again\n")])
+    status, _headers, data = send(server, ctx, "PUT", f"/files/{HOLDER}?instance=2", body)
+    assert status == 200 and json.loads(data) == {"put": 1, "bytes": len(body)}
+    status, _headers, data = send(server, ctx, "PUT", f"/files/{HOLDER}?instance=3", body)
+    assert status == 409 and "isaac-sim-3 is held by nobody" in json.loads(data)["error"]
+    status, _headers, data = send(server, ctx, "PUT", f"/files/{HOLDER}", body)
+    assert status == 400 and "instance:" in json.loads(data)["error"]
+    # too big: refused on its Content-Length, before a byte of the body
+    conn = http.client.HTTPSConnection("127.0.0.1", server.server_address[1], context=ctx, timeout=10)
+    try:
+        conn.putrequest("PUT", f"/files/{HOLDER}?instance=2")
+        conn.putheader("Content-Length", str(agent.FILES_MAX_BYTES + 1))
+        conn.endheaders()
+        answer = conn.getresponse()
+        assert answer.status == 413 and json.loads(answer.read())["bytes"] == agent.FILES_MAX_BYTES + 1
+    finally:
+        conn.close()
+    status, _headers, data = send(server, ctx, "DELETE", f"/files/{HOLDER}?now=1")
+    assert status == 400
+    assert [json.loads(send(server, ctx, "DELETE", f"/files/{HOLDER}")[2]) for _n in range(2)] == [
+        {"removed": True},
+        {"removed": False},
+    ]
+    status, _headers, data = send(server, ctx, "DELETE", "/actions")
+    assert status == 404
+
+
+def expect_continue(server, ctx, path, body):
+    """A PUT that says Expect: 100-continue, as the door sends one, its body sent only on 100 Continue:
+    (the first status line that came, the final answer's status and JSON)."""
+    conn = ctx.wrap_socket(socket.create_connection(server.server_address[:2], timeout=10), server_hostname="127.0.0.1")
+
+    def until(done) -> bytes:
+        got = b""
+        while not done(got):
+            chunk = conn.recv(65536)
+            if not chunk:
+                break
+            got += chunk
+        return got
+
+    try:
+        conn.sendall(
+            f"PUT {path} HTTP/1.1\r\nHost: agent\r\nContent-Length: {len(body)}\r\n"
+            "Expect: 100-continue\r\n\r\n".encode()
+        )
+        first = until(lambda got: b"\r\n\r\n" in got)
+        answer = first
+        if first.startswith(b"HTTP/1.1 100 "):
+            conn.sendall(body)
+            answer = first.partition(b"\r\n\r\n")[2]
+        answer += until(lambda _got: False)  # to the connection's end
+        head, _sep, data = answer.partition(b"\r\n\r\n")
+        return first.split(b"\r\n", 1)[0], int(head.split(b" ", 2)[1]), json.loads(data)
+    finally:
+        conn.close()
+
+
+def test_a_put_that_says_expect_100_continue_is_refused_before_its_body_or_told_to_go_on(channel, pki):
+    server, a, h, _said = channel
+    ctx = client(pki, door(pki))
+    docker(h, a)
+    body = tar_of([("back.txt", tarfile.REGTYPE, b"again\n")])
+    # not held by that session: the answer comes before a byte of the body
+    first, status, answer = expect_continue(server, ctx, f"/files/{HOLDER}?instance=2", body)
+    assert first.startswith(b"HTTP/1.1 409") and status == 409 and "held by nobody" in answer["error"]
+    lifecycle.lend(h.host, 2, HOLDER)
+    first, status, answer = expect_continue(server, ctx, f"/files/{HOLDER}?instance=2", body)
+    assert first == b"HTTP/1.1 100 Continue" and (status, answer) == (200, {"put": 1, "bytes": len(body)})
+    assert Path(a.pipe.inside, "back.txt").read_bytes() == b"again\n"
+
+
+def test_a_stash_the_agent_may_not_read_is_an_error_never_an_empty_tar(tmp_path, monkeypatch):
+    """Said empty, the door would keep nothing and remove the stash."""
+    a, _h, lines, _box = files_agent(tmp_path)
+    top = stash(a, {"a": "1"})
+    real_open = os.open
+
+    def refused(path, flags, *args, **kwargs):
+        if path == top:
+            raise PermissionError(13, "Permission denied", path)
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(agent.os, "open", refused)
+    with pytest.raises(PermissionError):
+        a.files_tar(HOLDER, 10**6)
+    monkeypatch.undo()
+    assert os.listdir(a.tmp_dir) == [] and not any("sent" in line for _unit, line in lines)

@@ -9,6 +9,7 @@ an instance stuck activating. The real thing runs in the molecule scenarios.
 import fnmatch
 import json
 import os
+from pathlib import Path
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.hostlib import layout
@@ -1201,3 +1202,203 @@ def test_a_scale_down_never_removes_an_instance_lent_to_a_run():
     assert result["failed"]["id"] == 2 and "lent to test run run-a" in result["failed"]["reason"]
     assert layout.env_file(2) in h.files and h.units[2]["ActiveState"] == "active"
     assert [line for line in h.log if line.startswith(("systemctl stop", "systemctl disable"))] == []
+
+
+# --- a session's files: moved aside, whole, at its end (take_files)
+
+FILE_COMMANDS = ("mv", "stat", "install", "rmdir")
+
+
+def real_files(h, root, fail=None):
+    """The scripted host with real files under `root`: mv, stat, install and rmdir run for real (each in
+    its log), and exists looks there. fail: {command: (rc, out, err)} answered instead of running it."""
+    scripted_run, scripted_exists = h.host.run, h.host.exists
+
+    def run(argv):
+        if argv[0] not in FILE_COMMANDS:
+            return scripted_run(argv)
+        h.log.append(" ".join(argv))
+        if fail and argv[0] in fail:
+            return fail[argv[0]]
+        return lifecycle.run_process(argv)
+
+    h.host.run = run
+    h.host.exists = lambda p: os.path.exists(p) if p.startswith(str(root)) else scripted_exists(p)
+    return h
+
+
+def documents(root, i=0, mode=0o2751, files=None):
+    """Instance i's Documents under root, with `files` {relative path: text} and a link to /etc/passwd."""
+    docs = layout.documents_dir(i, str(root))
+    os.makedirs(docs)
+    os.chmod(docs, mode)
+    for rel, text in (files or {"notes.txt": "mine\n", "scenes/a.usd": "#usda 1.0\n"}).items():
+        os.makedirs(os.path.dirname(os.path.join(docs, rel)), exist_ok=True)
+        with open(os.path.join(docs, rel), "w") as fh:
+            fh.write(text)
+    os.symlink("/etc/passwd", os.path.join(docs, "passwd"))
+    return docs
+
+
+def owner(path) -> tuple:
+    st = os.lstat(path)
+    return st.st_uid, st.st_gid, st.st_mode & 0o7777
+
+
+def test_take_files_moves_a_session_s_documents_aside_whole_and_leaves_an_empty_one_like_it(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path)
+    docs = documents(tmp_path, 1)
+    before = owner(docs)
+    assert before[:2] == (os.getuid(), os.getgid())
+    stash = lifecycle.take_files(h.host, 1, "session-ab12", str(tmp_path))
+    assert stash == layout.files_dir("session-ab12", str(tmp_path)) == str(tmp_path / "files" / "session-ab12")
+    # the very directory, renamed: its content, its link left a link (nothing read or followed)
+    assert sorted(os.listdir(stash)) == ["notes.txt", "passwd", "scenes"] and owner(stash) == before
+    assert os.readlink(os.path.join(stash, "passwd")) == "/etc/passwd"
+    assert Path(stash, "scenes/a.usd").read_text() == "#usda 1.0\n"
+    # an empty Documents the container user can write, as the old one was; the stashes are root's alone
+    assert os.listdir(docs) == [] and owner(docs) == before
+    assert owner(str(tmp_path / "files"))[2] == 0o700
+    assert f"mv -T {docs} {stash}" in h.log
+
+
+def test_take_files_leaves_a_test_run_s_an_empty_and_a_missing_documents_as_they_are(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path)
+    docs = documents(tmp_path, 0)
+    assert lifecycle.take_files(h.host, 0, "run-a", str(tmp_path)) is None
+    assert lifecycle.take_files(h.host, 0, "session-AB", str(tmp_path)) is None  # not a session's name
+    assert sorted(os.listdir(docs)) == ["notes.txt", "passwd", "scenes"] and h.log == []
+    # nothing to move: no directory (a test run's host)
+    assert lifecycle.take_files(h.host, 1, "session-ab12", str(tmp_path)) is None and h.log == []
+    # or an empty one (a give-back done before): moved all the same (what the container writes meanwhile
+    # goes with it), and no stash of nothing is left
+    empty = layout.documents_dir(1, str(tmp_path))
+    os.makedirs(empty, mode=0o750)
+    assert lifecycle.take_files(h.host, 1, "session-ab12", str(tmp_path)) is None
+    assert os.listdir(empty) == [] and owner(empty)[2] == 0o750 and os.listdir(tmp_path / "files") == []
+
+
+def test_take_files_again_after_a_crash_between_its_two_steps_only_makes_the_empty_documents(tmp_path):
+    h = real_files(ScriptedHost(1), tmp_path)
+    docs = documents(tmp_path, 0, mode=0o750)
+    stash = layout.files_dir("session-ab12", str(tmp_path))
+    os.makedirs(os.path.dirname(stash), mode=0o700)
+    os.rename(docs, stash)  # moved, then the crash: no Documents
+    assert lifecycle.take_files(h.host, 0, "session-ab12", str(tmp_path)) == stash
+    assert os.listdir(docs) == [] and owner(docs) == owner(stash) == (os.getuid(), os.getgid(), 0o750)
+    assert sorted(os.listdir(stash)) == ["notes.txt", "passwd", "scenes"]
+    # and once more, all done: nothing to move, the stash as it was
+    assert lifecycle.take_files(h.host, 0, "session-ab12", str(tmp_path)) is None
+    assert os.listdir(tmp_path / "files") == ["session-ab12"] and os.listdir(docs) == []
+    assert sorted(os.listdir(stash)) == ["notes.txt", "passwd", "scenes"]
+
+
+def test_a_stash_the_door_has_not_taken_yet_is_never_written_over(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path)
+    first = layout.files_dir("session-ab12", str(tmp_path))
+    os.makedirs(first)
+    (tmp_path / "files" / "session-ab12" / "old.txt").write_text("kept\n")
+    documents(tmp_path, 0, files={"new.txt": "newer\n"})
+    assert lifecycle.take_files(h.host, 0, "session-ab12", str(tmp_path)) == first + ".2"
+    documents(tmp_path, 1, files={"third.txt": "3\n"})
+    os.rmdir(layout.documents_dir(0, str(tmp_path)))
+    assert lifecycle.take_files(h.host, 1, "session-ab12", str(tmp_path)) == first + ".3"
+    assert os.listdir(first) == ["old.txt"] and Path(first, "old.txt").read_text() == "kept\n"
+    assert "new.txt" in os.listdir(first + ".2") and "third.txt" in os.listdir(first + ".3")
+    # another session's stash is its own name
+    documents(tmp_path, 0, files={"x": "y"})
+    assert lifecycle.take_files(h.host, 0, "session-cd34", str(tmp_path)) == layout.files_dir(
+        "session-cd34", str(tmp_path)
+    )
+
+
+def test_documents_on_another_filesystem_than_the_stashes_are_not_moved_since_mv_would_copy_them(tmp_path):
+    h = real_files(ScriptedHost(1), tmp_path)
+    docs = documents(tmp_path, 0)
+    run = h.host.run
+
+    def elsewhere(argv):
+        rc, out, err = run(argv)
+        if argv[0] == "stat" and len(argv) == 5:  # Documents and the stashes' root: another mount for the first
+            lines = out.split("\n")
+            out = "\n".join([lines[0], "/mnt/other"] + lines[2:])
+        return rc, out, err
+
+    h.host.run = elsewhere
+    with pytest.raises(lifecycle.FilesError, match="not on one filesystem.*Fix: keep"):
+        lifecycle.take_files(h.host, 0, "session-ab12", str(tmp_path))
+    assert sorted(os.listdir(docs)) == ["notes.txt", "passwd", "scenes"]
+    assert not any(line.startswith("mv") for line in h.log)
+
+
+def test_a_give_back_moves_the_session_s_files_before_the_restart_and_frees_the_instance_after(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path)
+    docs = documents(tmp_path, 1)
+    assert lifecycle.lend(h.host, 1, "session-ab12") is None
+    assert lifecycle.give_back(h.host, 1, "session-ab12", data_root=str(tmp_path)) is None
+    stash = layout.files_dir("session-ab12", str(tmp_path))
+    moved = h.log.index(f"mv -T {docs} {stash}")
+    made = next(n for n, line in enumerate(h.log) if line.startswith("install -d -o"))
+    assert (
+        moved < made < h.log.index(f"systemctl restart {layout.unit(1)}") < h.log.index(f"rm {layout.lent_marker(1)}")
+    )
+    assert os.listdir(docs) == [] and "notes.txt" in os.listdir(stash) and lifecycle.lent_to(h.host, 1) is None
+    # a test run's give-back moves nothing
+    documents(tmp_path, 0)
+    lifecycle.lend(h.host, 0, "run-a")
+    assert lifecycle.give_back(h.host, 0, "run-a", data_root=str(tmp_path)) is None
+    assert "notes.txt" in os.listdir(layout.documents_dir(0, str(tmp_path)))
+
+
+def test_a_give_back_whose_files_cannot_be_moved_restarts_the_instance_but_lends_it_to_nobody_else(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path, fail={"mv": (1, "", "mv: cannot move: No space left on device")})
+    docs = documents(tmp_path, 1)
+    lifecycle.lend(h.host, 1, "session-ab12")
+    why = lifecycle.give_back(h.host, 1, "session-ab12", data_root=str(tmp_path))
+    assert f"could not move {docs} to {layout.files_dir('session-ab12', str(tmp_path))}" in why
+    assert "No space left on device" in why and "Fix:" in why and why.endswith("isaac-sim-1 stays lent to session-ab12")
+    # the person's container ended, their files where they were, and nobody else gets the instance
+    assert h.commands("restart") == [f"systemctl restart {layout.unit(1)}"]
+    assert "notes.txt" in os.listdir(docs) and lifecycle.lent_to(h.host, 1) == "session-ab12"
+    assert lifecycle.lend(h.host, 1, "session-cd34") == "session-ab12"
+    assert any(line.startswith("logger -t isaac-sim-lifecycle isaac-sim-1 stays lent") for line in h.log)
+    # fixed, the same give-back again finishes it
+    real_files(h, tmp_path)
+    assert lifecycle.give_back(h.host, 1, "session-ab12", data_root=str(tmp_path)) is None
+    assert lifecycle.lent_to(h.host, 1) is None and os.listdir(docs) == []
+
+
+def test_a_rollout_that_ends_a_session_moves_its_files_aside_before_the_claim_ends_and_the_instance_rolls(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path)
+    docs = documents(tmp_path, 0)
+    lifecycle.lend(h.host, 0, "session-olga")
+    sleeps(h)
+    result = lifecycle.restart_each(h.host, [0, 1], 0, end_sessions=60, data_root=str(tmp_path))
+    assert result["ended"] == [{"id": 0, "holder": "session-olga"}] and [d["id"] for d in result["done"]] == [0, 1]
+    stash = layout.files_dir("session-olga", str(tmp_path))
+    assert (
+        h.log.index(f"mv -T {docs} {stash}")
+        < h.log.index(f"rm {layout.lent_marker(0)}")
+        < h.log.index(f"systemctl restart {layout.unit(0)}")
+    )
+    assert os.listdir(docs) == [] and "notes.txt" in os.listdir(stash)
+    # a deploy's rollout (apply) takes the data root from its plan
+    docs = documents(tmp_path, 1)
+    lifecycle.lend(h.host, 1, "session-piet")
+    result = lifecycle.apply(h.host, want({0: NEW, 1: NEW}, data_root=str(tmp_path), end_sessions=30))
+    assert result["ended"] == [{"id": 1, "holder": "session-piet"}] and os.listdir(docs) == []
+    assert "notes.txt" in os.listdir(layout.files_dir("session-piet", str(tmp_path)))
+
+
+def test_a_rollout_whose_session_files_cannot_be_moved_leaves_the_instance_to_the_session(tmp_path):
+    h = real_files(ScriptedHost(2), tmp_path, fail={"mv": (1, "", "mv: Read-only file system")})
+    docs = documents(tmp_path, 0)
+    lifecycle.lend(h.host, 0, "session-olga")
+    sleeps(h)
+    result = lifecycle.restart_each(h.host, [0, 1], 0, end_sessions=60, data_root=str(tmp_path))
+    assert result["left"] == [{"id": 0, "holder": "session-olga"}] and result["ended"] == []
+    assert [d["id"] for d in result["done"]] == [1] and f"systemctl restart {layout.unit(0)}" not in h.log
+    # the warning taken back: the session goes on, its files where they were
+    assert lifecycle.lent_to(h.host, 0) == "session-olga" and lifecycle.ending_marker(0) not in h.files
+    assert "notes.txt" in os.listdir(docs)
+    assert any("isaac-sim-0 left for session-olga: could not move" in line for line in h.log)
