@@ -23,7 +23,9 @@ from __future__ import annotations
 import hmac
 import html
 import http.client
+import io
 import json
+import os
 import re
 import select
 import socket
@@ -107,6 +109,12 @@ METHODS = {
 MAX_BODY = 4096
 # seconds an action's request may take to be taken (the agent checks the host first)
 WRITE_TIMEOUT = 15.0
+# a person's files (a tar of Documents) to or from a host's agent: each step of the transfer within
+# TRANSFER_TIMEOUT, and the whole within TRANSFER_TIMEOUT plus a second per TRANSFER_RATE bytes (a host
+# that trickles its files is cut off)
+TRANSFER_TIMEOUT, TRANSFER_RATE = 60.0, 4 * 1024 * 1024
+# how long a transfer to an agent waits for its 100 Continue (or its refusal) before it sends the files anyway
+CONTINUE_WAIT = 1.0
 # what a write's checks read of its request (another_site, the CSRF token)
 _WRITE_HEADERS = ("Origin", "X-Fleet-Origin", "Sec-Fetch-Site", "X-Fleet-CSRF")
 # writes per minute per person or token (a burst of that many, then one every 60/N s)
@@ -338,7 +346,11 @@ def openapi() -> dict:
                 ),
             },
             "/api/sessions/{sid}": {
-                "get": op("One of your sessions or places: its state, entrance, time left, warning", [session_id]),
+                "get": op(
+                    "One of your sessions or places: its state, entrance, time left, warning, what became of your "
+                    "files (Documents)",
+                    [session_id],
+                ),
                 "delete": op(
                     "End it (the use scope; an operator ends anyone's): its instance is reset, then free",
                     [session_id],
@@ -523,30 +535,118 @@ class Agents:
         if name != f"{host} agent":
             raise OSError(f"the agent at {self.url(host)} presented the certificate of {name!r}, not {host}'s")
 
-    def ask(self, host: str, method: str, path: str, body=None) -> tuple:
-        """(status, answer) of the host's agent; OSError when it does not connect within the timeout, or
-        (an action, which may take a moment to be taken) answer within WRITE_TIMEOUT."""
+    def _connect(self, host: str) -> http.client.HTTPSConnection:
+        """A connection to the host's agent, its certificate checked before a byte is sent."""
         address = urllib.parse.urlsplit(self.url(host))
-        conn = http.client.HTTPSConnection(address.hostname, address.port, context=self.ctx, timeout=self.timeout)
+        conn = http.client.HTTPSConnection(
+            address.hostname, address.port, context=self.ctx, timeout=self.timeout, blocksize=65536
+        )
         try:
             conn.connect()
             self.check(host, conn.sock)
-            if method == "POST":
-                conn.sock.settimeout(WRITE_TIMEOUT)
-            data = json.dumps(body).encode() if body is not None else None
-            conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
-            answer = conn.getresponse()
-            text = answer.read(MAX_ANSWER + 1)
-            if len(text) > MAX_ANSWER:
-                raise OSError(f"an answer over {MAX_ANSWER} bytes")
+        except BaseException:
+            conn.close()
+            raise
+        return conn
+
+    @staticmethod
+    def _json(answer) -> tuple:
+        text = answer.read(MAX_ANSWER + 1)
+        if len(text) > MAX_ANSWER:
+            raise OSError(f"an answer over {MAX_ANSWER} bytes")
+        try:
+            return answer.status, json.loads(text)
+        except ValueError as exc:
+            raise OSError(f"an answer that is not JSON (HTTP {answer.status})") from exc
+
+    def ask(self, host: str, method: str, path: str, body=None) -> tuple:
+        """(status, answer) of the host's agent; OSError when it does not connect within the timeout, or
+        (an action, which may take a moment to be taken) answer within WRITE_TIMEOUT."""
+        try:
+            conn = self._connect(host)
             try:
-                return answer.status, json.loads(text)
-            except ValueError as exc:
-                raise OSError(f"an answer that is not JSON (HTTP {answer.status})") from exc
+                if method == "POST":
+                    conn.sock.settimeout(WRITE_TIMEOUT)
+                data = json.dumps(body).encode() if body is not None else None
+                conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
+                return self._json(conn.getresponse())
+            finally:
+                conn.close()
         except http.client.HTTPException as exc:
             raise OSError(f"{type(exc).__name__}: {exc}") from exc
-        finally:
-            conn.close()
+
+    def fetch(self, host: str, path: str, max_bytes: int, into=None) -> tuple:
+        """(status, answer) of a GET of bytes (a person's files) from the host's agent: 200 and the body
+        (bytes), or its length once written into `into` (a binary file); another status and its JSON. A body
+        over max_bytes is never read past max_bytes + 1: (413, {error, bytes}) as the agent's own refusal
+        gives it (bytes: None where the agent sent no length). OSError as ask(), or for a body that is not
+        whole within the transfer's time."""
+        try:
+            conn = self._connect(host)
+            try:
+                conn.sock.settimeout(TRANSFER_TIMEOUT)
+                conn.request("GET", path)
+                answer = conn.getresponse()
+                if answer.status != 200:
+                    return self._json(answer)
+                return self._body(answer, max_bytes, into)
+            finally:
+                conn.close()
+        except http.client.HTTPException as exc:
+            raise OSError(f"{type(exc).__name__}: {exc}") from exc
+
+    @staticmethod
+    def _body(answer, max_bytes: int, into) -> tuple:
+        """(200, the body or its length written into `into`), or (413, {error, bytes}) over max_bytes."""
+        said = answer.getheader("Content-Length")
+        if said is not None and not said.isdigit():
+            raise OSError(f"a Content-Length that is not a number: {said!r}")
+        if said is not None and int(said) > max_bytes:
+            return 413, {"error": f"{said} bytes, over the limit of {max_bytes}", "bytes": int(said)}
+        deadline, got, parts = time.monotonic() + TRANSFER_TIMEOUT + max_bytes / TRANSFER_RATE, 0, []
+        while chunk := answer.read1(min(65536, max_bytes + 1 - got)):
+            got += len(chunk)
+            if got > max_bytes:
+                return 413, {"error": f"more than the limit of {max_bytes} bytes", "bytes": None}
+            if time.monotonic() > deadline:
+                raise OSError(f"no whole answer within {deadline:.0f} s")
+            if into is None:
+                parts.append(chunk)
+            else:
+                into.write(chunk)
+        if said is not None and got != int(said):
+            raise OSError(f"{got} bytes of {said}: the answer was cut off")
+        return 200, (b"".join(parts) if into is None else got)
+
+    def send(self, host: str, path: str, data, method: str = "PUT") -> tuple:
+        """(status, JSON answer) of bytes (a tar of a person's files) sent to the host's agent: data is bytes
+        or a binary file, sent from where it stands to its end with its Content-Length. An agent that answers
+        before it has read all (a refusal) is not sent the rest: its answer is returned. OSError as ask()."""
+        size = len(data) if isinstance(data, (bytes, bytearray)) else os.fstat(data.fileno()).st_size - data.tell()
+        # the agent unpacks the files into the instance before it answers
+        wait = TRANSFER_TIMEOUT + size / TRANSFER_RATE
+        try:
+            conn = self._connect(host)
+            try:
+                conn.putrequest(method, path, skip_accept_encoding=True)
+                conn.putheader("Content-Type", "application/x-tar")
+                conn.putheader("Content-Length", str(size))
+                # a refusal (not held, too big) comes before a byte of the files is sent
+                conn.putheader("Expect", "100-continue")
+                conn.endheaders()
+                early = _await_continue(conn.sock, CONTINUE_WAIT)
+                if early is None:
+                    early = _send_body(conn.sock, data, size, time.monotonic() + wait)
+                conn.sock.settimeout(wait)
+                if early is None:
+                    return self._json(conn.getresponse())
+                answer = http.client.HTTPResponse(_Replay(early, conn.sock), method=method)
+                answer.begin()
+                return self._json(answer)
+            finally:
+                conn.close()
+        except http.client.HTTPException as exc:
+            raise OSError(f"{type(exc).__name__}: {exc}") from exc
 
     def events(self, host: str, action_id: str, follow):
         """The action's events as they come (a Follow over the channel)."""
@@ -559,6 +659,94 @@ class Agents:
         )
         stream.ended = b'{"text": "the session or token ended: the events stop here"}\n'
         return stream
+
+
+def _recv_now(sock):
+    """What the socket holds now (b"": the agent closed it); None where it held TLS's own records only (a
+    session ticket)."""
+    sock.settimeout(0)
+    try:
+        return sock.recv(65536)
+    except (ssl.SSLWantReadError, ssl.SSLWantWriteError, BlockingIOError):
+        return None
+    finally:
+        sock.settimeout(TRANSFER_TIMEOUT)
+
+
+def _await_continue(sock, wait: float):
+    """After the headers of a request that said Expect: 100-continue: None once the agent says go on, or says
+    nothing within wait (an agent that does not know the header reads the body anyway); else the bytes of
+    its final answer, which came first (a refusal: not a byte of the body is sent)."""
+    got, deadline = b"", time.monotonic() + wait
+    while True:
+        held = isinstance(sock, ssl.SSLSocket) and sock.pending()
+        left = deadline - time.monotonic() if not got else TRANSFER_TIMEOUT
+        if not held and not select.select([sock], [], [], max(0.0, left))[0]:
+            if got:
+                raise TimeoutError("a part of an answer, then nothing")
+            return None
+        chunk = _recv_now(sock)
+        if chunk is None:
+            continue
+        if not chunk:
+            raise OSError("the agent closed the connection before the files were sent")
+        got += chunk
+        if len(got) < 12:  # HTTP/1.1 NNN
+            continue
+        if got[9:12] != b"100":
+            return got
+        _continue, sep, rest = got.partition(b"\r\n\r\n")
+        if sep:
+            return rest or None
+
+
+def _send_body(sock, data, size: int, deadline: float):
+    """Sends size bytes of data (bytes or a binary file) a TLS record at a time, each only once the socket
+    takes it, so a write never blocks; None once all is sent, or the bytes of an answer that came first (the
+    agent refused before the end: were the rest written, the agent's close would reset the connection, and
+    TLS would lose that answer)."""
+    view = memoryview(data) if isinstance(data, (bytes, bytearray)) else None
+    sent = 0
+    while sent < size:
+        left = deadline - time.monotonic()
+        readable, writable, _x = select.select([sock], [sock], [], max(0.0, min(left, TRANSFER_TIMEOUT)))
+        if readable:
+            head = _recv_now(sock)
+            if head is None:
+                continue
+            if not head:
+                raise OSError(f"the agent closed the connection after {sent} of {size} bytes")
+            return head
+        if not writable or left <= 0:
+            raise TimeoutError(f"{sent} of {size} bytes sent; the agent took no more")
+        chunk = view[sent : sent + 16384] if view is not None else data.read(min(16384, size - sent))
+        if not chunk:
+            raise OSError(f"the file ended after {sent} of {size} bytes")
+        sock.sendall(chunk)
+        sent += len(chunk)
+    return None
+
+
+class _Replay(io.RawIOBase):
+    """What was read of an answer already, then the rest from the socket: the socket http.client's
+    HTTPResponse parses an early answer from."""
+
+    def __init__(self, head: bytes, sock):
+        super().__init__()
+        self.head, self.sock = head, sock
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buf) -> int:
+        if self.head:
+            n = min(len(buf), len(self.head))
+            buf[:n], self.head = self.head[:n], self.head[n:]
+            return n
+        return self.sock.recv_into(buf)
+
+    def makefile(self, _mode):
+        return io.BufferedReader(self)
 
 
 class Limiter:

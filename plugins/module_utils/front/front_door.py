@@ -40,6 +40,8 @@ AUTH_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-auth"
 # the store of sessions and tokens (front/door_store.py), beside the script that imports it
 STORE_CODE = f"{layout.LIBEXEC_DIR}/isaac_sim_door_store.py"
 STORE = f"{STATE_DIR}/door.db"
+# each person's files (front/pool.py), beside the store by default
+FILES_DIR = f"{STATE_DIR}/files"
 API_SCRIPT = f"{layout.LIBEXEC_DIR}/isaac-sim-front-door-api"
 # the simulator sessions' pool (front/pool.py), beside the API's script that imports it
 POOL_CODE = f"{layout.LIBEXEC_DIR}/isaac_sim_door_pool.py"
@@ -76,6 +78,7 @@ _SIM = {
     "warn_minutes": ("front_door_sim_warn_minutes", 0, 24 * 60, 5),
     "queue_grace_s": ("front_door_sim_queue_grace_seconds", 10, 24 * 3600, 120),
     "host_gone_s": ("front_door_sim_host_gone_seconds", 10, 24 * 3600, 120),
+    "files_mib": ("front_door_sim_files_mib", 0, 100 * 1024, 1024),
 }
 
 
@@ -100,6 +103,17 @@ def _sim_errors(sim: dict) -> list:
             )
         elif not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= 100:
             errors.append(f"front_door_sim_limits: {key}: {value!r} is not a whole number of 0-100. Fix: e.g. 2.")
+    files_dir = _files_dir({"sim": sim})
+    if not re.fullmatch(r"(/[A-Za-z0-9._-]+){2,}", files_dir) or {".", ".."} & set(files_dir.split("/")):
+        errors.append(
+            f"front_door_sim_files_dir: {files_dir!r} is not an absolute path of two or more parts of letters, "
+            f"digits and . _ - (no . or ..). Fix: a directory of its own for the people's files, e.g. {FILES_DIR}."
+        )
+    elif files_dir in (STATE_DIR, CONFIG_DIR) or files_dir.startswith(CONFIG_DIR + "/"):
+        errors.append(
+            f"front_door_sim_files_dir: {files_dir} is the door's state or configuration directory. Fix: a "
+            f"directory of its own, e.g. {FILES_DIR}."
+        )
     warn = _port(sim.get("warn_minutes", 5))
     for key in ("max_minutes", "idle_minutes"):
         end = _port(sim.get(key, _SIM[key][3]))
@@ -116,7 +130,12 @@ def sim_rules(p: dict) -> dict:
     sim = p.get("sim") or {}
     rules = {key: int(_port(sim.get(key, example))) for key, (_v, _l, _h, example) in _SIM.items()}
     rules["limits"] = {str(k): int(_port(v)) for k, v in (sim.get("limits") or {}).items()}
+    rules["files_dir"] = _files_dir(p)
     return rules
+
+
+def _files_dir(p: dict) -> str:
+    return str((p.get("sim") or {}).get("files_dir") or FILES_DIR)
 
 
 def _port(value):
@@ -683,6 +702,7 @@ SIM_PAGE = """<!doctype html>
 <body><h1>Your simulator</h1>
 <p id="state">Reading your sessions\u2026</p>
 <p id="warning" hidden></p>
+<p id="files" hidden></p>
 <p id="entrance" hidden><a id="open" target="_blank" rel="noopener">Open your simulator's viewer</a></p>
 <p id="left" hidden></p>
 <p><button type="button" id="ask" hidden>Ask for a simulator</button>
@@ -717,6 +737,8 @@ SIM_PAGE = """<!doctype html>
     $("entrance").hidden = !(s && s.state === "active" && s.entrance);
     if (s && s.entrance) { $("open").href = s.entrance; }
     show("warning", s && s.state === "active" ? s.warning : "");
+    // what became of the person's files (Documents): put back, kept for the next session, or why not
+    show("files", s && s.state !== "queued" ? s.files : "");
     left = s && s.state === "active" ? s.seconds_left : null;
     show("left", left === null ? "" : "Time left: " + clock(left));
     if (!s) { show("state", "You hold no simulator."); return; }
@@ -986,8 +1008,12 @@ def api_unit(p: dict, managed: str) -> str:
                     # it reads the hosts' status endpoints on the LAN, and asks the login service on 127.0.0.1;
                     # it writes the simulator sessions and their queue beside the login service's (SQLite)
                     ("StateDirectory", STATE_DIR.rsplit("/", 1)[1]),
-                    # and the sessions' figures for node_exporter's textfile collector
-                    *sandbox.reader(writable=[p["metrics_dir"]] if p.get("metrics_dir") else []),
+                    # and the sessions' figures for node_exporter's textfile collector, and the people's files
+                    # (where they are not in its state directory)
+                    *sandbox.reader(
+                        writable=([p["metrics_dir"]] if p.get("metrics_dir") else [])
+                        + ([] if _files_dir(p).startswith(STATE_DIR + "/") else [_files_dir(p)])
+                    ),
                     ("PrivateDevices", "yes"),
                     ("ProtectProc", "invisible"),
                 ],
@@ -1087,7 +1113,11 @@ def services(p: dict, managed: str, cert: str, key: str, code: dict, secret: str
     """[{name, state, files, directories, remove}] for isaac_sim_host_service, in order: what runs,
     started; the relay, when off, stopped and removed with its files."""
     present, gone = files(p, managed, cert, key, code, secret), removal()
-    made = {API_UNIT: [{"path": p["metrics_dir"], "uid": 0, "gid": 0, "mode": "0755"}] if p.get("metrics_dir") else []}
+    made = {
+        API_UNIT: ([{"path": p["metrics_dir"], "uid": 0, "gid": 0, "mode": "0755"}] if p.get("metrics_dir") else [])
+        # the people's files: root's alone
+        + [{"path": _files_dir(p), "uid": 0, "gid": 0, "mode": "0700"}]
+    }
     return [
         {"name": u, "state": "started", "files": present[u], "directories": made.get(u, []), "remove": []}
         if u in present

@@ -16,16 +16,29 @@ service or of the front door host keeps every session and place in the queue. A 
 answer for `host_gone_s` has its sessions ended (their holders see why); its claims are given back
 once it answers again.
 
+Each person's files follow them. A give-back (and a rollout that ends a session) moves the instance's
+Documents aside on its host, into a stash named after the session's holder; the door then takes that
+stash (the agent's GET /files/HOLDER, at most `files_mib`), keeps it as the person's one tar in
+`files_dir` (named by a hash of the user name, root's alone), and removes it from the host. At the
+person's next session, on whichever instance, the door puts the tar back into its Documents (PUT
+/files/HOLDER?instance=N, which the agent takes only for the instance that holder holds). A tar that
+could not be put back is never lost: a session that did not start from the person's latest tar has
+its files merged over that tar at its end, not put in its place. With `files_mib` 0, files do not
+follow: the host's stash is removed unread.
+
 The standard library alone, as the rest of the door's services.
 """
 
 from __future__ import annotations
 
+import hashlib
 import ipaddress
 import json
 import os
 import secrets
 import socket
+import tarfile
+import tempfile
 import threading
 import time
 
@@ -38,7 +51,7 @@ except ImportError:  # on the front door host, beside the service's script
 HOLDER = "session-{}"
 # what a request may ask for (each matched against the instance's status)
 WANTS = ("release", "profile")
-# the defaults of the role's settings (front_door_session_*)
+# the defaults of the role's settings (front_door_sim_*); files_dir '': `files` beside the store
 RULES = {
     "per_person": 1,
     "idle_minutes": 30,
@@ -46,7 +59,26 @@ RULES = {
     "warn_minutes": 5,
     "queue_grace_s": 120,
     "host_gone_s": 120,
+    "files_mib": 1024,
+    "files_dir": "",
 }
+MIB = 1024 * 1024
+# how long a move of a person's files that failed (the agent did not answer, the door's disk) waits before
+# it is tried again
+FILES_RETRY_S = 30.0
+# the agent judges a stash's files against the door's limit; their tar is larger (a 512-byte header a member,
+# each padded to 512 bytes), so the door reads up to twice the limit and this, never more
+TAR_SLACK = 16 * MIB
+# how many times a person's files are tried to be put into a session's instance (an agent that cuts the
+# transfer each time is refusing it): then the session goes on without them, which stay kept
+PUT_TRIES = 3
+# sim_sessions.files_due: what is still to be done with an ended session's files on its host: take them
+# (then remove them there), or only remove them there
+FETCH, REMOVE = "fetch", "remove"
+# sim_sessions.files_in while the person's tar waits to be put into the session's instance
+PUT_PENDING = "pending"
+# sim_sessions.files of a session that ended while files did not follow people (files_mib 0)
+NOT_FOLLOWED = "not kept: files do not follow people here (front_door_sim_files_mib: 0)"
 # a guess at a reset's length until one was seen (seconds)
 RESET_GUESS_S = 60.0
 # node_exporter's textfile the API writes (in the directory the role gives it)
@@ -66,10 +98,17 @@ _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS sim_sessions (id TEXT PRIMARY KEY, user TEXT NOT NULL, wants TEXT NOT NULL,"
     " host TEXT NOT NULL, instance INTEGER NOT NULL, state TEXT NOT NULL, created REAL NOT NULL,"
     " started REAL NOT NULL, expires REAL NOT NULL, warned INTEGER NOT NULL DEFAULT 0, ended REAL,"
-    " why TEXT, action TEXT, client_seen REAL)",
+    " why TEXT, action TEXT, client_seen REAL, files TEXT, files_due TEXT, files_in TEXT, files_from TEXT)",
     "CREATE TABLE IF NOT EXISTS sim_queue (seq INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT UNIQUE NOT NULL,"
     " user TEXT NOT NULL, wants TEXT NOT NULL, created REAL NOT NULL, seen REAL NOT NULL)",
+    # each person's tar in files_dir: which one it is (a new version at each write), its size and members
+    "CREATE TABLE IF NOT EXISTS sim_files (user TEXT PRIMARY KEY, version TEXT NOT NULL, bytes INTEGER NOT NULL,"
+    " members INTEGER NOT NULL, kept REAL NOT NULL)",
 )
+# sim_sessions' columns added since the file was first made (0.4.0's first sessions had none of them): a
+# session's files at its end (files: what became of them; files_due: what is left to do on its host), at its
+# start (files_in: put back or why not; files_from: the version of the person's tar put back)
+_ADDED = (("files", "TEXT"), ("files_due", "TEXT"), ("files_in", "TEXT"), ("files_from", "TEXT"))
 
 
 class RefusedError(Exception):
@@ -98,6 +137,11 @@ class Store(door_store.Store):
         with self._db() as db:
             for statement in _SCHEMA:
                 db.execute(statement)
+            # a file of the version before: its sessions' table gets the columns it lacks
+            have = {r["name"] for r in db.execute("PRAGMA table_info(sim_sessions)").fetchall()}
+            for name, kind in _ADDED:
+                if name not in have:
+                    db.execute(f"ALTER TABLE sim_sessions ADD COLUMN {name} {kind}")
 
     def enqueue(self, user: str, wants: dict, limit: int) -> str:
         """A new place at the end of the queue; RefusedError(409) where the user has `limit` already."""
@@ -130,18 +174,19 @@ class Store(door_store.Store):
             rows = db.execute("SELECT * FROM sim_queue ORDER BY seq").fetchall()
         return [dict(r, wants=json.loads(r["wants"])) for r in rows]
 
-    def grant(self, entry: dict, host: str, n: int, expires: float) -> bool:
+    def grant(self, entry: dict, host: str, n: int, expires: float, files_in=None) -> bool:
         """The queued entry becomes a session on host's instance n; False where it left the queue meanwhile
-        (its claim is then given back by the caller)."""
+        (its claim is then given back by the caller). files_in: PUT_PENDING where the person's files go in."""
         now = self.clock()
         with self._db() as db:
             gone = db.execute("DELETE FROM sim_queue WHERE id = ?", (entry["id"],)).rowcount
             if gone:
                 db.execute(
-                    "INSERT INTO sim_sessions (id, user, wants, host, instance, state, created, started, expires)"
-                    " VALUES (?, ?, ?, ?, ?, 'active', ?, ?, ?)",
-                    (entry["id"], entry["user"], json.dumps(entry["wants"]), host, n, entry["created"], now, expires),
-                )
+                    "INSERT INTO sim_sessions (id, user, wants, host, instance, state, created, started, expires,"
+                    " files_in) VALUES (?, ?, ?, ?, ?, 'active', ?, ?, ?, ?)",
+                    (entry["id"], entry["user"], json.dumps(entry["wants"]), host, n, entry["created"], now, expires,
+                     files_in),
+                )  # fmt: skip
         return bool(gone)
 
     def leave(self, ident: str) -> bool:
@@ -176,6 +221,30 @@ class Store(door_store.Store):
             args += list(only_if)
         with self._db() as db:
             return bool(db.execute(f"UPDATE sim_sessions SET {sets} WHERE {where}", args).rowcount)
+
+    def files_due(self) -> list:
+        """The sessions with files to move: ended ones whose files are still on their host, active ones whose
+        person's files wait to be put in; oldest first."""
+        with self._db(write=False) as db:
+            rows = db.execute(
+                "SELECT * FROM sim_sessions WHERE files_due IS NOT NULL OR (state = 'active' AND files_in = ?)"
+                " ORDER BY started",
+                (PUT_PENDING,),
+            ).fetchall()
+        return [dict(r, wants=json.loads(r["wants"])) for r in rows]
+
+    def kept(self, user: str):
+        """{version, bytes, members, kept} of the person's tar as last written; None: none was."""
+        with self._db(write=False) as db:
+            row = db.execute("SELECT * FROM sim_files WHERE user = ?", (user,)).fetchone()
+        return dict(row) if row else None
+
+    def keep(self, user: str, version: str, size: int, members: int) -> None:
+        with self._db() as db:
+            db.execute(
+                "INSERT OR REPLACE INTO sim_files (user, version, bytes, members, kept) VALUES (?, ?, ?, ?, ?)",
+                (user, version, size, members, self.clock()),
+            )
 
     def figures(self, now: float) -> dict:
         """What the metrics say, from the file (so a restart of the service keeps their sums)."""
@@ -246,6 +315,49 @@ def fits(wants: dict, inst: dict) -> bool:
     return all(not wants.get(k) or str(inst.get(k) or "") == wants[k] for k in WANTS)
 
 
+def files_name(user: str) -> str:
+    """The file of a person's tar: a hash of the name, never the name (".", ".." and "a/b" name no path)."""
+    return hashlib.sha256(user.encode("utf-8")).hexdigest() + ".tar"
+
+
+def tar_members(path: str) -> int:
+    """How many files (regular members) the tar holds; tarfile.TarError where it is not a tar."""
+    with tarfile.open(path) as tar:
+        return sum(1 for m in tar if m.isreg())
+
+
+def _member_name(name: str) -> str:
+    return os.path.normpath(name.removeprefix("./")).rstrip("/")
+
+
+def merge_tars(newer: str, older: str, out: str) -> int:
+    """Into out: every member of newer, then those of older that newer lacks (by path); how many files.
+    Copied member by member, never unpacked on the door."""
+    seen, count = set(), 0
+    with tarfile.open(out, "w", format=tarfile.PAX_FORMAT) as merged:
+        for source, skip in ((newer, False), (older, True)):
+            with tarfile.open(source) as tar:
+                for member in tar:
+                    name = _member_name(member.name)
+                    if skip and name in seen:
+                        continue
+                    seen.add(name)
+                    merged.addfile(member, tar.extractfile(member) if member.isreg() else None)
+                    count += member.isreg()
+    return count
+
+
+def _size(n) -> str:
+    return f"{n / MIB:.1f} MiB" if isinstance(n, int) else "more"
+
+
+def _sync_replace(tmp: str, path: str) -> None:
+    """tmp becomes path whole or not at all, on disk before it is."""
+    with open(tmp, "rb") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
 class Pool:
     """The queue served from the fleet's free instances through the hosts' agents.
 
@@ -267,6 +379,9 @@ class Pool:
         # (host, instance) -> {at, by, holder}: a rollout ends the session there (the host's status says so);
         # session id -> by: sessions a rollout was seen to end, for the why of their end
         self._endings, self._rollouts = {}, {}
+        # session id -> when a move of its files last failed (tried again FILES_RETRY_S later); how many
+        # put-backs failed
+        self._files_failed, self._put_failures = {}, {}
 
     # --- what a person sees
 
@@ -297,8 +412,39 @@ class Pool:
             warning=(self._warning(row, now) or (None, None))[1] if row["state"] == "active" else None,
             ended=row["ended"],
             why=row["why"],
+            files=self._files_said(row),
         )
+        if operator:
+            out["files_moves"] = {"in": row.get("files_in"), "out": row.get("files")}
         return out
+
+    def _files_said(self, row: dict):
+        """One sentence for the person about their files (Documents), where there is something to say."""
+        files, into = row.get("files"), row.get("files_in")
+        if row["state"] == "active":
+            if into == PUT_PENDING:
+                return "Your files from your last session are being put back into Documents."
+            if into and into.startswith("put back"):
+                return "Your files from your last session are in Documents."
+            if into:
+                return (
+                    f"Your files could not be put back ({into.removeprefix('not put back: ')}); they are kept for "
+                    "your next session."
+                )
+            return None
+        if files is None:  # ending: its instance is being given back
+            return "Your files (Documents) will be kept for your next session." if self.rules["files_mib"] else None
+        if files == "pending" or files.startswith("kept"):
+            return f"Your files (Documents) {'are being' if files == 'pending' else 'are'} kept for your next session."
+        if files.startswith("none"):
+            return "Documents was empty at this session's end: the files kept before (if any) stay kept."
+        if files.startswith("over the limit"):
+            return (
+                f"Your files were not kept, {files}: they are still on {row['host']}, where an operator can get them."
+            )
+        if files == NOT_FOLLOWED:
+            return "Files do not follow people here: what was in Documents went with this session."
+        return f"Your files could not be kept ({files.removeprefix('not kept: ')})."
 
     def _signal(self, row: dict):
         """(address, port) of the session's stream's signalling as the door reaches it; None where the
@@ -462,8 +608,18 @@ class Pool:
         else:  # 200: held by nobody already; 409: by another now (a deploy's cleanup): ours is gone either way
             self._ended(row, answer.get("error") or (answer.get("result") or {}).get("message") or str(code))
 
+    def _at_end(self, row: dict) -> dict:
+        """The fields of a session that ends on its host: what is to become of its files there."""
+        if self.rules["files_mib"]:
+            fields = {"files": "pending", "files_due": FETCH}
+        else:
+            fields = {"files": NOT_FOLLOWED, "files_due": REMOVE}
+        if row.get("files_in") == PUT_PENDING:
+            fields["files_in"] = "not put back: the session ended first"
+        return fields
+
     def _ended(self, row: dict, said: str) -> None:
-        if self.store.update(row["id"], ("ending",), state="ended"):
+        if self.store.update(row["id"], ("ending",), state="ended", **self._at_end(row)):
             # the instance is free on its host now: the next read shows it to the queue
             self.fleet.refresh()
             took = self.clock() - (row["ended"] or self.clock())
@@ -536,7 +692,9 @@ class Pool:
         if code != 200:
             return code, answer
         expires = self.clock() + self.rules["max_minutes"] * 60
-        if not self.store.grant(entry, host, n, expires):
+        # the person's files go in at the next tick (a transfer never holds up the queue)
+        files_in = PUT_PENDING if self.rules["files_mib"] and self.store.kept(entry["user"]) else None
+        if not self.store.grant(entry, host, n, expires, files_in):
             # it left the queue while its claim was made: the instance goes back at once
             self._give_back({"id": entry["id"], "user": entry["user"], "host": host, "instance": n})
             return LEFT, {}
@@ -602,7 +760,10 @@ class Pool:
                 self._follow(row)
             else:
                 self._give_back(row)
+        # files out of ended sessions before the queue is served: a person's next session gets their latest
+        self._files_out(up)
         self.dispatch()
+        self._files_back(up)
 
     def _verify(self, now: float) -> None:
         """A session whose instance its host no longer holds for it (given back there by a rollout that
@@ -621,9 +782,171 @@ class Pool:
             why = why or f"{row['host']} no longer holds instance {row['instance']} for it" + (
                 f" (held by {holder})" if holder else " (given back there, or lost with a reboot of the host)"
             )
-            if self.store.update(row["id"], ("active",), state="ended", ended=now, why=why):
+            if self.store.update(row["id"], ("active",), state="ended", ended=now, why=why, **self._at_end(row)):
                 self.fleet.refresh()
                 self.log(f"session {row['id']} of user={row['user']} on {row['host']}/{row['instance']} ended: {why}")
+
+    # --- each person's files
+
+    def _files_dir(self) -> str:
+        """Where the people's tars are kept (made, root's alone, when missing)."""
+        beside = os.path.join(os.path.dirname(os.path.abspath(self.store.path)), "files")
+        directory = self.rules.get("files_dir") or beside
+        os.makedirs(directory, mode=0o700, exist_ok=True)
+        if os.stat(directory).st_mode & 0o077:
+            os.chmod(directory, 0o700)
+        return directory
+
+    def _files_out(self, up: set) -> None:
+        """Ended sessions' files taken from their hosts that answer (or only removed there)."""
+        for row in self.store.files_due():
+            if row["files_due"] and self._files_may_try(row, up):
+                if row["files_due"] == FETCH:
+                    self._files_try(row, self._take_files, f"{row['host']} did not give them")
+                else:
+                    self._files_try(row, self._remove_files, f"{row['host']} did not remove its copy")
+
+    def _files_back(self, up: set) -> None:
+        """The people's files put into their new sessions' instances, on hosts that answer."""
+        for row in self.store.files_due():
+            if row["state"] == "active" and row["files_in"] == PUT_PENDING and self._files_may_try(row, up):
+                self._files_try(row, self._put_files, f"not put into {row['host']}/{row['instance']} yet")
+                if row["id"] not in self._files_failed:
+                    self._put_failures.pop(row["id"], None)
+                    continue
+                self._put_failures[row["id"]] = self._put_failures.get(row["id"], 0) + 1
+                if self._put_failures[row["id"]] >= PUT_TRIES:
+                    self._put_failures.pop(row["id"])
+                    self._files_failed.pop(row["id"])
+                    self.store.update(row["id"], files_in=f"not put back: {PUT_TRIES} tries failed")
+                    self.log(
+                        f"session {row['id']} of user={row['user']}: files not put back ({PUT_TRIES} tries failed); "
+                        "they stay kept for the next session"
+                    )
+
+    def _files_may_try(self, row: dict, up: set) -> bool:
+        """Its host answers and has an agent, and the last try failed long enough ago."""
+        if row["host"] not in up or not self.agents.url(row["host"]):
+            return False
+        return self.clock() - self._files_failed.get(row["id"], float("-inf")) >= FILES_RETRY_S
+
+    def _files_try(self, row: dict, move, what: str) -> None:
+        self._files_failed.pop(row["id"], None)
+        try:
+            move(row)
+        except OSError as exc:  # the agent did not answer, or the door's disk: the same again later
+            self._files_failed[row["id"]] = self.clock()
+            self.log(
+                f"session {row['id']} of user={row['user']}: files {what} ({exc}); trying again in {FILES_RETRY_S:g} s"
+            )
+
+    def _take_files(self, row: dict) -> None:
+        """The session's files from its host, kept as the person's tar (merged over it where the session did
+        not start from it), then removed there; where there were none, or too many, the tar kept stays."""
+        limit = self.rules["files_mib"] * MIB
+        if not limit:  # files stopped following people since it ended (the rules changed)
+            self.store.update(row["id"], files=NOT_FOLLOWED, files_due=REMOVE)
+            self._files_try(dict(row, files=NOT_FOLLOWED), self._remove_files, f"{row['host']} did not remove them")
+            return
+        directory, holder, user = self._files_dir(), HOLDER.format(row["id"]), row["user"]
+        path = os.path.join(directory, files_name(user))
+        fd, tmp = tempfile.mkstemp(dir=directory, prefix=".in-", suffix=".tmp")  # 0600
+        merged_tmp = None
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                code, answer = self.agents.fetch(row["host"], f"/files/{holder}?max={limit}", 2 * limit + TAR_SLACK, fh)
+            if code == 200:
+                try:
+                    members = tar_members(tmp)
+                except (tarfile.TarError, EOFError) as exc:
+                    # not what the agent gives: its copy stays there for an operator to look at
+                    self._files_final(row, f"not kept: what {row['host']} gave is not a tar ({exc})", keep=True)
+                    return
+                kept = self.store.kept(user) if os.path.exists(path) else None
+                # a session that did not start from the tar kept now (its files were not put back, or another
+                # session of the person ended meanwhile) adds to it: nothing kept is lost
+                merged = kept is not None and row["files_from"] != kept["version"]
+                if merged:
+                    fd2, merged_tmp = tempfile.mkstemp(dir=directory, prefix=".in-", suffix=".tmp")
+                    os.close(fd2)
+                    members = merge_tars(tmp, path, merged_tmp)
+                    os.replace(merged_tmp, tmp)
+                _sync_replace(tmp, path)
+                size = os.path.getsize(path)
+                self.store.keep(user, secrets.token_hex(8), size, members)
+                said = f"kept ({size} bytes, {members} files)"
+                self.store.update(row["id"], files=said, files_due=REMOVE)
+                self.log(
+                    f"session {row['id']} of user={user}: files {said}"
+                    + (", merged over the ones kept before (the session did not start from them)" if merged else "")
+                )
+                self._files_try(dict(row, files=said), self._remove_files, f"{row['host']} did not remove its copy")
+            elif code == 404:
+                self._files_final(
+                    row, f"none: {row['host']} had no files of it (Documents empty or absent); those kept before stay"
+                )
+            elif code == 413:
+                self._files_final(
+                    row, f"over the limit ({_size(answer.get('bytes'))} > {self.rules['files_mib']} MiB)", keep=True
+                )
+            elif code >= 500:
+                raise OSError(f"HTTP {code}: {answer.get('error')}")
+            else:
+                self._files_final(row, f"not kept: {row['host']} said {code}: {answer.get('error')}", keep=True)
+        finally:
+            for name in (tmp, merged_tmp):
+                if name and os.path.exists(name):
+                    os.unlink(name)
+
+    def _files_final(self, row: dict, said: str, keep: bool = False) -> None:
+        """An end's files settled without a tar kept; keep: they stay on the host (an operator can get them)."""
+        self.store.update(row["id"], files=said, files_due=None)
+        self.log(
+            f"session {row['id']} of user={row['user']}: files {said}"
+            + (f"; left on {row['host']} ({HOLDER.format(row['id'])})" if keep else "")
+        )
+
+    def _remove_files(self, row: dict) -> None:
+        """The host's copy of the session's files removed (kept on the door, or not following people)."""
+        code, answer = self.agents.ask(row["host"], "DELETE", f"/files/{HOLDER.format(row['id'])}")
+        if code >= 500:
+            raise OSError(f"HTTP {code}: {answer.get('error')}")
+        self.store.update(row["id"], files_due=None)
+        if code != 200:
+            self.log(
+                f"session {row['id']} of user={row['user']}: {row['host']} did not remove its copy of the files "
+                f"({code}: {answer.get('error')}); it stays there"
+            )
+        elif row["files"] == NOT_FOLLOWED:
+            self.log(f"session {row['id']} of user={row['user']}: files {row['files']}; removed on {row['host']}")
+
+    def _put_files(self, row: dict) -> None:
+        """The person's tar put into the session's instance (Documents); a refusal leaves it kept, untouched."""
+        kept = self.store.kept(row["user"]) if self.rules["files_mib"] else None
+        path = os.path.join(self._files_dir(), files_name(row["user"]))
+        if kept is None or not os.path.exists(path):
+            self.store.update(row["id"], files_in=None)  # nothing (any more) to put back
+            return
+        where = f"{row['host']}/{row['instance']}"
+        with open(path, "rb") as fh:
+            code, answer = self.agents.send(
+                row["host"], f"/files/{HOLDER.format(row['id'])}?instance={row['instance']}", fh
+            )
+        if code == 200:
+            said = f"put back ({answer.get('put')} files)"
+            self.store.update(row["id"], files_in=said, files_from=kept["version"])
+            self.log(
+                f"session {row['id']} of user={row['user']}: files put back into {where} ({answer.get('put')} files)"
+            )
+        elif code >= 500 and code != 502:  # 502: the agent tried, and unpacking failed in the instance
+            raise OSError(f"HTTP {code}: {answer.get('error')}")
+        else:
+            why = answer.get("error") or f"HTTP {code}"
+            self.store.update(row["id"], files_in=f"not put back: {why}")
+            self.log(
+                f"session {row['id']} of user={row['user']}: files could not be put back into {where} ({code}: "
+                f"{why}); they stay kept for the next session"
+            )
 
     def _see_clients(self, now: float) -> None:
         """Each active session whose stream the door relays to someone now was seen in use now."""

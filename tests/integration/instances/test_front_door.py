@@ -6,6 +6,7 @@ them, through Python's own HTTP client with the CA the role made (nothing trusts
 """
 
 import contextlib
+import hashlib
 import http.client
 import json
 import os
@@ -50,10 +51,16 @@ def in_journal(host, unit, line):
     wait_for(lambda: line in journal(host, unit), timeout=10, what=f"{line!r} in the journal of {unit}")
 
 
+# the stand-in's Documents (6.x: NVIDIA's mount for the isaac-sim user), a file vic saves there, and the
+# door's store of each person's files (front_door_sim_files_dir)
+DOCUMENTS, MARKER, FILES_DIR = "/isaac-sim/Documents", "vic-marker.txt", "/var/lib/isaac-sim-front-door/files"
+
+
 def simulator_in_chromium(driver, host, address):
     """People at once: three take three instances, vic's page gets the last one with its time left, val's
     page waits first in the queue; vic ends it, and val's page gets that instance, restarted (reset)
-    first. Each page says how its session ended."""
+    first. Each page says how its session ended. vic's files go with vic: gone from the instance val gets,
+    back in vic's next session."""
     others = {name: session(address, name, "view-secret") for name in ("ana", "ben", "cy")}
     held = [as_person(address, "POST", "/api/sessions", cookie, {}) for cookie in others.values()]
     assert [code for code, _s in held] == [201] * 3, held
@@ -71,6 +78,8 @@ def simulator_in_chromium(driver, host, address):
     assert driver.find_element("id", "left").text.startswith("Time left: 3:59:")
     driver.save_screenshot(str(testbed.ROOT / "tests" / "output" / "front-door-simulator.png"))
     before = testbed.container_id(host, f"isaac-sim-{n}")
+    # what vic saves in the simulator's Documents (as the container's own user) follows vic, never val
+    sh(host, f"docker exec isaac-sim-{n} sh -c 'mkdir -p {DOCUMENTS}/work && echo vic > {DOCUMENTS}/work/{MARKER}'")
     with chromium(trust_ca=ca_dir() / "ca.crt") as other:
         other.get(f"https://{address}/simulator.html")
         wait_for(lambda: "/login?next=/simulator.html" in other.current_url, timeout=15, what="val's login page")
@@ -90,11 +99,23 @@ def simulator_in_chromium(driver, host, address):
         assert driver.find_element("id", "state").text == "Your session ended (ended by its holder)."
         wait_for(lambda: waiting.get_attribute("data-state") == "active", timeout=60, what="val's simulator")
         assert other.find_element("id", "state").text == f"Your simulator: {testbed.name(host)}, instance {n}."
-        # the one vic had, reset (a fresh container) before val got it
+        # the one vic had, reset (a fresh container) before val got it, with none of vic's files
         assert testbed.container_id(host, f"isaac-sim-{n}") not in ("", before)
+        assert sh(host, f"docker exec isaac-sim-{n} ls -A {DOCUMENTS}").stdout.strip() == ""
         other.find_element("id", "end").click()
         wait_for(lambda: waiting.get_attribute("data-state") == "ended", timeout=120, what="val's session to end")
         assert console_errors(other) == []
+    # vic's files are on the door, the person's alone (0600, named by a hash of the name), and no longer
+    # on the host once the door took them (val's too, at the door's next look)
+    assert sh(host, f"stat -c %a {FILES_DIR}/{hashlib.sha256(b'vic').hexdigest()}.tar").stdout == "600\n"
+    wait_for(lambda: sh(host, "ls -A /var/lib/isaac-sim/files").stdout.strip() == "", timeout=30, what="no stash left")
+    # and back in vic's next session, whichever instance it is
+    driver.find_element("id", "ask").click()
+    wait_for(lambda: body.get_attribute("data-state") == "active", timeout=120, what="vic's next simulator")
+    m = int(driver.find_element("id", "state").text.rsplit(" ", 1)[1].rstrip("."))
+    assert sh(host, f"docker exec isaac-sim-{m} cat {DOCUMENTS}/work/{MARKER}").stdout == "vic\n"
+    driver.find_element("id", "end").click()
+    wait_for(lambda: body.get_attribute("data-state") == "ended", timeout=120, what="vic's next session to end")
     for (_c, s), cookie in zip(held, others.values()):
         assert as_person(address, "DELETE", s["url"], cookie)[0] == 200
     assert console_errors(driver) == []

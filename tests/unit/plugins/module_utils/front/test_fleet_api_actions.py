@@ -5,11 +5,15 @@ TLS with the door's client certificate; the agent runs the lifecycle on a script
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import json
+import os
 import socket
 import threading
 import time
+import urllib.parse
+from http.server import BaseHTTPRequestHandler
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, fleet_api
@@ -311,3 +315,118 @@ def test_writes_are_rate_limited_per_token(tmp_path, pki):
         assert call(d.port, "/api/hosts/gpu-1/undrain", token=other)[0] == 200
     finally:
         d.close()
+
+
+class FilesAgent(BaseHTTPRequestHandler):
+    """A host agent's /files over its channel, as the pool uses them: GET a holder's stash (its length said,
+    or not: read to the connection's end), DELETE it, PUT a tar (a body over 4096 bytes refused at once,
+    unread: on its 100-continue, or, for instance 9, as an agent that does not know that header would)."""
+
+    protocol_version = "HTTP/1.1"
+    stash, received = {}, []
+
+    def _send(self, code, body, kind="application/json", length=True):
+        data = body if isinstance(body, bytes) else json.dumps(body).encode()
+        self.send_response(code)
+        self.send_header("Content-Type", kind)
+        self.send_header("Connection", "close")
+        self.close_connection = True
+        if length:
+            self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        with contextlib.suppress(OSError):  # the door stopped reading (a body over its limit)
+            self.wfile.write(data)
+
+    def do_GET(self):  # noqa: N802
+        holder = urllib.parse.urlsplit(self.path).path.split("/")[2]
+        data = self.stash.get(holder)
+        if data is None:
+            return self._send(404, {"error": f"no files of {holder}"})
+        return self._send(200, data, "application/x-tar", length=not holder.startswith("session-unsaid"))
+
+    def do_DELETE(self):  # noqa: N802
+        self._send(200, {"removed": self.stash.pop(self.path.split("/")[2], None) is not None})
+
+    def handle_expect_100(self):
+        if "instance=9" in self.path:
+            return True  # no 100 Continue, nor a refusal, before the body
+        if int(self.headers["Content-Length"]) > 4096:
+            self._send(413, {"error": f"{self.headers['Content-Length']} bytes: over 4096"})
+            return False
+        return super().handle_expect_100()
+
+    def do_PUT(self):  # noqa: N802
+        length = int(self.headers["Content-Length"])
+        if length > 4096:
+            return self._send(413, {"error": f"{length} bytes: over 4096"})
+        self.received.append((self.path, self.headers["Content-Type"], self.rfile.read(length)))
+        return self._send(200, {"put": 1, "bytes": length})
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture
+def files_agent(pki):
+    ctx = agent.tls_context(str(pki / "agent.crt"), str(pki / "agent.key"), str(pki / "ca.crt"))
+    server = agent.Server(
+        ("127.0.0.1", 0), FilesAgent, ctx, [agent.ipaddress.ip_network("127.0.0.0/8")], log=lambda line: None
+    )
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"https://127.0.0.1:{server.server_address[1]}"
+    config = {"hosts": [{"name": "gpu-1", "agent_url": url}, {"name": "gpu-3", "agent_url": url}]}
+    tls = {"ca": str(pki / "ca.crt"), "cert": str(pki / f"{agent.CLIENT_NAME}.crt"),
+           "key": str(pki / f"{agent.CLIENT_NAME}.key")}  # fmt: skip
+    FilesAgent.stash, FilesAgent.received = {}, []
+    yield fleet_api.Agents(config, tls, timeout=3)
+    server.shutdown()
+    server.server_close()
+
+
+def test_a_person_s_files_come_from_the_agent_as_bytes_or_into_a_file_never_past_the_limit(files_agent, tmp_path):
+    tar = os.urandom(300_000)
+    FilesAgent.stash.update({"session-a": tar, "session-unsaid": tar})
+    assert files_agent.fetch("gpu-1", "/files/session-a?max=300000", 300_000) == (200, tar)
+    with open(tmp_path / "a.tar", "wb") as fh:
+        assert files_agent.fetch("gpu-1", "/files/session-unsaid?max=300000", 300_000, fh) == (200, 300_000)
+    assert (tmp_path / "a.tar").read_bytes() == tar
+    # over the limit: its length said (nothing read) or not (read to the limit and a byte, no further)
+    assert files_agent.fetch("gpu-1", "/files/session-a", 299_999) == (
+        413,
+        {"error": "300000 bytes, over the limit of 299999", "bytes": 300_000},
+    )
+    with open(tmp_path / "b.tar", "wb") as fh:
+        code, answer = files_agent.fetch("gpu-1", "/files/session-unsaid", 100_000, fh)
+    assert (code, answer["bytes"]) == (413, None) and (tmp_path / "b.tar").stat().st_size <= 100_000
+    assert files_agent.fetch("gpu-1", "/files/session-b", 10) == (404, {"error": "no files of session-b"})
+    assert files_agent.ask("gpu-1", "DELETE", "/files/session-a") == (200, {"removed": True})
+    # another host's agent is never asked, whatever address it says it has
+    with pytest.raises(OSError, match="presented the certificate of 'gpu-1 agent', not gpu-3's"):
+        files_agent.fetch("gpu-3", "/files/session-unsaid", 300_000)
+
+
+def test_a_person_s_files_go_to_the_agent_from_bytes_or_a_file_and_a_refusal_comes_before_they_are_sent(
+    files_agent, tmp_path, monkeypatch
+):
+    assert files_agent.send("gpu-1", "/files/session-a?instance=2", b"x" * 4000) == (200, {"put": 1, "bytes": 4000})
+    (tmp_path / "a.tar").write_bytes(b"y" * 4096)
+    with open(tmp_path / "a.tar", "rb") as fh:
+        assert files_agent.send("gpu-1", "/files/session-a?instance=2", fh) == (200, {"put": 1, "bytes": 4096})
+    assert FilesAgent.received == [
+        ("/files/session-a?instance=2", "application/x-tar", b"x" * 4000),
+        ("/files/session-a?instance=2", "application/x-tar", b"y" * 4096),
+    ]
+    # the agent refuses a tar over its limit without reading it: its answer is what the door gets, on its 100
+    # continue or before it (an agent that does not know that header), and no byte of the tar is sent
+    (tmp_path / "big.tar").write_bytes(os.urandom(8 * 1024 * 1024))
+    for n in (2, 9):
+        with open(tmp_path / "big.tar", "rb") as fh:
+            code, answer = files_agent.send("gpu-1", f"/files/session-a?instance={n}", fh)
+            assert fh.tell() == 0
+        assert (code, answer) == (413, {"error": f"{8 * 1024 * 1024} bytes: over 4096"})
+    # an agent that says nothing to the header gets the files after CONTINUE_WAIT
+    monkeypatch.setattr(fleet_api, "CONTINUE_WAIT", 0.2)
+    assert files_agent.send("gpu-1", "/files/session-a?instance=9", b"z" * 10) == (200, {"put": 1, "bytes": 10})
+    with pytest.raises(OSError, match="not gpu-3's"):
+        files_agent.send("gpu-3", "/files/session-a?instance=2", b"x")
+    assert len(FilesAgent.received) == 3

@@ -65,6 +65,18 @@ def test_good_settings_pass():
         ({"sim": {"max_minutes": "2h"}}, "front_door_sim_max_minutes: '2h' is not a whole number"),
         ({"sim": {"queue_grace_s": 5}}, "front_door_sim_queue_grace_seconds: 5 is not a whole number of 10-86400"),
         ({"sim": {"max_minutes": 10, "warn_minutes": 10}}, "front_door_sim_warn_minutes: 10 is not below"),
+        ({"sim": {"files_mib": -1}}, "front_door_sim_files_mib: -1 is not a whole number of 0-102400. Fix: e.g. 1024."),
+        ({"sim": {"files_dir": "files"}}, "front_door_sim_files_dir: 'files' is not an absolute path"),
+        ({"sim": {"files_dir": "/srv/../etc"}}, "front_door_sim_files_dir: '/srv/../etc' is not an absolute path"),
+        ({"sim": {"files_dir": "/srv"}}, "front_door_sim_files_dir: '/srv' is not an absolute path of two or more"),
+        (
+            {"sim": {"files_dir": "/var/lib/isaac-sim-front-door"}},
+            "front_door_sim_files_dir: /var/lib/isaac-sim-front-door is the",
+        ),
+        (
+            {"sim": {"files_dir": "/etc/isaac-sim/front-door/f"}},
+            "front_door_sim_files_dir: /etc/isaac-sim/front-door/f is the",
+        ),
         ({"users": []}, "front_door_users: empty"),
         (
             {"users": [{"name": "olga", "role": "admin", "password_hash": HASH}]},
@@ -426,6 +438,8 @@ def test_the_api_keeps_sessions_in_the_login_service_s_store_with_the_pool_s_rul
         "warn_minutes": 5,
         "queue_grace_s": 120,
         "host_gone_s": 120,
+        "files_mib": 1024,
+        "files_dir": "/var/lib/isaac-sim-front-door/files",
         "limits": {},
     }
     assert json.loads(front_door.api_json(VIEWERS))["signals"]["gpu-2"]["3"] == "10.0.0.13:49100"
@@ -438,12 +452,32 @@ def test_the_api_keeps_sessions_in_the_login_service_s_store_with_the_pool_s_rul
 def test_the_api_writes_the_sessions_figures_where_node_exporter_reads_them():
     p = dict(GOOD, metrics_dir="/var/lib/prometheus/node-exporter")
     [api] = [s for s in front_door.services(p, "managed", "CERT", "KEY", CODE) if s["name"] == front_door.API_UNIT]
-    assert api["directories"] == [{"path": "/var/lib/prometheus/node-exporter", "uid": 0, "gid": 0, "mode": "0755"}]
+    files = {"path": "/var/lib/isaac-sim-front-door/files", "uid": 0, "gid": 0, "mode": "0700"}
+    assert api["directories"] == [
+        {"path": "/var/lib/prometheus/node-exporter", "uid": 0, "gid": 0, "mode": "0755"},
+        files,
+    ]
     text = api["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
     assert "--metrics-dir /var/lib/prometheus/node-exporter" in text
     assert "ReadWritePaths=/var/lib/prometheus/node-exporter" in text
     [bare] = [s for s in front_door.services(GOOD, "managed", "CERT", "KEY", CODE) if s["name"] == front_door.API_UNIT]
     assert (
-        bare["directories"] == []
+        bare["directories"] == [files]
         and "--metrics-dir" not in bare["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
     )
+
+
+def test_the_people_s_files_are_kept_where_the_api_may_write_and_nobody_else_reads():
+    """In the API's state directory by default (systemd's StateDirectory: writable in its sandbox); elsewhere,
+    that directory is made root's alone and opened to the sandbox too."""
+    [api] = [s for s in front_door.services(GOOD, "managed", "CERT", "KEY", CODE) if s["name"] == front_door.API_UNIT]
+    text = api["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
+    assert "ReadWritePaths=" not in text and "StateDirectory=isaac-sim-front-door" in text
+    assert json.loads(front_door.api_json(GOOD))["pool"]["files_dir"] == front_door.FILES_DIR
+    p = dict(GOOD, sim={"files_dir": "/srv/door-files", "files_mib": "0"})
+    assert front_door.check(p) == []
+    [api] = [s for s in front_door.services(p, "managed", "CERT", "KEY", CODE) if s["name"] == front_door.API_UNIT]
+    assert api["directories"] == [{"path": "/srv/door-files", "uid": 0, "gid": 0, "mode": "0700"}]
+    assert "ReadWritePaths=/srv/door-files\n" in api["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
+    rules = json.loads(front_door.api_json(p))["pool"]
+    assert (rules["files_dir"], rules["files_mib"]) == ("/srv/door-files", 0)

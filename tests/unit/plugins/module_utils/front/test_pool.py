@@ -5,9 +5,16 @@ hosts; each host's status is read from its scripted host, as its status endpoint
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
+import os
 import socket
+import sqlite3
+import stat
+import tarfile
 import threading
+import urllib.parse
 
 import pytest
 from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, fleet_api, pool
@@ -36,6 +43,88 @@ def pki(tmp_path_factory):
     d = make_pki(tmp_path_factory.mktemp("pki"), agent.CLIENT_NAME)
     issue(d, "ca", "gpu-2 agent", "serverAuth", "IP:127.0.0.1", 5, stem="agent2")
     return d
+
+
+def tar_of(files: dict) -> bytes:
+    """A tar of {name: bytes}, as a host's agent gives a stash of Documents."""
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode="w") as tar:
+        for name, data in sorted(files.items()):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return out.getvalue()
+
+
+def files_of(data: bytes) -> dict:
+    """{name: bytes} of a tar's files."""
+    with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+        return {m.name: tar.extractfile(m).read() for m in tar if m.isreg()}
+
+
+class HostFiles:
+    """Each host's side of /files as its agent serves it, on the door's Agents: a give-back moves the instance's
+    Documents (docs) aside into a stash named after its holder; GET /files/HOLDER?max= gives the stash as a tar
+    (404 none, 413 over max), DELETE removes it, PUT ?instance=N unpacks a tar into the Documents of the
+    instance the holder holds (409 otherwise). The rest goes to the hosts' real agents."""
+
+    def __init__(self, fleet):
+        self.fleet = fleet
+        self.docs, self.stash, self.calls = {}, {}, []
+        # hosts whose agent does not answer about files; the answer every PUT gets instead of one
+        self.broken, self.put_answer = set(), None
+        agents = fleet.pool.agents
+        self._ask = agents.ask
+        agents.ask, agents.fetch, agents.send = self.ask, self.fetch, self.send
+
+    def _reach(self, host, method, path):
+        if host in self.broken:
+            raise OSError("connection refused")
+        self.calls.append((method, host, path))
+        address = urllib.parse.urlsplit(path)
+        return address.path.split("/")[2], urllib.parse.parse_qs(address.query)
+
+    def ask(self, host, method, path, body=None):
+        if path.startswith("/files/"):
+            holder, _query = self._reach(host, method, path)
+            assert method == "DELETE"
+            return 200, {"removed": self.stash.pop((host, holder), None) is not None}
+        if body and body.get("action") == "give_back":
+            docs = self.docs.pop((host, body["ids"][0]), None)
+            if docs is not None:
+                self.stash[(host, body["holder"])] = tar_of(docs)
+        return self._ask(host, method, path, body)
+
+    def fetch(self, host, path, max_bytes, into=None):
+        holder, query = self._reach(host, "GET", path)
+        limit = int(query["max"][0])
+        # the door reads a tar somewhat larger than the files it holds, never much more
+        assert max_bytes == 2 * limit + pool.TAR_SLACK
+        data = self.stash.get((host, holder))
+        if data is None:
+            return 404, {"error": f"no files of {holder}"}
+        total = sum(len(v) for v in files_of(data).values())
+        if total > limit:
+            return 413, {"error": "over max", "bytes": total}
+        if into is None:
+            return 200, data
+        into.write(data)
+        return 200, len(data)
+
+    def send(self, host, path, data, method="PUT"):
+        holder, query = self._reach(host, method, path)
+        body = data if isinstance(data, bytes) else data.read()
+        if self.put_answer:
+            return self.put_answer
+        n = int(query["instance"][0])
+        if lifecycle.lent_to(self.fleet.scripted[host].host, n) != holder:
+            return 409, {"error": f"instance {n} is not lent to {holder}"}
+        files = files_of(body)
+        self.docs.setdefault((host, n), {}).update(files)
+        return 200, {"put": len(files), "bytes": len(body)}
+
+    def moves(self, *methods):
+        return [c for c in self.calls if c[0] in methods]
 
 
 class Clock:
@@ -108,6 +197,14 @@ class Fleet:
         )  # fmt: skip
         self.servers.append(serve(fleet_api.handler(service)))
         self.port = self.servers[-1].server_address[1]
+        self.files = HostFiles(self)
+        # the people's files, beside the store as the pool keeps them by default
+        self.files_dir = tmp_path / "files"
+
+    def kept(self, user):
+        """{name: bytes} of the person's tar on the door; None: there is none."""
+        path = self.files_dir / pool.files_name(user)
+        return files_of(path.read_bytes()) if path.exists() else None
 
     def status(self, url):
         """What the host's status endpoint gives of its instances: configured, ready, held by whom."""
@@ -483,3 +580,238 @@ def test_an_end_and_a_tick_at_the_same_moment_ask_for_one_give_back(fleet):
     assert asked == [s["holder"]] and fleet.scripted[s["host"]].commands("restart") == [
         f"systemctl restart {layout.unit(s['instance'])}"
     ]
+
+
+# --- each person's files
+
+
+def test_files_are_kept_at_the_end_removed_on_the_host_and_put_back_at_the_person_s_next_session_elsewhere(fleet):
+    _c, first = fleet.pool.request("vic", {})
+    assert (first["host"], first["instance"], first["files"]) == ("gpu-1", 0, None)
+    fleet.files.docs[("gpu-1", 0)] = {"notes.txt": b"hello", "scenes/a.usda": b"#usda 1.0"}
+    fleet.pool.end(first["id"], "vic", False)
+    fleet.settle()
+    holder = first["holder"]
+    assert fleet.kept("vic") == {"notes.txt": b"hello", "scenes/a.usda": b"#usda 1.0"}
+    # taken, then removed on the host: the next person on that instance finds no Documents of vic's
+    assert fleet.files.moves("GET", "DELETE") == [
+        ("GET", "gpu-1", f"/files/{holder}?max={1024 * pool.MIB}"),
+        ("DELETE", "gpu-1", f"/files/{holder}"),
+    ]
+    assert fleet.files.stash == {} and ("gpu-1", 0) not in fleet.files.docs
+    row = fleet.pool.store.get(first["id"])
+    assert row["files"].startswith("kept (") and row["files"].endswith(" bytes, 2 files)") and not row["files_due"]
+    assert (
+        fleet.pool.look(first["id"], "vic", False)["files"] == "Your files (Documents) are kept for your next session."
+    )
+    assert any(line.startswith(f"session {first['id']} of user=vic: files kept (") for line in fleet.lines)
+    # root's alone on the door
+    assert stat.S_IMODE(os.stat(fleet.files_dir).st_mode) == 0o700
+    assert stat.S_IMODE(os.stat(fleet.files_dir / pool.files_name("vic")).st_mode) == 0o600
+    # another person takes that instance and gets nothing of vic's; vic's next session is on another host
+    _c, other = fleet.pool.request("u1", {})
+    assert (other["host"], other["instance"], other["files"]) == ("gpu-1", 0, None)
+    _c, again = fleet.pool.request("vic", {})
+    assert (again["host"], again["instance"]) == ("gpu-2", 0)
+    assert again["files"] == "Your files from your last session are being put back into Documents."
+    fleet.pool.tick()
+    assert fleet.files.moves("PUT") == [("PUT", "gpu-2", f"/files/{again['holder']}?instance=0")]
+    assert fleet.files.docs == {("gpu-2", 0): {"notes.txt": b"hello", "scenes/a.usda": b"#usda 1.0"}}
+    assert fleet.pool.look(again["id"], "vic", False)["files"] == "Your files from your last session are in Documents."
+    assert f"session {again['id']} of user=vic: files put back into gpu-2/0 (2 files)" in fleet.lines
+    # u1's session, which had no files, ends with none kept; its next session gets no PUT
+    fleet.pool.end(other["id"], "u1", False)
+    fleet.settle()
+    assert fleet.kept("u1") is None and fleet.pool.store.get(other["id"])["files"].startswith("none: gpu-1 had no")
+    _c, other_again = fleet.pool.request("u1", {})
+    fleet.pool.tick()
+    assert other_again["files"] is None and [c[2] for c in fleet.files.moves("PUT")] == [
+        f"/files/{again['holder']}?instance=0"
+    ]
+    # what vic's session ends with is what is kept: a file deleted in it is gone from the tar
+    fleet.files.docs[("gpu-2", 0)] = {"scenes/a.usda": b"#usda 1.0 (edited)"}
+    fleet.pool.end(again["id"], "vic", False)
+    fleet.settle()
+    assert fleet.kept("vic") == {"scenes/a.usda": b"#usda 1.0 (edited)"}
+    assert sorted(os.listdir(fleet.files_dir)) == [pool.files_name("vic")]
+
+
+def test_files_that_could_not_be_put_back_stay_kept_and_what_the_session_made_is_added_to_them(fleet):
+    fleet.pool.store.keep("vic", "v1", 0, 1)
+    fleet.files_dir.mkdir(mode=0o700)
+    (fleet.files_dir / pool.files_name("vic")).write_bytes(tar_of({"old.txt": b"old", "both.txt": b"old"}))
+    fleet.files.put_answer = (502, {"error": "tar failed in the container"})
+    _c, s = fleet.pool.request("vic", {})
+    fleet.pool.tick()
+    assert fleet.pool.look(s["id"], "vic", False)["files"] == (
+        "Your files could not be put back (tar failed in the container); they are kept for your next session."
+    )
+    assert fleet.kept("vic") == {"old.txt": b"old", "both.txt": b"old"}
+    assert any("files could not be put back into gpu-1/0 (502: tar failed" in line for line in fleet.lines)
+    fleet.files.docs[("gpu-1", 0)] = {"new.txt": b"new", "both.txt": b"new"}
+    fleet.pool.end(s["id"], "vic", False)
+    fleet.settle()
+    # the session did not start from the tar: its files go over it, never in its place
+    assert fleet.kept("vic") == {"old.txt": b"old", "both.txt": b"new", "new.txt": b"new"}
+    assert any("merged over the ones kept before" in line for line in fleet.lines)
+
+
+def test_files_that_cannot_be_put_back_are_tried_again_then_the_session_goes_on_without_them(fleet):
+    fleet.pool.store.keep("vic", "v1", 0, 1)
+    fleet.files_dir.mkdir(mode=0o700)
+    (fleet.files_dir / pool.files_name("vic")).write_bytes(tar_of({"old.txt": b"old"}))
+    fleet.files.broken.add("gpu-1")
+    _c, s = fleet.pool.request("vic", {})
+    for _try in range(pool.PUT_TRIES):
+        fleet.pool.tick()
+        fleet.pool.tick()  # not again before FILES_RETRY_S
+        fleet.clock.now += pool.FILES_RETRY_S
+    tried = f"session {s['id']} of user=vic: files not put into gpu-1/0 yet (connection refused); trying again in 30 s"
+    assert fleet.lines.count(tried) == pool.PUT_TRIES
+    assert fleet.pool.look(s["id"], "vic", False)["files"] == (
+        "Your files could not be put back (3 tries failed); they are kept for your next session."
+    )
+    fleet.files.broken.discard("gpu-1")
+    fleet.pool.tick()
+    assert fleet.files.moves("PUT") == [] and fleet.kept("vic") == {"old.txt": b"old"}
+
+
+def test_files_over_the_limit_stay_on_the_host_and_the_person_is_told(tmp_path, pki):
+    f = Fleet(tmp_path, pki, {"files_mib": 1})
+    try:
+        _c, s = f.pool.request("vic", {})
+        f.files.docs[("gpu-1", 0)] = {"big.bin": os.urandom(2 * pool.MIB)}
+        f.pool.end(s["id"], "vic", False)
+        f.settle()
+        assert f.files.moves("GET", "DELETE") == [("GET", "gpu-1", f"/files/{s['holder']}?max={pool.MIB}")]
+        assert ("gpu-1", s["holder"]) in f.files.stash and f.kept("vic") is None
+        row = f.pool.store.get(s["id"])
+        assert (row["files"], row["files_due"]) == ("over the limit (2.0 MiB > 1 MiB)", None)
+        assert f.pool.look(s["id"], "vic", False)["files"] == (
+            "Your files were not kept, over the limit (2.0 MiB > 1 MiB): they are still on gpu-1, where an operator "
+            "can get them."
+        )
+        assert (
+            f"session {s['id']} of user=vic: files over the limit (2.0 MiB > 1 MiB); left on gpu-1 ({s['holder']})"
+            in (f.lines)
+        )
+        f.pool.tick()
+        assert len(f.files.moves("GET")) == 1  # settled: not asked again
+    finally:
+        f.close()
+
+
+def test_files_of_a_host_that_does_not_answer_are_taken_once_it_does(fleet):
+    _c, s = fleet.pool.request("vic", {})
+    fleet.files.docs[("gpu-1", 0)] = {"notes.txt": b"hello"}
+    fleet.files.broken.add("gpu-1")
+    fleet.pool.end(s["id"], "vic", False)
+    fleet.settle()
+    assert fleet.pool.store.get(s["id"])["files"] == "pending" and fleet.kept("vic") is None
+    assert (
+        f"session {s['id']} of user=vic: files gpu-1 did not give them (connection refused); trying again in 30 s"
+        in (fleet.lines)
+    )
+    assert (
+        fleet.pool.look(s["id"], "vic", False)["files"]
+        == "Your files (Documents) are being kept for your next session."
+    )
+    fleet.files.broken.discard("gpu-1")
+    fleet.pool.tick()
+    assert fleet.files.moves("GET") == []  # not before FILES_RETRY_S
+    fleet.down.add("gpu-1")  # nor while its status does not answer
+    fleet.clock.now += pool.FILES_RETRY_S
+    fleet.pool.tick()
+    assert fleet.files.moves("GET") == []
+    fleet.down.discard("gpu-1")
+    fleet.pool.tick()
+    assert fleet.kept("vic") == {"notes.txt": b"hello"} and fleet.files.stash == {}
+    assert fleet.pool.store.get(s["id"])["files_due"] is None
+
+
+def test_with_files_mib_0_files_do_not_follow_and_the_host_s_copy_is_removed_unread(tmp_path, pki):
+    f = Fleet(tmp_path, pki, {"files_mib": 0})
+    try:
+        # a tar kept while files followed people is not put back
+        f.pool.store.keep("vic", "v1", 0, 1)
+        f.files_dir.mkdir(mode=0o700)
+        (f.files_dir / pool.files_name("vic")).write_bytes(tar_of({"old.txt": b"old"}))
+        _c, s = f.pool.request("vic", {})
+        f.files.docs[("gpu-1", 0)] = {"notes.txt": b"hello"}
+        f.pool.tick()
+        f.pool.end(s["id"], "vic", False)
+        f.settle()
+        assert f.files.moves("GET", "PUT", "DELETE") == [("DELETE", "gpu-1", f"/files/{s['holder']}")]
+        assert f.files.stash == {} and f.kept("vic") == {"old.txt": b"old"}
+        assert f.pool.store.get(s["id"])["files"] == pool.NOT_FOLLOWED
+        assert f.pool.look(s["id"], "vic", False)["files"] == (
+            "Files do not follow people here: what was in Documents went with this session."
+        )
+        assert f"session {s['id']} of user=vic: files {pool.NOT_FOLLOWED}; removed on gpu-1" in f.lines
+    finally:
+        f.close()
+
+
+def test_a_person_s_tar_is_named_by_a_hash_of_the_name_never_the_name(fleet):
+    assert pool.files_name("..") == hashlib.sha256(b"..").hexdigest() + ".tar" != pool.files_name(".")
+    _c, s = fleet.pool.request("..", {})
+    fleet.files.docs[("gpu-1", 0)] = {"notes.txt": b"dots"}
+    fleet.pool.end(s["id"], "..", False)
+    fleet.settle()
+    assert os.listdir(fleet.files_dir) == [pool.files_name("..")] and fleet.kept("..") == {"notes.txt": b"dots"}
+    assert not (fleet.files_dir / "...tar").exists() and not (fleet.files_dir.parent / ".tar").exists()
+
+
+def test_a_session_a_rollout_ended_on_its_host_has_its_files_kept(fleet):
+    _c, s = fleet.pool.request("vic", {})
+    scripted = fleet.scripted[s["host"]]
+    # the host ended the claim (a rollout with isaac_sim_rollout_end_sessions), its Documents moved aside first
+    lifecycle.unlend(scripted.host, s["instance"], s["holder"])
+    fleet.files.stash[(s["host"], s["holder"])] = tar_of({"notes.txt": b"saved before the rollout"})
+    fleet.clock.now += pool.SETTLE_S + pool.VERIFY_EVERY_S
+    fleet.pool.tick()
+    assert fleet.pool.store.get(s["id"])["state"] == "ended"
+    assert fleet.kept("vic") == {"notes.txt": b"saved before the rollout"} and fleet.files.stash == {}
+
+
+def test_a_store_of_the_version_before_gets_the_files_columns(tmp_path):
+    path = str(tmp_path / "door.db")
+    db = sqlite3.connect(path)
+    db.execute(
+        "CREATE TABLE sim_sessions (id TEXT PRIMARY KEY, user TEXT NOT NULL, wants TEXT NOT NULL,"
+        " host TEXT NOT NULL, instance INTEGER NOT NULL, state TEXT NOT NULL, created REAL NOT NULL,"
+        " started REAL NOT NULL, expires REAL NOT NULL, warned INTEGER NOT NULL DEFAULT 0, ended REAL,"
+        " why TEXT, action TEXT, client_seen REAL)"
+    )
+    db.execute(
+        "INSERT INTO sim_sessions (id, user, wants, host, instance, state, created, started, expires)"
+        " VALUES ('0123456789ab', 'vic', '{}', 'gpu-1', 0, 'active', 1, 1, 2)"
+    )
+    db.commit()
+    db.close()
+    store = pool.Store(path)
+    [row] = store.sessions()
+    assert (row["files"], row["files_due"], row["files_in"], row["files_from"]) == (None, None, None, None)
+    pool.Store(path)  # and again: nothing added twice
+    assert store.files_due() == [] and store.kept("vic") is None
+
+
+def test_a_merge_keeps_the_newer_member_of_a_path_and_every_other_of_the_older(tmp_path):
+    newer, older = tmp_path / "newer.tar", tmp_path / "older.tar"
+    with tarfile.open(newer, "w") as tar:
+        info = tarfile.TarInfo("./work/a.txt")
+        info.size = 3
+        tar.addfile(info, io.BytesIO(b"new"))
+    with tarfile.open(older, "w") as tar:
+        folder = tarfile.TarInfo("work")
+        folder.type = tarfile.DIRTYPE
+        tar.addfile(folder)
+        for name, data in (("work/a.txt", b"old"), ("b.txt", b"old")):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    assert pool.merge_tars(str(newer), str(older), str(tmp_path / "out.tar")) == 2
+    with tarfile.open(tmp_path / "out.tar") as tar:
+        assert [(m.name, m.isdir()) for m in tar] == [("./work/a.txt", False), ("work", True), ("b.txt", False)]
+        assert tar.extractfile("./work/a.txt").read() == b"new"
+    assert pool.tar_members(str(tmp_path / "out.tar")) == 2
