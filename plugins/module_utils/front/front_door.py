@@ -1112,7 +1112,7 @@ def files(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = 
 def services(p: dict, managed: str, cert: str, key: str, code: dict, secret: str = "") -> list:
     """[{name, state, files, directories, remove}] for isaac_sim_host_service, in order: what runs,
     started; the relay, when off, stopped and removed with its files."""
-    present, gone = files(p, managed, cert, key, code, secret), removal()
+    present, gone = files(p, managed, cert, key, code, secret), removal(p.get("metrics_dir") or "")
     made = {
         API_UNIT: ([{"path": p["metrics_dir"], "uid": 0, "gid": 0, "mode": "0755"}] if p.get("metrics_dir") else [])
         # the people's files: root's alone
@@ -1126,16 +1126,26 @@ def services(p: dict, managed: str, cert: str, key: str, code: dict, secret: str
     ]
 
 
-def removal() -> dict:
+# the sessions' figures the API writes in node_exporter's textfile directory (pool.METRICS_FILE)
+SESSIONS_METRICS = "isaac_sim_sessions.prom"
+
+
+def removal(metrics_dir: str = "") -> dict:
     """{unit: {files, remove}} for isaac_sim_host_service's state absent: each unit's own file, and
     what it leaves (the configuration with the dashboard status.yml wrote, the script, the session
-    key); in the order files() gives them."""
+    key, the store); in the order files() gives them. Each person's files stay."""
     return {
         AUTH_UNIT: {
             "files": {f"/etc/systemd/system/{AUTH_UNIT}": {"content": ""}},
-            "remove": [AUTH_SCRIPT, STORE_CODE, STATE_DIR],
+            # the store (SQLite: its write-ahead log and index beside it), never the people's files (FILES_DIR):
+            # a removal of the door is no reason to lose what people saved; they stay for an operator
+            "remove": [AUTH_SCRIPT, STORE_CODE, *(f"{STORE}{end}" for end in ("", "-wal", "-shm", "-journal"))],
         },
-        API_UNIT: {"files": {f"/etc/systemd/system/{API_UNIT}": {"content": ""}}, "remove": [API_SCRIPT, POOL_CODE]},
+        API_UNIT: {
+            "files": {f"/etc/systemd/system/{API_UNIT}": {"content": ""}},
+            # and its figures, which node_exporter would otherwise go on reading as if the door still ran
+            "remove": [API_SCRIPT, POOL_CODE] + ([f"{metrics_dir}/{SESSIONS_METRICS}"] if metrics_dir else []),
+        },
         UNIT: {"files": {f"/etc/systemd/system/{UNIT}": {"content": ""}}, "remove": [CONFIG_DIR]},
         turn.UNIT: {
             "files": {f"/etc/systemd/system/{turn.UNIT}": {"content": ""}},

@@ -197,7 +197,7 @@ class Store(door_store.Store):
         with self._db() as db:
             db.execute("UPDATE sim_queue SET seen = ? WHERE id = ?", (self.clock(), ident))
 
-    def sessions(self, states=("active", "ending")) -> list:  # pylint: disable=arguments-differ
+    def sim_sessions(self, states=("active", "ending")) -> list:
         marks = ", ".join("?" * len(states))
         with self._db(write=False) as db:
             rows = db.execute(f"SELECT * FROM sim_sessions WHERE state IN ({marks}) ORDER BY started", states)
@@ -488,7 +488,7 @@ class Pool:
         ends in order (their maximum duration), plus a reset."""
         if not place:
             return None
-        ends = sorted(s["expires"] for s in self.store.sessions(("active",)))
+        ends = sorted(s["expires"] for s in self.store.sim_sessions(("active",)))
         if len(ends) < place:
             return None
         reset = sum(self._resets) / len(self._resets) if self._resets else RESET_GUESS_S
@@ -545,7 +545,7 @@ class Pool:
 
     def mine(self, user: str) -> list:
         """The user's sessions and places; the user is looking, so the places are kept."""
-        rows = [r for r in self.store.sessions(("active", "ending")) if r["user"] == user]
+        rows = [r for r in self.store.sim_sessions(("active", "ending")) if r["user"] == user]
         for e in self.store.queue():
             if e["user"] == user:
                 self.store.seen(e["id"])
@@ -554,7 +554,7 @@ class Pool:
 
     def everything(self) -> dict:
         return {
-            "sessions": [self.view(r, True) for r in self.store.sessions(("active", "ending"))],
+            "sessions": [self.view(r, True) for r in self.store.sim_sessions(("active", "ending"))],
             "queue": [self.view(dict(e, state="queued"), True) for e in self.store.queue()],
         }
 
@@ -634,7 +634,7 @@ class Pool:
     def free(self) -> list:
         """[(host, instance status)] ready, held by nobody, on reachable hosts with an agent that are
         not drained, least loaded host first."""
-        ours = {(s["host"], s["instance"]) for s in self.store.sessions()}
+        ours = {(s["host"], s["instance"]) for s in self.store.sim_sessions()}
         out = []
         for read in self._read():
             status = read["status"]
@@ -738,7 +738,7 @@ class Pool:
                     f"session {e['id']} of user={e['user']} left the queue: "
                     f"not looked at for {rules['queue_grace_s']} s"
                 )
-        for row in self.store.sessions():
+        for row in self.store.sim_sessions():
             gone_for = now - self._seen_up.get(row["host"], self._since)
             if row["state"] == "active":
                 if gone_for > rules["host_gone_s"]:
@@ -769,7 +769,7 @@ class Pool:
         """A session whose instance its host no longer holds for it (given back there by a rollout that
         ended sessions, an operator, or lost with the host's /run at a reboot) ended there: it is over."""
         reads = {r["name"]: r for r in self._read() if r["reachable"]}
-        for row in self.store.sessions(("active",)):
+        for row in self.store.sim_sessions(("active",)):
             if row["host"] not in reads or row["started"] > now - SETTLE_S:
                 continue
             insts = reads[row["host"]]["status"].get("instances") or []
@@ -950,7 +950,7 @@ class Pool:
 
     def _see_clients(self, now: float) -> None:
         """Each active session whose stream the door relays to someone now was seen in use now."""
-        active = [(r, self._signal(r)) for r in self.store.sessions(("active",))]
+        active = [(r, self._signal(r)) for r in self.store.sim_sessions(("active",))]
         if not any(signal for _r, signal in active):
             return
         connected = self.clients()

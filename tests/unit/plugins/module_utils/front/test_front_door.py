@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, front_door
+from ansible_collections.isaacsim.fleet.plugins.module_utils.front import door_auth, front_door, pool
 
 CODE = {"auth": "CODE", "store": "STORE", "api": "API", "pool": "POOL"}
 HASH = door_auth.hash_password("pw", 10000, b"0123456789abcdef")
@@ -481,3 +481,12 @@ def test_the_people_s_files_are_kept_where_the_api_may_write_and_nobody_else_rea
     assert "ReadWritePaths=/srv/door-files\n" in api["files"][f"/etc/systemd/system/{front_door.API_UNIT}"]["content"]
     rules = json.loads(front_door.api_json(p))["pool"]
     assert (rules["files_dir"], rules["files_mib"]) == ("/srv/door-files", 0)
+
+
+def test_a_removal_takes_the_store_and_the_sessions_figures_and_leaves_each_person_s_files():
+    gone = front_door.removal("/var/lib/node-exporter")
+    assert front_door.STATE_DIR not in gone[front_door.AUTH_UNIT]["remove"]
+    assert front_door.STORE in gone[front_door.AUTH_UNIT]["remove"]
+    assert not any(path.startswith(front_door.FILES_DIR) for unit in gone.values() for path in unit["remove"])
+    assert f"/var/lib/node-exporter/{pool.METRICS_FILE}" in gone[front_door.API_UNIT]["remove"]
+    assert not any(path.endswith(".prom") for path in front_door.removal()[front_door.API_UNIT]["remove"])

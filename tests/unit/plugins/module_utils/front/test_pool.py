@@ -236,7 +236,7 @@ class Fleet:
         """Ticks until no give-back is pending."""
         for _round in range(rounds):
             self.pool.tick()
-            if not self.pool.store.sessions(("ending",)):
+            if not self.pool.store.sim_sessions(("ending",)):
                 return
             threading.Event().wait(0.05)
         raise AssertionError("a give-back never ended")
@@ -277,7 +277,7 @@ def test_twenty_requests_at_once_for_eight_free_instances_grant_eight_and_queue_
     assert fleet.held() == {(a["host"], a["instance"]): a["holder"] for a in granted.values()}
     assert all(a["entrance"] == f"{ORIGIN}:{8100 + a['instance']}/" for a in granted.values())
     # the queue is in the order the requests came: everyone granted came before everyone queued
-    rows = {r["id"]: r for r in fleet.pool.store.sessions()}
+    rows = {r["id"]: r for r in fleet.pool.store.sim_sessions()}
     queue = fleet.pool.store.queue()
     assert [e["user"] for e in queue] == sorted(queued, key=lambda u: queue[[e["user"] for e in queue].index(u)]["seq"])
     assert max(rows[a["id"]]["created"] for a in granted.values()) <= min(e["created"] for e in queue)
@@ -290,7 +290,7 @@ def test_twenty_requests_at_once_for_eight_free_instances_grant_eight_and_queue_
 def test_an_ended_session_s_instance_is_reset_then_goes_to_the_head_of_the_queue(fleet):
     for k in range(9):
         fleet.pool.request(f"u{k}", {})
-    first = next(s for s in fleet.pool.store.sessions() if s["user"] == "u0")
+    first = next(s for s in fleet.pool.store.sim_sessions() if s["user"] == "u0")
     [waiting] = fleet.pool.store.queue()
     assert waiting["user"] == "u8"
     restarts = len(fleet.scripted[first["host"]].commands("restart"))
@@ -418,11 +418,11 @@ def test_sessions_and_the_queue_survive_a_restart_and_a_host_gone_frees_its_clai
     try:
         for k in range(9):
             f.pool.request(f"u{k}", {})
-        on_2 = [s for s in f.pool.store.sessions() if s["host"] == "gpu-2"]
+        on_2 = [s for s in f.pool.store.sim_sessions() if s["host"] == "gpu-2"]
         # the API's service restarted: a new pool on the same file has every session and place
         again = pool.Pool(pool.Store(f.db, clock=f.clock), f.fleet, f.pool.agents, {"host_gone_s": 120},
                           log=f.lines.append, clock=f.clock)  # fmt: skip
-        assert len(again.store.sessions()) == 8 and [e["user"] for e in again.store.queue()] == ["u8"]
+        assert len(again.store.sim_sessions()) == 8 and [e["user"] for e in again.store.queue()] == ["u8"]
         f.pool = again
         f.down.add("gpu-2")
         f.pool.tick()
@@ -432,7 +432,7 @@ def test_sessions_and_the_queue_survive_a_restart_and_a_host_gone_frees_its_clai
         f.pool.tick()
         told = [f.pool.look(s["id"], s["user"], False) for s in on_2]
         assert all(t["state"] == "ending" and t["why"].startswith("gpu-2 did not answer for 121 s") for t in told)
-        assert {s["host"] for s in f.pool.store.sessions(("active",))} == {"gpu-1"}
+        assert {s["host"] for s in f.pool.store.sim_sessions(("active",))} == {"gpu-1"}
         # back: its claims are given back through its agent, and the queue is served from it
         f.down.discard("gpu-2")
         f.settle()
@@ -790,7 +790,7 @@ def test_a_store_of_the_version_before_gets_the_files_columns(tmp_path):
     db.commit()
     db.close()
     store = pool.Store(path)
-    [row] = store.sessions()
+    [row] = store.sim_sessions()
     assert (row["files"], row["files_due"], row["files_in"], row["files_from"]) == (None, None, None, None)
     pool.Store(path)  # and again: nothing added twice
     assert store.files_due() == [] and store.kept("vic") is None
