@@ -79,6 +79,13 @@ FETCH, REMOVE = "fetch", "remove"
 PUT_PENDING = "pending"
 # sim_sessions.files of a session that ended while files did not follow people (files_mib 0)
 NOT_FOLLOWED = "not kept: files do not follow people here (front_door_sim_files_mib: 0)"
+# how long an instance its give-back just freed (restarted, ready, free: the agent said so) is offered to the
+# queue before the hosts' status shows it free (the host and the door each reuse a status read for 2 s): the
+# claim through the agent is what decides, so an instance taken meanwhile is only refused
+FREED_S = 10.0
+# how long before a give-back the host could not finish (the session's files not moved aside: it kept the
+# instance for the session) is asked again: each try restarts the instance
+GIVE_BACK_RETRY_S = 60.0
 # a guess at a reset's length until one was seen (seconds)
 RESET_GUESS_S = 60.0
 # node_exporter's textfile the API writes (in the directory the role gives it)
@@ -382,6 +389,8 @@ class Pool:
         # session id -> when a move of its files last failed (tried again FILES_RETRY_S later); how many
         # put-backs failed
         self._files_failed, self._put_failures = {}, {}
+        # (host, instance) -> when its give-back freed it; session id -> when its give-back left it held
+        self._freed, self._held_at = {}, {}
 
     # --- what a person sees
 
@@ -620,8 +629,10 @@ class Pool:
 
     def _ended(self, row: dict, said: str) -> None:
         if self.store.update(row["id"], ("ending",), state="ended", **self._at_end(row)):
-            # the instance is free on its host now: the next read shows it to the queue
-            self.fleet.refresh()
+            # the instance is free on its host now: the next read shows it to the queue (one its give-back freed
+            # is offered already, without waiting for a read of every host)
+            if (row["host"], row["instance"]) not in self._freed:
+                self.fleet.refresh()
             took = self.clock() - (row["ended"] or self.clock())
             self._resets = [*self._resets[-9:], took]
             self.log(
@@ -635,6 +646,8 @@ class Pool:
         """[(host, instance status)] ready, held by nobody, on reachable hosts with an agent that are
         not drained, least loaded host first."""
         ours = {(s["host"], s["instance"]) for s in self.store.sim_sessions()}
+        now = self.clock()
+        self._freed = {k: at for k, at in self._freed.items() if now - at < FREED_S}
         out = []
         for read in self._read():
             status = read["status"]
@@ -644,7 +657,8 @@ class Pool:
             held = sum(1 for i in insts if i.get("lent_to") or (read["name"], i["id"]) in ours)
             load = held / len(insts) if insts else 1.0
             for i in insts:
-                if i.get("ready") and not i.get("lent_to") and (read["name"], i["id"]) not in ours:
+                where = (read["name"], i["id"])
+                if where not in ours and ((i.get("ready") and not i.get("lent_to")) or where in self._freed):
                     out.append((load, read["name"], i["id"], i))
         return [(h, i) for _load, h, _n, i in sorted(out, key=lambda t: t[:3])]
 
@@ -660,6 +674,7 @@ class Pool:
                     if not any(h == host and i is inst for h, i in free):
                         continue  # its host was left out meanwhile
                     code, answer = self._claim(entry, host, inst["id"])
+                    self._freed.pop((host, inst["id"]), None)  # the agent has said what it is now
                     if code == LEFT:
                         break  # it left the queue meanwhile: nothing more for it
                     if code == 200:
@@ -758,7 +773,7 @@ class Pool:
                 continue  # asked again once it answers
             elif row["action"]:
                 self._follow(row)
-            else:
+            elif now - self._held_at.get(row["id"], float("-inf")) >= GIVE_BACK_RETRY_S:
                 self._give_back(row)
         # files out of ended sessions before the queue is served: a person's next session gets their latest
         self._files_out(up)
@@ -967,7 +982,21 @@ class Pool:
         if code == 404:  # the agent forgot it (its state lost): ask again
             self.store.update(row["id"], action=None)
         elif answer.get("ended_at"):
-            self._ended(row, (answer.get("result") or {}).get("message") or answer.get("state", "?"))
+            result = answer.get("result") or {}
+            if result.get("held"):
+                # the host kept the instance for the session (its files could not be moved aside): the session
+                # is still ending; its give-back is asked again later, never at once (each try restarts it)
+                self._held_at[row["id"]] = self.clock()
+                self.store.update(row["id"], action=None)
+                self.log(
+                    f"session {row['id']}: {row['host']} kept {row['host']}/{row['instance']} for it: "
+                    f"{result.get('message') or '?'}; asking again in {GIVE_BACK_RETRY_S:g} s"
+                )
+                return
+            self._held_at.pop(row["id"], None)
+            if result.get("ok"):
+                self._freed[(row["host"], row["instance"])] = self.clock()
+            self._ended(row, result.get("message") or answer.get("state", "?"))
 
     def metrics(self) -> str:
         """node_exporter textfile lines: sessions active and ending, the queue, waits and lengths."""

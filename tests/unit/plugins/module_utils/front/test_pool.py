@@ -308,6 +308,60 @@ def test_an_ended_session_s_instance_is_reset_then_goes_to_the_head_of_the_queue
     assert any("given back after" in line for line in fleet.lines)
 
 
+def test_the_queue_gets_an_instance_its_give_back_freed_before_the_hosts_status_shows_it_free(fleet):
+    for k in range(9):
+        fleet.pool.request(f"u{k}", {})
+    first = next(s for s in fleet.pool.store.sim_sessions() if s["user"] == "u0")
+    where = (first["host"], first["instance"])
+    # the hosts' status as read now, kept from here on: it shows the instance held by u0's session (a host
+    # and the door each reuse a status read for 2 s, so a fresh one can say so after the give-back ended)
+    seen = {name: fleet.status(f"http://{name}/status") for name in HOSTS}
+    fleet.fleet.fetch = lambda url: seen[url.split("/")[2]]
+    fleet.pool.end(first["id"], "u0", False)
+    for _round in range(40):
+        fleet.pool.tick()
+        if fleet.pool.store.get(first["id"])["state"] == "ended":
+            break
+        threading.Event().wait(0.05)
+    # in the tick that saw the give-back end, u8 got that instance, through the agent's claim
+    [mine] = fleet.pool.mine("u8")
+    assert (mine["state"], mine["host"], mine["instance"]) == ("active", *where)
+    assert fleet.held()[where] == pool.HOLDER.format(mine["id"])
+    assert where not in fleet.pool._freed  # pylint: disable=protected-access
+
+
+def test_a_give_back_the_host_could_not_finish_is_asked_again_later_never_at_once(fleet):
+    code, s = fleet.pool.request("vic", {})
+    assert code == 201
+    held_by = pool.HOLDER.format(s["id"])
+    a = fleet.agents[s["host"]]
+    real = a._run_give_back  # pylint: disable=protected-access
+
+    def kept(rec, host, who, holder):
+        # as when the session's Documents cannot be moved aside: restarted, still the session's
+        rec["result"] = {"ok": False, "message": "Documents not moved aside", "held": True}
+        a._end(rec, who, "failed")  # pylint: disable=protected-access
+
+    a._run_give_back = kept  # pylint: disable=protected-access
+    fleet.pool.end(s["id"], "vic", False)
+    for _round in range(40):
+        fleet.pool.tick()
+        if any("kept" in line and "asking again" in line for line in fleet.lines):
+            break
+        threading.Event().wait(0.05)
+    asked = [r for r in a.recent() if r["action"] == "give_back"]
+    assert len(asked) == 1 and fleet.pool.store.get(s["id"])["state"] == "ending"
+    # later ticks within the delay ask nothing more; after it, the give-back is asked again and ends
+    for _round in range(5):
+        fleet.pool.tick()
+    assert len([r for r in a.recent() if r["action"] == "give_back"]) == 1
+    a._run_give_back = real  # pylint: disable=protected-access
+    fleet.clock.now += pool.GIVE_BACK_RETRY_S
+    fleet.settle()
+    assert fleet.pool.store.get(s["id"])["state"] == "ended"
+    assert held_by not in fleet.held().values()
+
+
 def test_instances_a_test_run_holds_are_never_granted_and_a_drained_host_gets_no_claim(fleet):
     s1 = fleet.scripted["gpu-1"]
     for i in range(4):
