@@ -72,7 +72,9 @@ def isaac_sim_front_door(settings: dict, what: str):
             settings.get("turn_secret", ""),
         )
     if what == "removal":
-        return [{"name": unit, "state": "absent", **spec} for unit, spec in front_door.removal().items()]
+        # settings: only metrics_dir (the sessions' figures go with the door)
+        gone = front_door.removal(str((settings or {}).get("metrics_dir") or ""))
+        return [{"name": unit, "state": "absent", **spec} for unit, spec in gone.items()]
     raise AnsibleFilterError(f"isaac_sim_front_door: {what!r} is not errors, services or removal")
 
 

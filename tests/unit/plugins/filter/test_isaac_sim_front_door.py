@@ -48,8 +48,9 @@ def test_errors_services_and_a_refusal_of_bad_settings():
     ]
     with pytest.raises(AnsibleFilterError, match="front_door_users: empty"):
         fd_filter.isaac_sim_front_door(settings(users=[]), "services")
-    # what goes with each unit: its unit file; the scripts, the sessions and tokens, the configuration
-    removal = by_name(fd_filter.isaac_sim_front_door({}, "removal"))
+    # what goes with each unit: its unit file; the scripts, the store of sessions and tokens (never each
+    # person's files beside it), the configuration, the sessions' figures where they were written
+    removal = by_name(fd_filter.isaac_sim_front_door({"metrics_dir": "/var/lib/node-exporter"}, "removal"))
     assert all(s["state"] == "absent" for s in removal.values())
     assert removal["isaac-sim-front-door-auth.service"]["files"] == {
         "/etc/systemd/system/isaac-sim-front-door-auth.service": {"content": ""}
@@ -57,8 +58,9 @@ def test_errors_services_and_a_refusal_of_bad_settings():
     assert removal["isaac-sim-front-door-auth.service"]["remove"] == [
         "/usr/local/libexec/isaac-sim/isaac-sim-front-door-auth",
         "/usr/local/libexec/isaac-sim/isaac_sim_door_store.py",
-        "/var/lib/isaac-sim-front-door",
+        *(f"/var/lib/isaac-sim-front-door/door.db{end}" for end in ("", "-wal", "-shm", "-journal")),
     ]
+    assert removal["isaac-sim-front-door-api.service"]["remove"][-1] == "/var/lib/node-exporter/isaac_sim_sessions.prom"
     assert removal["isaac-sim-front-door.service"]["remove"] == ["/etc/isaac-sim/front-door"]
     # together they remove every file the units were given, or the directory that holds it
     gone = [path for unit in removal.values() for path in list(unit["files"]) + unit["remove"]]
