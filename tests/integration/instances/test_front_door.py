@@ -10,6 +10,7 @@ import hashlib
 import http.client
 import json
 import os
+import re
 import socket
 import ssl
 import subprocess
@@ -54,6 +55,38 @@ def in_journal(host, unit, line):
 # the stand-in's Documents (6.x: NVIDIA's mount for the isaac-sim user), a file vic saves there, and the
 # door's store of each person's files (front_door_sim_files_dir)
 DOCUMENTS, MARKER, FILES_DIR = "/isaac-sim/Documents", "vic-marker.txt", "/var/lib/isaac-sim-front-door/files"
+# the sessions' figures (front_door_metrics_textfile_dir's default)
+SESSIONS_PROM = "/var/lib/prometheus/node-exporter/isaac_sim_sessions.prom"
+
+
+def door_services_killed_keep_sessions_and_places(host, address, pages):
+    """The login and API services killed (SIGKILL, as a crash) while four hold instances and one waits:
+    systemd starts them again, and every session and place in the queue is as it was (SQLite on disk).
+    The open pages' polls meanwhile fail (nginx's 500 or 502 for the service away), and nothing else."""
+    olga = session(address, "olga", "op-secret")
+
+    def held_and_queued():
+        _code, everything = as_person(address, "GET", "/api/sessions", olga)
+        held = sorted((s["user"], s["instance"], s["state"]) for s in everything["sessions"])
+        return held, [q["user"] for q in everything["queue"]]
+
+    before = held_and_queued()
+    assert len(before[0]) == INSTANCES and before[1] == ["val"], before
+    killed = (UNITS[1], UNITS[3])
+    runs = {unit: testbed.unit_show(host, unit)["InvocationID"] for unit in killed}
+    for unit in killed:
+        sh(host, f"systemctl kill -s SIGKILL {unit}")
+    wait_for(lambda: held_and_queued() == before, timeout=60, what="the sessions and the queue after the kill")
+    # each a new run of its unit (started again by systemd), not one that outlived its kill
+    assert all(testbed.unit_show(host, unit)["InvocationID"] != runs[unit] for unit in killed)
+    away = re.compile(
+        rf"^https://{re.escape(address)}/(api/sessions|session)\S* - Failed to load resource: the server "
+        r"responded with a status of 50[02] "
+    )
+    time.sleep(3)  # a poll (every 2 s) after the services came back: the pages read them again
+    for page in pages:
+        errors = console_errors(page)
+        assert all(away.match(e["message"]) for e in errors), errors
 
 
 def simulator_in_chromium(driver, host, address):
@@ -93,6 +126,8 @@ def simulator_in_chromium(driver, host, address):
         waiting = other.find_element("tag name", "body")
         other.find_element("id", "ask").click()
         wait_for(lambda: waiting.get_attribute("data-state") == "queued", timeout=15, what="val in the queue")
+        assert other.find_element("id", "state").text.startswith("You are number 1 of 1 in the queue")
+        door_services_killed_keep_sessions_and_places(host, address, (driver, other))
         assert other.find_element("id", "state").text.startswith("You are number 1 of 1 in the queue")
         driver.find_element("id", "end").click()
         wait_for(lambda: body.get_attribute("data-state") == "ended", timeout=120, what="vic's session to end")
@@ -738,11 +773,17 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         for own in ("nginx.service", "coturn.service"):
             assert sh(host, f"systemctl is-active {own}", check=False).stdout.strip() != "active", own
         check_client_certificates(host, address, tmp_path / "people")
+        # the sessions' figures for node_exporter, from the file (a restart of the API keeps their sums)
+        figures = sh(host, f"cat {SESSIONS_PROM}").stdout
+        assert "isaac_sim_door_sessions_active " in figures and "isaac_sim_door_session_wait_seconds_count " in figures
     finally:
         gone = ok(run(host, front_door_server_name=address, front_door_state="absent"))
     assert "changed" in first.stdout
     for unit in UNITS:
         assert sh(host, f"systemctl cat {unit}", check=False).rc != 0
     assert sh(host, "test -e /etc/isaac-sim/front-door", check=False).rc != 0
+    # the sessions' figures go with it; what people saved stays
+    assert sh(host, f"test -e {SESSIONS_PROM}", check=False).rc != 0
+    assert f"{hashlib.sha256(b'vic').hexdigest()}.tar" in sh(host, f"ls {FILES_DIR}").stdout
     assert sh(host, "ss -ltn 'sport = :443 or sport = :5349'").stdout.count("LISTEN") == 0
     assert testbed.changed_count(ok(run(host, front_door_state="absent")), host) == 0, gone.stdout[-2000:]
