@@ -854,15 +854,18 @@ def _in_the_way(i: int, current: dict, desired: dict, main_env: dict, steps: lis
     return bool(kept & wanted)
 
 
+def journal(host: Host, line: str) -> None:
+    """A line of the lifecycle's in the host's journal (tag isaac-sim-lifecycle)."""
+    host.run(["logger", "-t", "isaac-sim-lifecycle", line])
+
+
 def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
     """Stop before the next instance: the one in hand is ready or back, the rest as they were;
     said in the journal, where the next run and a person find it."""
     done = [d["id"] for d in result["done"]]
     said = ", ".join(layout.container(i) for i in done) or "none"
     rest = ", ".join(layout.container(i) for i in left) or "none"
-    host.run(
-        ["logger", "-t", "isaac-sim-lifecycle", f"rollout interrupted: {why}; done: {said}; left as they were: {rest}"]
-    )
+    journal(host, f"rollout interrupted: {why}; done: {said}; left as they were: {rest}")
     result.update(interrupted=why, untouched=list(left), changed=bool(done) or result.get("changed", False))
     return result
 
@@ -935,7 +938,7 @@ def held_after(
                     take_files(host, i, holder, data_root)
                 except OSError as exc:
                     host.remove(ending_marker(i))
-                    host.run(["logger", "-t", "isaac-sim-lifecycle", f"{layout.container(i)} left for {holder}: {exc}"])
+                    journal(host, f"{layout.container(i)} left for {holder}: {exc}")
                     return holder
                 unlend(host, i, holder)
                 if ended is not None:
@@ -1076,8 +1079,10 @@ def take_files(host: Host, i: int, holder: str, data_root: str = layout.DATA_ROO
     docs = layout.documents_dir(i, data_root)
     root = os.path.join(data_root, layout.FILES_DIR)
     stashes = []
-    while host.exists(layout.files_stash(holder, len(stashes) + 1, data_root)):
-        stashes.append(layout.files_stash(holder, len(stashes) + 1, data_root))
+    nth = layout.files_stash(holder, 1, data_root)
+    while host.exists(nth):
+        stashes.append(nth)
+        nth = layout.files_stash(holder, len(stashes) + 1, data_root)
     if not host.exists(docs):
         if not stashes:
             return None
@@ -1139,7 +1144,7 @@ def give_back(host: Host, i: int, run: str, companions=None, data_root: str = la
     outcome = restart_each(host, [i], 0, companions=companions, borrower=run, data_root=data_root)
     failed = outcome["failed"]["reason"] if outcome["failed"] else None
     if kept is not None:
-        host.run(["logger", "-t", "isaac-sim-lifecycle", f"{layout.container(i)} stays lent to {run}: {kept}"])
+        journal(host, f"{layout.container(i)} stays lent to {run}: {kept}")
         return f"{kept}; {layout.container(i)} stays lent to {run}" + (
             f" (its restart failed: {failed})" if failed else ""
         )
