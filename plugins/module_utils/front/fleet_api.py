@@ -550,7 +550,7 @@ class Agents:
         return conn
 
     @staticmethod
-    def _json(answer) -> tuple:
+    def _read_json(answer) -> tuple:
         text = answer.read(MAX_ANSWER + 1)
         if len(text) > MAX_ANSWER:
             raise OSError(f"an answer over {MAX_ANSWER} bytes")
@@ -569,7 +569,7 @@ class Agents:
                     conn.sock.settimeout(WRITE_TIMEOUT)
                 data = json.dumps(body).encode() if body is not None else None
                 conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
-                return self._json(conn.getresponse())
+                return self._read_json(conn.getresponse())
             finally:
                 conn.close()
         except http.client.HTTPException as exc:
@@ -588,7 +588,7 @@ class Agents:
                 conn.request("GET", path)
                 answer = conn.getresponse()
                 if answer.status != 200:
-                    return self._json(answer)
+                    return self._read_json(answer)
                 return self._body(answer, max_bytes, into)
             finally:
                 conn.close()
@@ -639,10 +639,10 @@ class Agents:
                     early = _send_body(conn.sock, data, size, time.monotonic() + wait)
                 conn.sock.settimeout(wait)
                 if early is None:
-                    return self._json(conn.getresponse())
+                    return self._read_json(conn.getresponse())
                 answer = http.client.HTTPResponse(_Replay(early, conn.sock), method=method)
                 answer.begin()
-                return self._json(answer)
+                return self._read_json(answer)
             finally:
                 conn.close()
         except http.client.HTTPException as exc:
