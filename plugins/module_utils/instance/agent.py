@@ -199,8 +199,10 @@ def files_holder(path: str) -> str:
 
 
 def run_piped(argv, stdin, timeout: float = PUT_TIMEOUT_S) -> tuple:
-    """(rc, stdout, stderr) of a command fed `stdin` (an open file), without a shell."""
-    path = shutil.which(argv[0]) or shutil.which(argv[0], path="/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin")
+    """(rc, stdout, stderr) of a command fed `stdin` (an open file), without a shell. Beside
+    lifecycle.run_process, not through it: a put's tar is streamed from a file under a time limit, and
+    what tar says is bytes, replaced where it is not UTF-8 (run_process reads text, strictly)."""
+    path = lifecycle.command_path(argv[0])
     if not path:
         return 127, "", f"{argv[0]}: not found"
     try:

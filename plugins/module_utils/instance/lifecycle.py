@@ -71,10 +71,19 @@ def bind(module) -> Host:
     return bind_local(lambda argv: module.run_command([module.get_bin_path(argv[0], required=True)] + argv[1:]))
 
 
+# where a command is looked for after PATH: a service's PATH may lack the sbin directories
+SYSTEM_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin"
+
+
+def command_path(name: str) -> str | None:
+    """The path of command `name`, on PATH or else on SYSTEM_PATH; None where it is on neither."""
+    return shutil.which(name) or shutil.which(name, path=SYSTEM_PATH)
+
+
 def run_process(argv) -> tuple:
     """(rc, stdout, stderr) of a command run without a shell, for a process that is not a module
     (the host's action agent); a command not found is rc 127, as a shell says it."""
-    path = shutil.which(argv[0]) or shutil.which(argv[0], path="/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin")
+    path = command_path(argv[0])
     if not path:
         return 127, "", f"{argv[0]}: not found"
     done = subprocess.run([path] + list(argv[1:]), capture_output=True, text=True, check=False)

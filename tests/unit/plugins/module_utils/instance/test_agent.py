@@ -890,6 +890,18 @@ def test_delete_files_removes_every_stash_of_the_session_and_nothing_a_link_in_i
     assert [line for _unit, line in lines[-2:]] == [f"files of {HOLDER}: removed", f"files of {HOLDER}: none to remove"]
 
 
+def test_a_piped_command_is_fed_its_file_found_off_path_stopped_at_its_time_and_read_as_bytes(monkeypatch, tmp_path):
+    monkeypatch.setenv("PATH", str(tmp_path))  # the agent's unit may have no /usr/bin on its PATH
+    fed = tmp_path / "fed"
+    fed.write_bytes(b"ok \xff\r\n")
+    with open(fed, "rb") as fh:
+        # bytes as they are, what is not UTF-8 replaced (never an error), a carriage return kept
+        assert agent.run_piped(["cat"], fh) == (0, "ok \ufffd\r\n", "")
+    with open(fed, "rb") as fh:
+        assert agent.run_piped(["sleep", "5"], fh, timeout=0.2) == (124, "", "sleep: still running after 0 s; stopped")
+        assert agent.run_piped(["no-such-command-here"], fh) == (127, "", "no-such-command-here: not found")
+
+
 def test_put_files_extracts_in_the_running_container_as_its_user_into_its_documents_mount(tmp_path):
     a, h, lines, box = files_agent(tmp_path)
     lifecycle.lend(h.host, 2, HOLDER)

@@ -9,6 +9,7 @@ an instance stuck activating. The real thing runs in the molecule scenarios.
 import fnmatch
 import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -1202,6 +1203,13 @@ def test_a_scale_down_never_removes_an_instance_lent_to_a_run():
     assert result["failed"]["id"] == 2 and "lent to test run run-a" in result["failed"]["reason"]
     assert layout.env_file(2) in h.files and h.units[2]["ActiveState"] == "active"
     assert [line for line in h.log if line.startswith(("systemctl stop", "systemctl disable"))] == []
+
+
+def test_a_process_finds_its_command_off_a_service_s_path_and_says_127_for_none(monkeypatch, tmp_path):
+    monkeypatch.setenv("PATH", str(tmp_path))  # a service's PATH, without /usr/bin
+    assert lifecycle.command_path("true") == shutil.which("true", path=lifecycle.SYSTEM_PATH)
+    assert lifecycle.run_process(["printf", "a\\r\\nb"]) == (0, "a\nb", "")
+    assert lifecycle.run_process(["no-such-command-here"]) == (127, "", "no-such-command-here: not found")
 
 
 # --- a session's files: moved aside, whole, at its end (take_files)
