@@ -819,16 +819,17 @@ class Agent:
             raise RefusedError(404, f"instance: {layout.container(i)} not on {self.name}")
         return host, self._documents(host, holder, i)
 
-    def files_put(self, holder: str, i: int, body, length: int) -> dict:
+    def files_put(self, holder: str, i: int, body, length: int, ready=None) -> dict:
         """Put the tar `body` (a file of `length` bytes) into the Documents of instance i, which `holder`
         holds: extracted by tar inside its running container, as the container's own user, in the
         directory the instance's Documents is mounted at, so it can reach nothing of the host but that
         directory. {"put": members, "bytes": length}; RefusedError: 404 (no such instance), 409, 400 (not
         a tar of regular files and directories), 413, 502 (Docker or tar failed: the door keeps the files).
 
-        The image has a tar (Isaac Sim's are Ubuntu's)."""
+        ready: what files_put_ready said of this very request (the handler asked it before 100 Continue);
+        None: asked here. The image has a tar (Isaac Sim's are Ubuntu's)."""
         name = layout.container(i)
-        host, where = self.files_put_ready(holder, i, length)
+        host, where = ready or self.files_put_ready(holder, i, length)
         fd, path = tempfile.mkstemp(prefix="put-", suffix=".tar", dir=self.tmp_dir)
         try:
             with os.fdopen(fd, "w+b") as spool:
@@ -1061,6 +1062,9 @@ def handler(agent: Agent):
         timeout = 30
         # HTTP/1.1 for Expect: 100-continue (a put refused before its body is sent); one request a connection
         protocol_version = "HTTP/1.1"
+        # files_put_ready's (host, where) of the request whose Expect: 100-continue was answered, so its
+        # body's put does not ask Docker again
+        put_ready = None
 
         def _send(self, code: int, body: dict) -> None:
             data = (json.dumps(body, sort_keys=True) + "\n").encode()
@@ -1133,6 +1137,7 @@ def handler(agent: Agent):
         def _files(self, method: str, path: str, query: str) -> None:
             """A session's files: GET (?max=BYTES) the tar of its stashes, DELETE them, PUT (?instance=N)
             a tar into the Documents of the instance it holds."""
+            ready, self.put_ready = self.put_ready, None  # this request's alone
             sent = _Counted(self.rfile)
             try:
                 holder = files_holder(path)
@@ -1150,7 +1155,7 @@ def handler(agent: Agent):
                     parse_query(query, ())
                     return self._send(200, {"removed": agent.files_remove(holder)})
                 holder, i, length = self._put_request(query)
-                code, body = 200, agent.files_put(holder, i, sent, length)
+                code, body = 200, agent.files_put(holder, i, sent, length, ready)
             except RefusedError as refused:
                 code, body = refused.code, refused.body
                 if code != 404 or method != "GET":
@@ -1180,7 +1185,7 @@ def handler(agent: Agent):
                 path, _sep, query = self.path.partition("?")
                 try:
                     holder, i, length = self._put_request(query)
-                    agent.files_put_ready(holder, i, length)
+                    self.put_ready = agent.files_put_ready(holder, i, length)
                 except RefusedError as refused:
                     agent.journal(f"refused PUT {path}: {refused}")
                     self._send(refused.code, refused.body)

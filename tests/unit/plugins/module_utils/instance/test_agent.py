@@ -1142,6 +1142,14 @@ def test_a_put_that_says_expect_100_continue_is_refused_before_its_body_or_told_
     server, a, h, _said = channel
     ctx = client(pki, door(pki))
     docker(h, a)
+    inspected, run = [], h.host.run
+
+    def counted(argv):
+        if argv[:2] == ["docker", "inspect"]:
+            inspected.append(argv[-1])
+        return run(argv)
+
+    h.host.run = counted
     body = tar_of([("back.txt", tarfile.REGTYPE, b"again\n")])
     # not held by that session: the answer comes before a byte of the body
     first, status, answer = expect_continue(server, ctx, f"/files/{HOLDER}?instance=2", body)
@@ -1150,6 +1158,12 @@ def test_a_put_that_says_expect_100_continue_is_refused_before_its_body_or_told_
     first, status, answer = expect_continue(server, ctx, f"/files/{HOLDER}?instance=2", body)
     assert first == b"HTTP/1.1 100 Continue" and (status, answer) == (200, {"put": 1, "bytes": len(body)})
     assert Path(a.pipe.inside, "back.txt").read_bytes() == b"again\n"
+    # its container inspected once, before 100 Continue, not again once the body came
+    assert inspected == ["isaac-sim-2"]
+    # a put without Expect is checked where its body is read, once too
+    status, _headers, data = send(server, ctx, "PUT", f"/files/{HOLDER}?instance=2", body)
+    assert status == 200 and json.loads(data) == {"put": 1, "bytes": len(body)}
+    assert inspected == ["isaac-sim-2"] * 2
 
 
 def test_a_stash_the_agent_may_not_read_is_an_error_never_an_empty_tar(tmp_path, monkeypatch):
