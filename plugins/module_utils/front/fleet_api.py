@@ -20,6 +20,7 @@ FastAPI differs between the two: 0.92 with pydantic 1, 0.115 with pydantic 2).
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import html
 import http.client
@@ -549,6 +550,19 @@ class Agents:
             raise
         return conn
 
+    @contextlib.contextmanager
+    def _talk(self, host: str):
+        """A checked connection to the host's agent (_connect), closed after; HTTP's own errors in it raised
+        as OSError, the one error its callers catch."""
+        try:
+            conn = self._connect(host)
+            try:
+                yield conn
+            finally:
+                conn.close()
+        except http.client.HTTPException as exc:
+            raise OSError(f"{type(exc).__name__}: {exc}") from exc
+
     @staticmethod
     def _read_json(answer) -> tuple:
         text = answer.read(MAX_ANSWER + 1)
@@ -562,18 +576,12 @@ class Agents:
     def ask(self, host: str, method: str, path: str, body=None) -> tuple:
         """(status, answer) of the host's agent; OSError when it does not connect within the timeout, or
         (an action, which may take a moment to be taken) answer within WRITE_TIMEOUT."""
-        try:
-            conn = self._connect(host)
-            try:
-                if method == "POST":
-                    conn.sock.settimeout(WRITE_TIMEOUT)
-                data = json.dumps(body).encode() if body is not None else None
-                conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
-                return self._read_json(conn.getresponse())
-            finally:
-                conn.close()
-        except http.client.HTTPException as exc:
-            raise OSError(f"{type(exc).__name__}: {exc}") from exc
+        with self._talk(host) as conn:
+            if method == "POST":
+                conn.sock.settimeout(WRITE_TIMEOUT)
+            data = json.dumps(body).encode() if body is not None else None
+            conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
+            return self._read_json(conn.getresponse())
 
     def fetch(self, host: str, path: str, max_bytes: int, into=None) -> tuple:
         """(status, answer) of a GET of bytes (a person's files) from the host's agent: 200 and the body
@@ -581,19 +589,13 @@ class Agents:
         over max_bytes is never read past max_bytes + 1: (413, {error, bytes}) as the agent's own refusal
         gives it (bytes: None where the agent sent no length). OSError as ask(), or for a body that is not
         whole within the transfer's time."""
-        try:
-            conn = self._connect(host)
-            try:
-                conn.sock.settimeout(TRANSFER_TIMEOUT)
-                conn.request("GET", path)
-                answer = conn.getresponse()
-                if answer.status != 200:
-                    return self._read_json(answer)
-                return self._body(answer, max_bytes, into)
-            finally:
-                conn.close()
-        except http.client.HTTPException as exc:
-            raise OSError(f"{type(exc).__name__}: {exc}") from exc
+        with self._talk(host) as conn:
+            conn.sock.settimeout(TRANSFER_TIMEOUT)
+            conn.request("GET", path)
+            answer = conn.getresponse()
+            if answer.status != 200:
+                return self._read_json(answer)
+            return self._body(answer, max_bytes, into)
 
     @staticmethod
     def _body(answer, max_bytes: int, into) -> tuple:
@@ -618,35 +620,29 @@ class Agents:
             raise OSError(f"{got} bytes of {said}: the answer was cut off")
         return 200, (b"".join(parts) if into is None else got)
 
-    def send(self, host: str, path: str, data, method: str = "PUT") -> tuple:
-        """(status, JSON answer) of bytes (a tar of a person's files) sent to the host's agent: data is bytes
+    def send(self, host: str, path: str, data) -> tuple:
+        """(status, JSON answer) of bytes (a tar of a person's files) PUT to the host's agent: data is bytes
         or a binary file, sent from where it stands to its end with its Content-Length. An agent that answers
         before it has read all (a refusal) is not sent the rest: its answer is returned. OSError as ask()."""
         size = len(data) if isinstance(data, (bytes, bytearray)) else os.fstat(data.fileno()).st_size - data.tell()
         # the agent unpacks the files into the instance before it answers
         wait = TRANSFER_TIMEOUT + size / TRANSFER_RATE
-        try:
-            conn = self._connect(host)
-            try:
-                conn.putrequest(method, path, skip_accept_encoding=True)
-                conn.putheader("Content-Type", "application/x-tar")
-                conn.putheader("Content-Length", str(size))
-                # a refusal (not held, too big) comes before a byte of the files is sent
-                conn.putheader("Expect", "100-continue")
-                conn.endheaders()
-                early = _await_continue(conn.sock, CONTINUE_WAIT)
-                if early is None:
-                    early = _send_body(conn.sock, data, size, time.monotonic() + wait)
-                conn.sock.settimeout(wait)
-                if early is None:
-                    return self._read_json(conn.getresponse())
-                answer = http.client.HTTPResponse(_Replay(early, conn.sock), method=method)
-                answer.begin()
-                return self._read_json(answer)
-            finally:
-                conn.close()
-        except http.client.HTTPException as exc:
-            raise OSError(f"{type(exc).__name__}: {exc}") from exc
+        with self._talk(host) as conn:
+            conn.putrequest("PUT", path, skip_accept_encoding=True)
+            conn.putheader("Content-Type", "application/x-tar")
+            conn.putheader("Content-Length", str(size))
+            # a refusal (not held, too big) comes before a byte of the files is sent
+            conn.putheader("Expect", "100-continue")
+            conn.endheaders()
+            early = _await_continue(conn.sock, CONTINUE_WAIT)
+            if early is None:
+                early = _send_body(conn.sock, data, size, time.monotonic() + wait)
+            conn.sock.settimeout(wait)
+            if early is None:
+                return self._read_json(conn.getresponse())
+            answer = http.client.HTTPResponse(_Replay(early, conn.sock), method="PUT")
+            answer.begin()
+            return self._read_json(answer)
 
     def events(self, host: str, action_id: str, follow):
         """The action's events as they come (a Follow over the channel)."""

@@ -320,7 +320,8 @@ def test_writes_are_rate_limited_per_token(tmp_path, pki):
 class FilesAgent(BaseHTTPRequestHandler):
     """A host agent's /files over its channel, as the pool uses them: GET a holder's stash (its length said,
     or not: read to the connection's end), DELETE it, PUT a tar (a body over 4096 bytes refused at once,
-    unread: on its 100-continue, or, for instance 9, as an agent that does not know that header would)."""
+    unread: on its 100-continue, or, for instance 9, as an agent that does not know that header would). A
+    holder named session-garbled is answered with what is not HTTP."""
 
     protocol_version = "HTTP/1.1"
     stash, received = {}, []
@@ -337,7 +338,16 @@ class FilesAgent(BaseHTTPRequestHandler):
         with contextlib.suppress(OSError):  # the door stopped reading (a body over its limit)
             self.wfile.write(data)
 
+    def _garbled(self):
+        if "session-garbled" not in self.path:
+            return False
+        self.wfile.write(b"nonsense, not HTTP\r\n\r\n")
+        self.close_connection = True
+        return True
+
     def do_GET(self):  # noqa: N802
+        if self._garbled():
+            return None
         holder = urllib.parse.urlsplit(self.path).path.split("/")[2]
         data = self.stash.get(holder)
         if data is None:
@@ -345,9 +355,13 @@ class FilesAgent(BaseHTTPRequestHandler):
         return self._send(200, data, "application/x-tar", length=not holder.startswith("session-unsaid"))
 
     def do_DELETE(self):  # noqa: N802
+        if self._garbled():
+            return
         self._send(200, {"removed": self.stash.pop(self.path.split("/")[2], None) is not None})
 
     def handle_expect_100(self):
+        if self._garbled():
+            return False
         if "instance=9" in self.path:
             return True  # no 100 Continue, nor a refusal, before the body
         if int(self.headers["Content-Length"]) > 4096:
@@ -403,6 +417,18 @@ def test_a_person_s_files_come_from_the_agent_as_bytes_or_into_a_file_never_past
     # another host's agent is never asked, whatever address it says it has
     with pytest.raises(OSError, match="presented the certificate of 'gpu-1 agent', not gpu-3's"):
         files_agent.fetch("gpu-3", "/files/session-unsaid", 300_000)
+
+
+def test_an_agent_that_does_not_answer_in_http_is_an_os_error_for_each_way_of_asking_it(files_agent):
+    """The one error the pool catches (it tries again later), whichever call met it."""
+    for call_it in (
+        lambda: files_agent.ask("gpu-1", "DELETE", "/files/session-garbled"),
+        lambda: files_agent.fetch("gpu-1", "/files/session-garbled", 10),
+        lambda: files_agent.send("gpu-1", "/files/session-garbled?instance=2", b"x"),
+    ):
+        with pytest.raises(OSError, match="BadStatusLine"):
+            call_it()
+    assert FilesAgent.received == []
 
 
 def test_a_person_s_files_go_to_the_agent_from_bytes_or_a_file_and_a_refusal_comes_before_they_are_sent(

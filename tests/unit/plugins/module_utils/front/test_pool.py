@@ -111,8 +111,8 @@ class HostFiles:
         into.write(data)
         return 200, len(data)
 
-    def send(self, host, path, data, method="PUT"):
-        holder, query = self._reach(host, method, path)
+    def send(self, host, path, data):
+        holder, query = self._reach(host, "PUT", path)
         body = data if isinstance(data, bytes) else data.read()
         if self.put_answer:
             return self.put_answer
