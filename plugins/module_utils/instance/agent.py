@@ -1143,9 +1143,9 @@ def handler(agent: Agent):
                 holder = files_holder(path)
                 if method == "GET":
                     asked = parse_query(query, ("max",))
-                    tar, said = agent.files_tar(holder, asked.get("max", agent.files_max_bytes))
+                    tar, _said = agent.files_tar(holder, asked.get("max", agent.files_max_bytes))
                     try:
-                        self._send_file(tar, said)
+                        self._send_file(tar)
                     except OSError as exc:  # the door went away while it was sent: nothing to answer
                         agent.journal(f"GET {path}: not sent whole: {exc}")
                     finally:
@@ -1213,12 +1213,10 @@ def handler(agent: Agent):
                         break
                     left -= len(chunk)
 
-        def _send_file(self, tar: str, said: dict) -> None:
+        def _send_file(self, tar: str) -> None:
             self.send_response(200)
             self.send_header("Content-Type", "application/x-tar")
             self.send_header("Content-Length", str(os.path.getsize(tar)))
-            self.send_header("X-Files-Bytes", str(said["bytes"]))
-            self.send_header("X-Files-Skipped", str(said["skipped"]))
             self.send_header("Connection", "close")
             self.end_headers()
             with open(tar, "rb") as fh:
