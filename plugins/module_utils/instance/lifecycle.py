@@ -621,7 +621,7 @@ def apply(host: Host, want: dict, check=False) -> dict:
         result.update(changed=False, deferred=True)
         return result
 
-    # a scale-down never takes an instance from the test run it is lent to: nothing changes
+    # a scale-down never takes an instance from the test run or session that holds it: nothing changes
     for i in gone:
         holder = lent_to(host, i)
         if holder is not None:
@@ -880,11 +880,16 @@ def interrupt(host: Host, result: dict, why: str, left: list) -> dict:
 
 
 def _lent_failure(i: int, holder: str, what: str) -> dict:
-    """The failure of a step that would touch instance i while a test run has it."""
+    """The failure of a step that would touch instance i while a test run or a person's session has it."""
+    if layout.SESSION_RE.match(holder):
+        # named as the door names it: session <id>, the holder's name less its prefix
+        said, its = f"held by session {holder.partition('-')[2]}", "session"
+    else:
+        said, its = f"lent to test run {holder}", "run"
     return {
         "id": i,
-        "reason": f"{what}, and it is lent to test run {holder}, which it serves until the run ends. "
-        "Fix: run again once the run is over",
+        "reason": f"{what}, and it is {said}, which it serves until the {its} ends. "
+        f"Fix: run again once the {its} is over",
         "reverted": None,
         "left": "running",
     }

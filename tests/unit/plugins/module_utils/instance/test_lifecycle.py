@@ -652,6 +652,7 @@ def test_a_port_layout_change_stops_before_a_held_instance_whose_ports_another_m
     )
     # instance 1 moves to 49102-49103, and held instance 2 keeps 49102: nothing moves before it
     assert result["failed"]["id"] == 2 and "port layout change" in result["failed"]["reason"]
+    assert "it is held by session olga, which it serves until the session ends" in result["failed"]["reason"]
     assert result["done"] == [] and result["left"] == [] and sorted(result["untouched"]) == [0, 1, 3]
     assert h.commands("restart") == []
 
@@ -1196,11 +1197,25 @@ def test_a_loan_whose_runner_died_is_ended_as_its_runner_would_have_before_the_n
     assert lifecycle.lend(live, 0, "run-c", pid=78) == "run-b"
 
 
-def test_a_scale_down_never_removes_an_instance_lent_to_a_run():
+@pytest.mark.parametrize(
+    ("holder", "words"),
+    [
+        (
+            "run-a",
+            "it is lent to test run run-a, which it serves until the run ends. Fix: run again once the run is over",
+        ),
+        (
+            "session-0123456789ab",
+            "it is held by session 0123456789ab, which it serves until the session ends. "
+            "Fix: run again once the session is over",
+        ),
+    ],
+)
+def test_a_scale_down_never_removes_an_instance_lent_to_a_run_or_held_by_a_session(holder, words):
     h = ScriptedHost(3)
-    lifecycle.lend(h.host, 2, "run-a")
+    lifecycle.lend(h.host, 2, holder)
     result = lifecycle.apply(h.host, want({i: OLD for i in range(2)}, remove=[2]))
-    assert result["failed"]["id"] == 2 and "lent to test run run-a" in result["failed"]["reason"]
+    assert result["failed"]["id"] == 2 and words in result["failed"]["reason"], result["failed"]["reason"]
     assert layout.env_file(2) in h.files and h.units[2]["ActiveState"] == "active"
     assert [line for line in h.log if line.startswith(("systemctl stop", "systemctl disable"))] == []
 
