@@ -15,8 +15,9 @@ description:
     borrows it; a run that reserves GPUs waits for that many free ids of O(gpus).
   - Lending is the collection's one lifecycle's (C(module_utils/instance/lifecycle.py)) - a run borrows an instance, and
     after it the instance is restarted clean and ready before it is free again, one at a time; one that does not come
-    back is not lent again. An instance that another suite or run holds is waited for, up to the run's timeout;
-    no restart ever touches an instance lent to another run.
+    back is not lent again. A run takes an instance that nobody else holds (a person's session, another suite's
+    run) where there is one; an instance held elsewhere is taken only when none is free, and then waited for,
+    up to the run's timeout. No restart ever touches an instance lent to another run or a session.
   - One run failing, hanging (it ends at its own timeout) or not starting never stops the others.
   - Use C(async) - a suite takes as long as its runs.
 author: isaacsim.fleet contributors (@isaacsim-fleet)

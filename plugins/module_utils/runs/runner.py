@@ -342,7 +342,16 @@ class _Share:
             )
             for n, run in enumerate(p["runs"])
         ]
-        results = testrun.run_queue(runs, p["parallel"], p["instances"], p["gpus"], self.execute_one, threading)
+        # an instance a session or another suite holds is taken last: its claim is waited out only where none is free
+        results = testrun.run_queue(
+            runs,
+            p["parallel"],
+            p["instances"],
+            p["gpus"],
+            self.execute_one,
+            threading,
+            held=lambda i: lifecycle.lent_to(self.host, i) is not None,
+        )
         for n, result in enumerate(results):
             if "error" in result and "run" not in result:
                 results[n] = self._failed(runs[n], result["error"])

@@ -925,7 +925,14 @@ def cache_argv(cache: str, release: str) -> list:
     ]
 
 
-def run_queue(runs: list, parallel: int, instances, gpus, execute_one, threading) -> list:
+def _pick(free: list, held) -> int:
+    """Where in `free` the next borrowing run's instance is: the first nobody else holds, else the first."""
+    if held is None:
+        return 0
+    return next((n for n, i in enumerate(free) if not held(i)), 0)
+
+
+def run_queue(runs: list, parallel: int, instances, gpus, execute_one, threading, held=None) -> list:
     """Run a host's share of a suite, at most `parallel` at once, and return one result per run
     (in the order given).
 
@@ -933,7 +940,9 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, threading
     GPUs waits for that many free ids of `gpus`. execute_one(run, instance, gpu_ids) -> result
     borrows the instance and gives it back through the lifecycle itself (lend, run, restart,
     free); a result with `restart_error` means the instance did not come back, and it is not
-    lent again. `threading` is the threading module.
+    lent again. `threading` is the threading module. held(i): whether instance i is claimed
+    outside this suite now (a person's session, another suite's run): such an instance is taken
+    only when no other is free, and then its claim is waited out.
     """
     lock = threading.Condition()
     results = [None] * len(runs)
@@ -957,7 +966,7 @@ def run_queue(runs: list, parallel: int, instances, gpus, execute_one, threading
                     if run["gpus"] > len(free_gpus):
                         continue
                     pending.pop(n)
-                    instance = free_instances.pop(0) if run["simulator"] else None
+                    instance = free_instances.pop(_pick(free_instances, held)) if run["simulator"] else None
                     ids, free_gpus[:] = free_gpus[: run["gpus"]], free_gpus[run["gpus"] :]
                     busy[0] += 1  # counted before the lock is let go: no other worker sees it idle
                     return index, run, instance, ids

@@ -169,6 +169,26 @@ def test_a_host_queue_keeps_to_its_parallel_and_lends_each_instance_to_one_run_a
     assert restarts == [0, 0, 0, 0]
 
 
+def test_a_run_takes_an_instance_nobody_holds_and_waits_for_a_held_one_only_when_none_is_free():
+    # instances 0 and 2 are held outside the suite (a person's session, another suite's run)
+    runs = [{"title": f"r{n}", "gpus": 0, "simulator": True} for n in range(3)]
+    outside = {0, 2}
+    taken = []
+
+    def execute_one(run, instance, gpus):
+        taken.append(instance)
+        return {"title": run["title"], "instance": instance, "verdict": {"result": "passed"}}
+
+    results = testrun.run_queue(runs, 1, [0, 1, 2, 3], [], execute_one, threading, held=lambda i: i in outside)
+    # one at a time: each given back before the next starts, so the free ones go first, then again
+    assert taken == [1, 3, 1], taken
+    assert [r["instance"] for r in results] == [1, 3, 1]
+    # all held: the first is taken, and its claim is waited out by the run itself (lifecycle.lend)
+    taken.clear()
+    testrun.run_queue(runs[:2], 2, [0, 2], [], execute_one, threading, held=lambda i: True)
+    assert sorted(taken) == [0, 2]
+
+
 def test_an_instance_that_does_not_come_back_is_not_lent_again():
     runs = [{"title": f"r{n}", "gpus": 0, "simulator": True} for n in range(3)]
 
