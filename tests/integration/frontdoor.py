@@ -40,10 +40,11 @@ UNITS = (
 USERS = [
     {"name": "olga", "role": "operator", "password_hash": door_auth.hash_password("op-secret", 10000)},
     {"name": "vic", "role": "viewer", "password_hash": door_auth.hash_password("view-secret", 10000)},
-    # more people, each asking for a simulator of their own (the sessions' tests)
+    # more people, each asking for a simulator of their own (the sessions' tests; nine viewers for the
+    # fleet's eight instances)
     *(
         {"name": name, "role": "viewer", "password_hash": door_auth.hash_password("view-secret", 10000)}
-        for name in ("ana", "ben", "cy", "val")
+        for name in ("ana", "ben", "cy", "val", "dee", "eve", "fay", "gus")
     ),
 ]
 
