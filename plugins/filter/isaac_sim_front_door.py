@@ -17,6 +17,8 @@ description:
     removed when C(turn) is off).
   - C(removal) gives the same list for taking all of it away (every unit C(absent), with what goes with it);
     the settings are not read.
+  - C(end_sessions) gives what the removal runs first (C(unit), C(store), C(argv)) - the fleet API's code ends
+    every simulator session and place, each claim given back on its host, waiting up to C(wait) seconds.
 positional: _input, what
 options:
   _input:
@@ -32,7 +34,7 @@ options:
   what:
     description: What to return.
     type: str
-    choices: [errors, services, removal]
+    choices: [errors, services, removal, end_sessions]
     required: true
 """
 
@@ -42,7 +44,8 @@ errors: "{{ settings | isaacsim.fleet.isaac_sim_front_door('errors') }}"
 
 RETURN = r"""
 _value:
-  description: A list of errors (C(errors)), or of the units with what each becomes (C(services), C(removal)).
+  description: A list of errors (C(errors)), or of the units with what each becomes (C(services), C(removal)), or
+    the removal's first command (C(end_sessions)).
   type: raw
 """
 
@@ -75,7 +78,9 @@ def isaac_sim_front_door(settings: dict, what: str):
         # settings: only metrics_dir (the sessions' figures go with the door)
         gone = front_door.removal(str((settings or {}).get("metrics_dir") or ""))
         return [{"name": unit, "state": "absent", **spec} for unit, spec in gone.items()]
-    raise AnsibleFilterError(f"isaac_sim_front_door: {what!r} is not errors, services or removal")
+    if what == "end_sessions":
+        return front_door.end_sessions(int((settings or {}).get("wait", 120)))
+    raise AnsibleFilterError(f"isaac_sim_front_door: {what!r} is not errors, services, removal or end_sessions")
 
 
 class FilterModule:

@@ -1153,25 +1153,46 @@ def main(argv=None):
     import argparse
 
     parser = argparse.ArgumentParser(description="The fleet's API on the front door (isaacsim.fleet)")
-    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--port", type=int)
     parser.add_argument("--config", required=True, help="the door's api.json (the role writes it)")
-    parser.add_argument("--auth", required=True, help="the login service's URL (http://127.0.0.1:PORT)")
+    parser.add_argument("--auth", help="the login service's URL (http://127.0.0.1:PORT)")
     parser.add_argument("--ttl", type=float, default=2.0, help="seconds a host's status read is reused")
     parser.add_argument("--agent-tls", default="", help="a directory of ca.crt, client.crt, client.key")
     parser.add_argument("--store", default="", help="the login service's SQLite file: sessions are kept there")
     parser.add_argument("--metrics-dir", default="", help="node_exporter's textfile directory (the sessions' figures)")
+    parser.add_argument(
+        "--end-sessions",
+        metavar="WHY",
+        default="",
+        help="serve nothing: end every session and place (the door's removal), print what was done as JSON",
+    )
+    parser.add_argument("--wait", type=float, default=120.0, help="seconds --end-sessions waits for the hosts")
     args = parser.parse_args(argv)
+    if args.end_sessions and not args.store:
+        parser.error("--end-sessions needs --store")
+    if not args.end_sessions and (args.port is None or not args.auth):
+        parser.error("--port and --auth are needed to serve")
     with open(args.config, encoding="utf-8") as f:
         config = json.load(f)
     fleet = Fleet(config, ttl=args.ttl)
     tls = None
-    if args.agent_tls:
+    # (a door whose hosts run no agent has none: its removal has no claim to give back)
+    if args.agent_tls and (not args.end_sessions or os.path.isdir(args.agent_tls)):
         tls = {
             k: f"{args.agent_tls}/{name}"
             for k, name in (("ca", "ca.crt"), ("cert", "client.crt"), ("key", "client.key"))
         }
     agents = Agents(config, tls)
     pool = None
+    if args.end_sessions:
+        # run by the role, not as the service: its lines go to the journal under the service's name, the
+        # answer alone to stdout
+        import syslog  # pylint: disable=import-outside-toplevel
+
+        syslog.openlog("isaac-sim-front-door-api")
+        ending = sim_pool.Pool(sim_pool.Store(args.store), fleet, agents, config.get("pool"), log=syslog.syslog)
+        print(json.dumps(ending.end_all(args.end_sessions, args.wait)), flush=True)
+        return
     if args.store:
         pool = sim_pool.Pool(sim_pool.Store(args.store), fleet, agents, config.get("pool"), log=say)
         threading.Thread(

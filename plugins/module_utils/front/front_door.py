@@ -1130,6 +1130,18 @@ def services(p: dict, managed: str, cert: str, key: str, code: dict, secret: str
 SESSIONS_METRICS = "isaac_sim_sessions.prom"
 
 
+def end_sessions(wait_s: int) -> dict:
+    """What the removal runs before anything goes: the API's own code, serving nothing, ends every session
+    and place as any end is (each claim given back on its host, each person's files kept), waiting up to
+    wait_s for the hosts; its last line says what it did (fleet_api.main --end-sessions)."""
+    return {
+        "unit": API_UNIT,
+        "store": STORE,
+        "argv": [PYTHON, API_SCRIPT, "--config", f"{CONFIG_DIR}/api.json", "--store", STORE,
+                 "--agent-tls", AGENT_TLS_DIR, "--end-sessions", "the front door was removed", "--wait", str(wait_s)],
+    }  # fmt: skip
+
+
 def removal(metrics_dir: str = "") -> dict:
     """{unit: {files, remove}} for isaac_sim_host_service's state absent: each unit's own file, and
     what it leaves (the configuration with the dashboard status.yml wrote, the script, the session

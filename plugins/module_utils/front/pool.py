@@ -1030,6 +1030,28 @@ class Pool:
             fh.write(self.metrics())
         os.replace(tmp, path)
 
+    def end_all(self, why: str, wait_s: float = 120.0, sleep=time.sleep) -> dict:
+        """The door goes away: every place in the queue left and every session ended as any end is (each
+        instance given back on its host, reset, then free; each person's files kept on the door), waiting up
+        to wait_s for the hosts. {ended, left, unfinished}: unfinished names HOST/N whose give-back or files
+        did not finish in time (that claim or those files stay on the host)."""
+        left = [e for e in self.store.queue() if self.store.leave(e["id"])]
+        for e in left:
+            self.log(f"session {e['id']} of user={e['user']} left the queue ({why})")
+        active = self.store.sim_sessions(("active",))
+        for row in active:
+            self._end(row, why)
+        deadline = self.clock() + wait_s
+        while self._unfinished() and self.clock() < deadline:
+            sleep(0.5)
+            self.tick()
+        return {"ended": len(active), "left": len(left), "unfinished": self._unfinished()}
+
+    def _unfinished(self) -> list:
+        """HOST/N of the sessions whose give-back, or whose files' move off their host, is still to come."""
+        rows = self.store.sim_sessions(("ending",)) + [r for r in self.store.files_due() if r["files_due"]]
+        return sorted({f"{r['host']}/{r['instance']}" for r in rows})
+
     def run(self, stop: threading.Event, every: float = 0.5, metrics_dir: str = "") -> None:
         written = None
         while not stop.wait(every):

@@ -776,6 +776,11 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         # the sessions' figures for node_exporter, from the file (a restart of the API keeps their sums)
         figures = sh(host, f"cat {SESSIONS_PROM}").stdout
         assert "isaac_sim_door_sessions_active " in figures and "isaac_sim_door_session_wait_seconds_count " in figures
+        # vic holds a simulator, with a file of the session's own in it, when the door is removed
+        code, held = as_person(address, "POST", "/api/sessions", viewer, {})
+        assert code == 201, held
+        kept_before = testbed.container_id(host, f"isaac-sim-{held['instance']}")
+        sh(host, f"docker exec isaac-sim-{held['instance']} sh -c 'echo last > {DOCUMENTS}/last-session.txt'")
     finally:
         gone = ok(run(host, front_door_server_name=address, front_door_state="absent"))
     assert "changed" in first.stdout
@@ -786,4 +791,16 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
     assert sh(host, f"test -e {SESSIONS_PROM}", check=False).rc != 0
     assert f"{hashlib.sha256(b'vic').hexdigest()}.tar" in sh(host, f"ls {FILES_DIR}").stdout
     assert sh(host, "ss -ltn 'sport = :443 or sport = :5349'").stdout.count("LISTEN") == 0
+    # the removal ended vic's session first: the instance given back (a fresh container, ready, held by
+    # nobody) and the session's file kept with vic's others on the door
+    said = " ".join(gone.stdout.split())
+    assert "End the sessions, waiting for the hosts to give their instances back" in said, said[-3000:]
+    assert ".lent" not in sh(host, "ls /run/isaac-sim").stdout
+    assert testbed.container_id(host, f"isaac-sim-{held['instance']}") not in ("", kept_before)
+    assert testbed.instance_ready(host, held["instance"])
+    tar = f"{FILES_DIR}/{hashlib.sha256(b'vic').hexdigest()}.tar"
+    assert "last-session.txt" in sh(host, f"tar -tf {tar}").stdout
+    ending = sh(host, "journalctl -t isaac-sim-front-door-api --no-pager -o cat").stdout
+    where = f"{testbed.name(host)}/{held['instance']}"
+    assert f"session {held['id']} of user=vic on {where} ends: the front door was removed" in ending, ending[-2000:]
     assert testbed.changed_count(ok(run(host, front_door_state="absent")), host) == 0, gone.stdout[-2000:]

@@ -76,7 +76,7 @@ def test_errors_services_and_a_refusal_of_bad_settings():
     turn_off = by_name(services)["isaac-sim-front-door-turn.service"]
     assert "/etc/isaac-sim/front-door/turn.secret" in turn_off["remove"]
     assert "/etc/isaac-sim/front-door" not in turn_off["remove"]
-    with pytest.raises(AnsibleFilterError, match="is not errors, services or removal"):
+    with pytest.raises(AnsibleFilterError, match="is not errors, services, removal or end_sessions"):
         fd_filter.isaac_sim_front_door(settings(), "other")
     assert "isaac_sim_front_door" in fd_filter.FilterModule().filters()
 
@@ -89,3 +89,14 @@ def test_the_password_hash_filter_makes_what_the_service_reads():
     with pytest.raises(AnsibleFilterError, match="below 10000"):
         hash_filter.isaac_sim_password_hash("x", 100)
     assert "isaac_sim_password_hash" in hash_filter.FilterModule().filters()
+
+
+def test_a_removal_first_ends_the_sessions_with_the_api_s_own_code_serving_nothing():
+    ending = fd_filter.isaac_sim_front_door({"wait": 45}, "end_sessions")
+    assert ending["unit"] == "isaac-sim-front-door-api.service"
+    assert ending["store"] == "/var/lib/isaac-sim-front-door/door.db"
+    argv = ending["argv"]
+    assert argv[:2] == ["/usr/bin/python3", "/usr/local/libexec/isaac-sim/isaac-sim-front-door-api"]
+    assert argv[argv.index("--end-sessions") + 1] == "the front door was removed"
+    assert argv[argv.index("--wait") + 1] == "45" and "--port" not in argv
+    assert argv[argv.index("--store") + 1] == ending["store"]

@@ -249,3 +249,16 @@ def test_a_host_that_answers_badly_or_slowly_is_one_unreachable_host(kind):
         for s in (bad, good):
             s.shutdown()
             s.server_close()
+
+
+def test_the_api_s_removal_mode_serves_nothing_and_prints_what_it_ended(tmp_path, capsys):
+    config = tmp_path / "api.json"
+    config.write_text(json.dumps({"hosts": [], "entrances": {}}))
+    with pytest.raises(SystemExit):
+        fleet_api.main(["--config", str(config)])  # serving needs its port and the login service
+    with pytest.raises(SystemExit):
+        fleet_api.main(["--config", str(config), "--end-sessions", "gone"])  # and ending needs the store
+    capsys.readouterr()
+    fleet_api.main(["--config", str(config), "--store", str(tmp_path / "door.db"), "--end-sessions", "gone",
+                    "--agent-tls", str(tmp_path / "none")])  # fmt: skip
+    assert json.loads(capsys.readouterr().out.splitlines()[-1]) == {"ended": 0, "left": 0, "unfinished": []}

@@ -869,3 +869,45 @@ def test_a_merge_keeps_the_newer_member_of_a_path_and_every_other_of_the_older(t
         assert [(m.name, m.isdir()) for m in tar] == [("./work/a.txt", False), ("work", True), ("b.txt", False)]
         assert tar.extractfile("./work/a.txt").read() == b"new"
     assert pool.tar_members(str(tmp_path / "out.tar")) == 2
+
+
+def test_the_door_s_removal_ends_every_session_and_place_and_gives_every_claim_back(fleet):
+    for user in ("vic", *(f"u{k}" for k in range(8))):
+        fleet.pool.request(user, {})
+    [vics] = fleet.pool.mine("vic")
+    fleet.files.docs[(vics["host"], vics["instance"])] = {"notes.txt": b"hello"}
+    assert len(fleet.held()) == 8 and len(fleet.pool.store.queue()) == 1
+
+    def sleep(seconds):
+        fleet.clock.now += seconds
+
+    said = fleet.pool.end_all("the front door was removed", 60, sleep=sleep)
+    assert said == {"ended": 8, "left": 1, "unfinished": []}
+    # every instance given back on its host (restarted, then free), nobody waiting, vic's files kept on the door
+    assert fleet.held() == {} and fleet.pool.store.queue() == []
+    assert {r["state"] for r in fleet.pool.store.recent()} == {"ended"}
+    assert fleet.kept("vic") == {"notes.txt": b"hello"}
+    assert sum(len(s.commands("restart")) for s in fleet.scripted.values()) == 8
+    assert "session" in next(line for line in fleet.lines if "left the queue (the front door was removed)" in line)
+
+
+def test_the_door_s_removal_says_which_claims_a_host_that_does_not_answer_keeps(fleet):
+    for k in range(8):
+        fleet.pool.request(f"u{k}", {})
+    # gpu-2 gone: neither its status nor its agent answers
+    fleet.down.add("gpu-2")
+    ask = fleet.pool.agents.ask
+
+    def unreachable(host, *args, **kwargs):
+        if host == "gpu-2":
+            raise OSError("no route to host")
+        return ask(host, *args, **kwargs)
+
+    fleet.pool.agents.ask = unreachable
+
+    def sleep(seconds):
+        fleet.clock.now += seconds
+
+    said = fleet.pool.end_all("the front door was removed", 30, sleep=sleep)
+    assert said["ended"] == 8 and said["unfinished"] == [f"gpu-2/{i}" for i in range(4)]
+    assert sorted(fleet.held()) == [("gpu-2", i) for i in range(4)]
