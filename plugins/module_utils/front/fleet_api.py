@@ -335,7 +335,8 @@ def openapi() -> dict:
                 "get": op("Your sessions and places in the queue (operators: everyone's too)"),
                 "post": op(
                     "Ask for a simulator (the use scope): 201 and the session where an instance is free, else "
-                    "202 and your place in the queue; {} or release, profile (what the instance runs)",
+                    "202 and your place in the queue; {} or release, profile (what the instance runs), gpu (the "
+                    "model of its GPU, as L40S or NVIDIA L40S)",
                     extra={
                         "responses_extra": {
                             "201": "A session: its instance and entrance",

@@ -35,6 +35,7 @@ import hashlib
 import ipaddress
 import json
 import os
+import re
 import secrets
 import socket
 import tarfile
@@ -49,8 +50,11 @@ except ImportError:  # on the front door host, beside the service's script
 
 # the holder an instance's claim names (the agent's HOLDER_RE)
 HOLDER = "session-{}"
-# what a request may ask for (each matched against the instance's status)
-WANTS = ("release", "profile")
+# what a request may ask for (each matched against the instance's status; gpu: the model of its GPU, as
+# the host's driver names it, "NVIDIA " left out or not)
+WANTS = ("release", "profile", "gpu")
+# a GPU model as the driver names it: "NVIDIA L40S", "NVIDIA RTX 6000 Ada Generation"
+GPU_MODEL_RE = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9 ._()-]{0,63}\Z")
 # the defaults of the role's settings (front_door_sim_*); files_dir '': `files` beside the store
 RULES = {
     "per_person": 1,
@@ -131,7 +135,10 @@ def wants_errors(body) -> list:
     ]
     for k in WANTS:
         v = body.get(k)
-        if v is not None and (not isinstance(v, str) or not door_store.NAME_RE.match(v)):
+        if k == "gpu":
+            if v is not None and (not isinstance(v, str) or not GPU_MODEL_RE.match(v)):
+                errors.append(f'gpu: {v!r} is not a GPU model (1-64 of A-Z a-z 0-9 space . _ ( ) -), e.g. "L40S"')
+        elif v is not None and (not isinstance(v, str) or not door_store.NAME_RE.match(v)):
             errors.append(f"{k}: {v!r} is not a name (1-64 of A-Z a-z 0-9 . _ @ -)")
     return errors
 
@@ -319,7 +326,19 @@ def address_of(signal: str):
 
 
 def fits(wants: dict, inst: dict) -> bool:
-    return all(not wants.get(k) or str(inst.get(k) or "") == wants[k] for k in WANTS)
+    return all(not wants.get(k) or _offers(inst, k) == _wanted(k, wants[k]) for k in WANTS)
+
+
+def _offers(inst: dict, k: str) -> str:
+    """What the instance has of a wanted field (its GPU's model: gpu_model, which the pool's read adds)."""
+    if k == "gpu":
+        return _wanted(k, inst.get("gpu_model") or "")
+    return str(inst.get(k) or "")
+
+
+def _wanted(k: str, v: str) -> str:
+    # a GPU model is matched whole, in any case, with or without the driver's "NVIDIA " (L40S is not L40)
+    return v.lower().removeprefix("nvidia ").strip() if k == "gpu" else v
 
 
 def files_name(user: str) -> str:
@@ -531,7 +550,8 @@ class Pool:
         """RefusedError(409) where no instance of the fleet, held or not, fits: the request would wait for ever."""
         insts = [i for r in self._read() for i in r["status"].get("instances") or [] if i.get("configured")]
         if not any(fits(wants, i) for i in insts):
-            offered = {k: sorted({str(i.get(k)) for i in insts if i.get(k)}) for k in wants}
+            field = {"gpu": "gpu_model"}
+            offered = {k: sorted({str(i[field.get(k, k)]) for i in insts if i.get(field.get(k, k))}) for k in wants}
             raise RefusedError(
                 409,
                 {
@@ -725,7 +745,9 @@ class Pool:
         for read in reads:
             if read["reachable"]:
                 self._seen_up[read["name"]] = now
+                models = {g.get("index"): g.get("name") for g in (read["status"].get("gpu") or {}).get("gpus") or []}
                 for inst in read["status"].get("instances") or []:
+                    inst["gpu_model"] = models.get(inst.get("gpu"))
                     where = (read["name"], inst.get("id"))
                     if inst.get("lent_ending"):
                         self._endings[where] = dict(inst["lent_ending"], holder=inst.get("lent_to"))

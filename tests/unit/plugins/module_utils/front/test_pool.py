@@ -911,3 +911,41 @@ def test_the_door_s_removal_says_which_claims_a_host_that_does_not_answer_keeps(
     said = fleet.pool.end_all("the front door was removed", 30, sleep=sleep)
     assert said["ended"] == 8 and said["unfinished"] == [f"gpu-2/{i}" for i in range(4)]
     assert sorted(fleet.held()) == [("gpu-2", i) for i in range(4)]
+
+
+def test_a_request_may_name_the_gpu_model_its_instance_has(fleet):
+    # gpu-1's instances 0 and 2 on an L40S, 1 and 3 on an L4; gpu-2's on an RTX 6000 Ada, as each driver names it
+    models = {"gpu-1": ["NVIDIA L40S", "NVIDIA L4"], "gpu-2": ["NVIDIA RTX 6000 Ada Generation"]}
+    status = fleet.status
+
+    def with_gpus(url):
+        name, read = url.split("/")[2], json.loads(status(url))
+        gpus = models[name]
+        for inst in read["instances"]:
+            inst["gpu"] = inst["id"] % len(gpus)
+        read["gpu"] = {"gpus": [{"index": k, "name": g} for k, g in enumerate(gpus)]}
+        return json.dumps(read).encode()
+
+    fleet.fleet.fetch = with_gpus
+    # matched whole, in any case, with or without the driver's "NVIDIA ": L4 is not L40S
+    code, l4 = fleet.pool.request("u1", {"gpu": "l4"})
+    assert code == 201 and (l4["host"], l4["instance"] % 2) == ("gpu-1", 1) and l4["wants"] == {"gpu": "l4"}
+    code, ada = fleet.pool.request("u2", {"gpu": "NVIDIA RTX 6000 Ada Generation"})
+    assert code == 201 and ada["host"] == "gpu-2"
+    code, l40s = fleet.pool.request("u3", {"gpu": "L40S", "release": "5.0"})
+    assert code == 201 and (l40s["host"], l40s["instance"] % 2) == ("gpu-1", 0)
+    with pytest.raises(pool.RefusedError) as nowhere:
+        fleet.pool.request("u4", {"gpu": "L40"})
+    assert nowhere.value.args == (
+        409,
+        {"error": "gpu: no instance of the fleet runs 'L40'. Fix: one of NVIDIA L4, NVIDIA L40S, "
+                  "NVIDIA RTX 6000 Ada Generation."},
+    )  # fmt: skip
+    with pytest.raises(pool.RefusedError) as bad:
+        fleet.pool.request("u4", {"gpu": "L40S; rm -rf /"})
+    assert bad.value.args[0] == 400 and bad.value.args[1]["error"].startswith("gpu: 'L40S; rm -rf /' is not a GPU")
+    # both L4 instances taken, the next L4 request waits for one, though L40S instances are free
+    code, _second = fleet.pool.request("u5", {"gpu": "L4"})
+    assert code == 201
+    code, waits = fleet.pool.request("u6", {"gpu": "L4"})
+    assert code == 202 and waits["place"] == 1
