@@ -3,8 +3,9 @@ it), in front of the three hosts' status endpoints and the first host's web view
 this machine as a browser outside the fleet would reach it, and its TURN relay carrying a host's
 stream to a peer that can reach nothing but the gateway's TLS port.
 
-Runs last of the fleet's modules (file order), and leaves the front door running (destroy
-follows; its removal is tests/integration/instances' test_front_door's). Its deploy of the first host
+Runs after the fleet's other modules but test_whoever_asks.py (file order), which goes on with the
+front door it leaves running (destroy follows; its removal is tests/integration/instances'
+test_front_door's). Its deploy of the first host
 asks for a web viewer beside each instance, lets the host's signal and viewer ports answer the
 gateway alone and gives its journal to the gateway (isaac_sim_status_server_logs_allow); after
 test_unwanted_traffic.py, which left those viewers, the deploy changes the firewall and the

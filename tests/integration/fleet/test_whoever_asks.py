@@ -5,9 +5,10 @@ ends sessions left idle or at their maximum duration, each with its warning firs
 
 Runs last of the fleet's modules (file order), after test_viewers_through_the_gateway.py, whose deploy
 gave the first host a web viewer beside each instance behind the door: a session there has a stream
-the door relays (so it can end idle, and its viewer is the holder's alone). The third host is drained
-throughout (by then it runs two instances: test_unwanted_traffic.py scaled it down), so the people
-share the first two hosts' eight. The hosts' agents are the scenario's (molecule/fleet/inventory).
+the door relays (so it can end idle, and its viewer is the holder's alone). Its fixture deploys the
+first two hosts again with the action agent the door reaches them through (the first with that
+module's settings kept); the third runs none (by then it runs two instances: test_unwanted_traffic.py
+scaled it down), so the door hands out the first two hosts' eight instances alone.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import yaml
 from browser import chromium, console_errors
 from fleethosts import INSTANCES, hosts, ip, playbook, sh, squash
 from frontdoor import as_person, ca_dir, log_in, request, session, settings
+from test_stream_addresses import viewer_image
 from test_suite import FIXTURES, image
 from test_viewers_through_the_gateway import DOOR, DOOR_VIEWER, front_door, ok
 
@@ -43,17 +45,33 @@ def door_settings(**over) -> dict:
 
 @pytest.fixture(scope="module")
 def door():
-    """The door's address and an operator's cookie, the door deployed with the sessions' rules, the third
-    host drained, the first two hosts' instances ready and held by nobody."""
-    first, second, third = hosts()
+    """The door's address and an operator's cookie: the first two hosts run the action agent for the door
+    (its address alone, the scenario's CA), the door is deployed with the sessions' rules, and those hosts'
+    instances are ready and held by nobody."""
+    first, second, _third = hosts()
+    address = ip(DOOR)
+    agent = {
+        "isaac_sim_agent_enabled": True,
+        "isaac_sim_agent_allow": [f"{address}/32"],
+        "isaac_sim_agent_ca_dir": str(ca_dir()),
+    }
+    # the first host as test_viewers_through_the_gateway.py deployed it, with the agent beside
+    gateway = {
+        "isaac_sim_web_viewer_image": viewer_image(first),
+        "isaac_sim_allowed_networks_by_port": {"signal": [f"{address}/32"], "web_viewer": [f"{address}/32"]},
+        "isaac_sim_status_server_logs_allow": [f"{address}/32"],
+    }
+    with ThreadPoolExecutor(2) as pool:
+        deploys = [pool.submit(playbook, "deploy.yml", dict(gateway, **agent), first),
+                   pool.submit(playbook, "deploy.yml", agent, second)]  # fmt: skip
+        for deployed in deploys:
+            ok(deployed.result())
     for h in (first, second):
         testbed.wait_for(lambda h=h: ready_and_free(h), timeout=240, what=f"{h} ready")
     ok(front_door(door_settings()))
-    address = ip(DOOR)
     olga = session(address, "olga", "op-secret")
-    drain(address, olga, third)
     yield address, olga
-    for h in (first, second, third):
+    for h in (first, second):
         as_person(address, "POST", f"/api/hosts/{h}/undrain", olga)
 
 
