@@ -772,15 +772,16 @@ def test_the_front_door_lets_in_logged_in_users_only_over_tls_and_goes_away_clea
         # the distribution's own nginx and coturn, installed by the role, do not run
         for own in ("nginx.service", "coturn.service"):
             assert sh(host, f"systemctl is-active {own}", check=False).stdout.strip() != "active", own
-        check_client_certificates(host, address, tmp_path / "people")
-        # the sessions' figures for node_exporter, from the file (a restart of the API keeps their sums)
-        figures = sh(host, f"cat {SESSIONS_PROM}").stdout
-        assert "isaac_sim_door_sessions_active " in figures and "isaac_sim_door_session_wait_seconds_count " in figures
-        # vic holds a simulator, with a file of the session's own in it, when the door is removed
+        # vic holds a simulator, with a file of the session's own in it, when the door is removed (asked before
+        # the door asks for people's client certificates below)
         code, held = as_person(address, "POST", "/api/sessions", viewer, {})
         assert code == 201, held
         kept_before = testbed.container_id(host, f"isaac-sim-{held['instance']}")
         sh(host, f"docker exec isaac-sim-{held['instance']} sh -c 'echo last > {DOCUMENTS}/last-session.txt'")
+        check_client_certificates(host, address, tmp_path / "people")
+        # the sessions' figures for node_exporter, from the file (a restart of the API keeps their sums)
+        figures = sh(host, f"cat {SESSIONS_PROM}").stdout
+        assert "isaac_sim_door_sessions_active " in figures and "isaac_sim_door_session_wait_seconds_count " in figures
     finally:
         gone = ok(run(host, front_door_server_name=address, front_door_state="absent"))
     assert "changed" in first.stdout
