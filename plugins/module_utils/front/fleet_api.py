@@ -134,6 +134,7 @@ def instance_view(host: str, inst: dict, entrance, operator: bool) -> dict:
         "ready": bool(inst.get("ready")),
         "release": inst.get("release"),
         "profile": inst.get("profile"),
+        "gpu_model": inst.get("gpu_model"),
         "image": inst.get("image"),
         "digest": inst.get("digest"),
         "ports": inst.get("ports") or {},
@@ -176,6 +177,11 @@ class Fleet:
             status = json.loads(self.fetch(backend["status_url"]))
             if not isinstance(status, dict):
                 raise ValueError("the answer is not a JSON object")
+            # each instance's GPU model, as its host's driver names the GPU at the instance's index (a session
+            # may ask for one)
+            models = {g.get("index"): g.get("name") for g in (status.get("gpu") or {}).get("gpus") or []}
+            for inst in status.get("instances") or []:
+                inst["gpu_model"] = models.get(inst.get("gpu"))
             return {"name": backend["name"], "reachable": True, "error": status.get("error"), "status": status}
         # whatever one host answers (or not), the others are still served
         except Exception as exc:  # pylint: disable=broad-exception-caught
@@ -1192,7 +1198,8 @@ def main(argv=None):
 
         syslog.openlog("isaac-sim-front-door-api")
         ending = sim_pool.Pool(sim_pool.Store(args.store), fleet, agents, config.get("pool"), log=syslog.syslog)
-        print(json.dumps(ending.end_all(args.end_sessions, args.wait)), flush=True)
+        sys.stdout.write(json.dumps(ending.end_all(args.end_sessions, args.wait)) + "\n")
+        sys.stdout.flush()
         return
     if args.store:
         pool = sim_pool.Pool(sim_pool.Store(args.store), fleet, agents, config.get("pool"), log=say)

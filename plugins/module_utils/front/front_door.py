@@ -705,6 +705,7 @@ SIM_PAGE = """<!doctype html>
 <p id="files" hidden></p>
 <p id="entrance" hidden><a id="open" target="_blank" rel="noopener">Open your simulator's viewer</a></p>
 <p id="left" hidden></p>
+<p id="choose" hidden></p>
 <p><button type="button" id="ask" hidden>Ask for a simulator</button>
 <button type="button" id="end" hidden>End my session</button></p>
 <p id="said" class="error" hidden></p>
@@ -714,6 +715,30 @@ SIM_PAGE = """<!doctype html>
   "use strict";
   var csrf = "", current = null, last = null, left = null;
   var $ = function (id) { return document.getElementById(id); };
+  // what a request may name ([field, the fleet listing's key, label]): offered where the fleet has several
+  var WANTS = [["release", "release", "Release"], ["profile", "profile", "Profile"], ["gpu", "gpu_model", "GPU"]];
+  function offer(fleet) {
+    WANTS.forEach(function (w) {
+      var seen = {};
+      (fleet.hosts || []).forEach(function (h) {
+        (h.instances || []).forEach(function (i) { if (i[w[1]]) { seen[i[w[1]]] = true; } });
+      });
+      var values = Object.keys(seen).sort();
+      if (values.length < 2) { return; }
+      var label = document.createElement("label"), select = document.createElement("select");
+      select.id = "want-" + w[0];
+      [""].concat(values).forEach(function (v) {
+        var o = document.createElement("option");
+        o.value = v;
+        o.textContent = v || "any";
+        select.appendChild(o);
+      });
+      label.appendChild(document.createTextNode(w[2] + " "));
+      label.appendChild(select);
+      $("choose").appendChild(label);
+      $("choose").appendChild(document.createTextNode(" "));
+    });
+  }
   function show(id, text) { $(id).textContent = text || ""; $(id).hidden = !text; }
   function call(method, path, body) {
     var headers = {"Content-Type": "application/json", "X-Fleet-CSRF": csrf};
@@ -732,6 +757,7 @@ SIM_PAGE = """<!doctype html>
     if (s) { last = s.id; }
     document.body.dataset.state = s ? s.state : "none";
     $("ask").hidden = !!current;
+    $("choose").hidden = !!current || !$("choose").childNodes.length;
     $("end").hidden = !current || current.state === "ending";
     $("end").textContent = current && current.state === "queued" ? "Leave the queue" : "End my session";
     $("entrance").hidden = !(s && s.state === "active" && s.entrance);
@@ -765,7 +791,9 @@ SIM_PAGE = """<!doctype html>
   }
   $("ask").addEventListener("click", function () {
     show("said", "");
-    call("POST", "/api/sessions", {}).then(function (res) {
+    var body = {};
+    WANTS.forEach(function (w) { var s = $("want-" + w[0]); if (s && s.value) { body[w[0]] = s.value; } });
+    call("POST", "/api/sessions", body).then(function (res) {
       if (res[0] === 201 || res[0] === 202) { render(res[1]); } else { show("said", res[1].error || "HTTP " + res[0]); }
     });
   });
@@ -780,8 +808,12 @@ SIM_PAGE = """<!doctype html>
   }, 1000);
   fetch("/session", {cache: "no-store"}).then(function (r) { return r.json(); }).then(function (who) {
     csrf = who.csrf || "";
-    poll();
-    setInterval(poll, 2000);
+    // the choices first (a page without them still asks for any), then the person's sessions
+    return fetch("/api/fleet", {cache: "no-store"}).then(function (r) { return r.ok ? r.json() : {}; })
+      .then(offer, function () {}).then(function () {
+        poll();
+        setInterval(poll, 2000);
+      });
   }).catch(function (e) { show("said", "Who you are could not be read: " + e.message); });
 })();
 </script></body></html>

@@ -330,7 +330,7 @@ def fits(wants: dict, inst: dict) -> bool:
 
 
 def _offers(inst: dict, k: str) -> str:
-    """What the instance has of a wanted field (its GPU's model: gpu_model, which the pool's read adds)."""
+    """What the instance has of a wanted field (its GPU's model: gpu_model, which the fleet's read adds)."""
     if k == "gpu":
         return _wanted(k, inst.get("gpu_model") or "")
     return str(inst.get(k) or "")
@@ -745,9 +745,7 @@ class Pool:
         for read in reads:
             if read["reachable"]:
                 self._seen_up[read["name"]] = now
-                models = {g.get("index"): g.get("name") for g in (read["status"].get("gpu") or {}).get("gpus") or []}
                 for inst in read["status"].get("instances") or []:
-                    inst["gpu_model"] = models.get(inst.get("gpu"))
                     where = (read["name"], inst.get("id"))
                     if inst.get("lent_ending"):
                         self._endings[where] = dict(inst["lent_ending"], holder=inst.get("lent_to"))

@@ -23,6 +23,7 @@ import yaml
 from browser import chromium, console_errors
 from fleethosts import INSTANCES, hosts, ip, playbook, sh, squash
 from frontdoor import as_person, ca_dir, log_in, request, session, settings
+from selenium.webdriver.support.ui import Select
 from test_stream_addresses import viewer_image
 from test_suite import FIXTURES, image
 from test_viewers_through_the_gateway import DOOR, DOOR_VIEWER, front_door, ok
@@ -62,8 +63,10 @@ def door():
         "isaac_sim_status_server_logs_allow": [f"{address}/32"],
     }
     with ThreadPoolExecutor(2) as pool:
+        # the second host's last instance headless: the fleet offers two profiles, which the page lets a person pick
+        headless = dict(agent, isaac_sim_instance_profiles={3: "headless"})
         deploys = [pool.submit(playbook, "deploy.yml", dict(gateway, **agent), first),
-                   pool.submit(playbook, "deploy.yml", agent, second)]  # fmt: skip
+                   pool.submit(playbook, "deploy.yml", headless, second)]  # fmt: skip
         for deployed in deploys:
             ok(deployed.result())
     for h in (first, second):
@@ -357,11 +360,20 @@ def test_idle_and_maximum_duration_ends_come_on_time_with_their_warnings_first(d
         held = {}
         for name, driver in (("ana", anas), ("val", vals)):
             simulator_page(driver, address, name)
+            if name == "val":
+                # the fleet runs two profiles (the fixture's headless instance): the page offers them, and val
+                # asks for a streaming one
+                testbed.wait_for(lambda: vals.find_elements("id", "want-profile"), timeout=15, what="the choices")
+                choice = Select(driver.find_element("id", "want-profile"))
+                assert [o.text for o in choice.options] == ["any", "headless", "streaming"]
+                assert not driver.find_elements("id", "want-release")  # one release: nothing to choose
+                choice.select_by_value("streaming")
             driver.find_element("id", "ask").click()
             testbed.wait_for(lambda d=driver: data(d, "state") == "active", timeout=60, what=f"{name}'s simulator")
             cookie = logged_in(address, name)[name]
             [mine] = as_person(address, "GET", "/api/sessions", cookie)[1]["mine"]
             held[name] = (cookie, mine)
+        assert held["val"][1]["wants"] == {"profile": "streaming"} and held["ana"][1]["wants"] == {}
         # the door's own times (the same clock as this machine's: the test hosts are containers here)
         started = {name: mine["started"] for name, (_c, mine) in held.items()}
 
