@@ -262,3 +262,21 @@ def test_the_api_s_removal_mode_serves_nothing_and_prints_what_it_ended(tmp_path
     fleet_api.main(["--config", str(config), "--store", str(tmp_path / "door.db"), "--end-sessions", "gone",
                     "--agent-tls", str(tmp_path / "none")])  # fmt: skip
     assert json.loads(capsys.readouterr().out.splitlines()[-1]) == {"ended": 0, "left": 0, "unfinished": []}
+
+
+def test_a_read_that_waited_for_a_slow_host_is_fresh_from_its_end_not_its_start():
+    now, asked = [0.0], []
+
+    def slow(url):
+        asked.append(url)
+        now[0] += 5.0  # a host that does not answer holds the read for the whole timeout
+        raise OSError("timed out")
+
+    fleet = fleet_api.Fleet({"hosts": [{"name": "gone", "status_url": "http://gone/status"}]}, ttl=2.0,
+                            fetch=slow, clock=lambda: now[0])  # fmt: skip
+    assert fleet.hosts()[0]["reachable"] is False
+    # a caller that waited for that read gets it, and does not wait for another
+    assert fleet.hosts()[0]["reachable"] is False and len(asked) == 1
+    now[0] += 2.0
+    fleet.hosts()
+    assert len(asked) == 2
