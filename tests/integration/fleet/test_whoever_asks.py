@@ -213,6 +213,12 @@ def test_nine_people_on_two_hosts_in_chromium_and_a_reboot_of_the_door(door):
     upgrade = {"Upgrade": "websocket", "Connection": "Upgrade", "Sec-WebSocket-Version": "13",
                "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==", "Origin": f"https://{address}:{port}"}  # fmt: skip
     assert request(address, "GET", "/", cookie=cookies[other], port=port, headers=upgrade)[0].status == 403
+    # a cookie logged out opens neither the page nor its signalling, though its person holds the instance
+    spare = logged_in(address, owner)[owner]
+    assert request(address, "GET", "/", cookie=spare, port=port)[0].status == 200
+    assert request(address, "GET", "/logout", cookie=spare)[0].status == 303
+    for headers in (None, upgrade):
+        assert request(address, "GET", "/", cookie=spare, port=port, headers=headers)[0].status in (302, 401)
 
     vic = sessions["vic"]
     gave = next(name for name in PEOPLE if sessions[name]["host"] != vic["host"])
@@ -310,6 +316,13 @@ def test_a_host_that_stops_answering_frees_its_claims_and_tells_their_holders(do
     host.pause()
     paused = time.monotonic()
     try:
+        # the fleet's listing meanwhile: the frozen host unreachable, the other served (printed: how long it took)
+        time.sleep(2.5)  # past the API's reuse of its last read (2 s)
+        began = time.monotonic()
+        code, listing = as_person(address, "GET", "/api/fleet", olga)
+        print(f"the fleet listing with {second} frozen answered in {time.monotonic() - began:.2f} s")
+        reach = {h["name"]: h["reachable"] for h in listing["hosts"]}
+        assert code == 200 and reach[second] is False and reach[first] is True, reach
         testbed.wait_for(
             lambda: all(look(address, cookies[n], s["id"])["state"] != "active" for n, (_c, s) in got.items()),
             timeout=120,
