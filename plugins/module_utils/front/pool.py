@@ -53,6 +53,8 @@ HOLDER = "session-{}"
 # what a request may ask for (each matched against the instance's status; gpu: the model of its GPU, as
 # the host's driver names it, "NVIDIA " left out or not)
 WANTS = ("release", "profile", "gpu")
+# an instance status's key for a field not named as the field (gpu_model: the fleet's read adds it)
+STATUS_KEY = {"gpu": "gpu_model"}
 # a GPU model as the driver names it: "NVIDIA L40S", "NVIDIA RTX 6000 Ada Generation"
 GPU_MODEL_RE = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9 ._()-]{0,63}\Z")
 # the defaults of the role's settings (front_door_sim_*); files_dir '': `files` beside the store
@@ -330,10 +332,8 @@ def fits(wants: dict, inst: dict) -> bool:
 
 
 def _offers(inst: dict, k: str) -> str:
-    """What the instance has of a wanted field (its GPU's model: gpu_model, which the fleet's read adds)."""
-    if k == "gpu":
-        return _wanted(k, inst.get("gpu_model") or "")
-    return str(inst.get(k) or "")
+    """What the instance has of a wanted field, as a request's value is compared."""
+    return _wanted(k, str(inst.get(STATUS_KEY.get(k, k)) or ""))
 
 
 def _wanted(k: str, v: str) -> str:
@@ -550,8 +550,8 @@ class Pool:
         """RefusedError(409) where no instance of the fleet, held or not, fits: the request would wait for ever."""
         insts = [i for r in self._read() for i in r["status"].get("instances") or [] if i.get("configured")]
         if not any(fits(wants, i) for i in insts):
-            field = {"gpu": "gpu_model"}
-            offered = {k: sorted({str(i[field.get(k, k)]) for i in insts if i.get(field.get(k, k))}) for k in wants}
+            keys = {k: STATUS_KEY.get(k, k) for k in wants}
+            offered = {k: sorted({str(i[key]) for i in insts if i.get(key)}) for k, key in keys.items()}
             raise RefusedError(
                 409,
                 {
