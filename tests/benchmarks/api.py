@@ -10,7 +10,10 @@ Prints:
 - a restart through the API (the POST to the end of its events, the instance ready) against the same
   restart on the host (`systemctl restart`, which returns once the readiness gate saw the ready
   line; through `docker exec`, whose own cost is printed too), medians of 5, their difference (the
-  goal: the API adds at most 1 s) and ratio.
+  goal: the API adds at most 1 s) and ratio;
+- a host that does not answer (the third, frozen with `docker pause`): the time of the first listing
+  that names it unreachable, once past the API's reuse of its last read (goal: within 5 s), and the
+  listing at the same concurrency while it stays frozen.
 
 A script, not a test: timings on shared machines are noisy. Run after ./tools/bootstrap:
 
@@ -214,6 +217,25 @@ def main():
             f"with its readiness gate on the host {host_s:.2f} s (docker exec alone {exec_floor:.2f} s); the API adds "
             f"{api_s - host_s:+.2f} s ({api_s - (host_s - exec_floor):+.2f} s against the bare restart), "
             f"{api_s / host_s:.2f}x"
+        )
+
+        frozen = HOSTS[2]
+        subprocess.run(["docker", "pause", frozen], check=True, capture_output=True)
+        try:
+            time.sleep(2.5)  # past the API's reuse of its last read (2 s)
+            began = time.monotonic()
+            status, data = api.call("GET", "/api/fleet")
+            first = time.monotonic() - began
+            reach = {h["name"]: (h["reachable"], h["error"]) for h in json.loads(data)["hosts"]}
+            if status != 200 or reach[frozen][0] or not all(r for n, (r, _e) in reach.items() if n != frozen):
+                sys.exit(f"with {frozen} frozen the listing said: {status} {reach}")
+            times = listing(api, args.clients, args.requests)
+        finally:
+            subprocess.run(["docker", "unpause", frozen], check=True, capture_output=True)
+        print(
+            f"{frozen} frozen (docker pause): the first listing named it unreachable in {first * 1000:.0f} ms "
+            f"(goal: within 5 s; it said {reach[frozen][1]!r}); then {args.clients} clients x {args.requests}: "
+            f"p50 {percentile(times, 0.5) * 1000:.0f} ms, p95 {percentile(times, 0.95) * 1000:.0f} ms"
         )
 
 

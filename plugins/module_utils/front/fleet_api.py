@@ -35,7 +35,6 @@ import sys
 import threading
 import time
 import urllib.parse
-from concurrent.futures import ThreadPoolExecutor
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 try:
@@ -47,6 +46,9 @@ VERSION = "1"
 MAX_TAIL = 200
 # a host's answer: read whole within the timeout, at most this big
 MAX_ANSWER = 16 * 1024 * 1024
+# a host's status read is waited for at most this long, then the host is reported as not answering while
+# the read goes on (up to its timeout): "a host that does not answer is reported within 5 s"
+ANSWER_WAIT = 3.0
 # a followed journal asks again who is reading this often: a logout or a revoked token ends it
 RECHECK_SECONDS = 10
 # the scope a token needs for each action (a session holds its role's); confirming an action that takes
@@ -161,13 +163,23 @@ def holder(lent_to):
 
 
 class Fleet:
-    """The hosts behind the door and their last status read, refreshed at most once per ttl."""
+    """The hosts behind the door and their last status reads, each host's refreshed at most once per ttl.
 
-    def __init__(self, config: dict, ttl: float = 2.0, timeout: float = 5.0, fetch=None, clock=time.monotonic):
-        self.config, self.ttl, self.timeout, self.clock = config, ttl, timeout, clock
+    Each host is read on its own thread. A request waits for a host's read until `wait` seconds after
+    that read began, then reports the host as not answering while the read goes on (up to `timeout`); a
+    host whose last read failed is reported from that read at once while it is asked again. One frozen
+    host holds no request up longer than `wait`, and the others are served as fresh as ever."""
+
+    def __init__(
+        self, config: dict, ttl: float = 2.0, timeout: float = 5.0, fetch=None, clock=time.monotonic, wait=ANSWER_WAIT
+    ):
+        self.config, self.ttl, self.timeout, self.wait, self.clock = config, ttl, timeout, wait, clock
         self.fetch = fetch or self._fetch
         self._lock = threading.Lock()
-        self._at, self._hosts = None, []
+        # host name -> its last read {"read", "started", "ended"}; host name -> (Event, time.monotonic() at its
+        # start) of its read under way
+        self._reads, self._asking = {}, {}
+        self._refreshed = float("-inf")
 
     def _fetch(self, url: str) -> bytes:
         return get(url, self.timeout)
@@ -187,22 +199,61 @@ class Fleet:
         except Exception as exc:  # pylint: disable=broad-exception-caught
             return {"name": backend["name"], "reachable": False, "error": f"{type(exc).__name__}: {exc}", "status": {}}
 
-    def hosts(self) -> list:
+    def _read_into(self, backend: dict, done: threading.Event) -> None:
+        started = self.clock()
+        read = self._read(backend)
         with self._lock:
-            now = self.clock()
-            if self._at is None or now - self._at >= self.ttl:
-                backends = self.config.get("hosts") or []
-                with ThreadPoolExecutor(max_workers=max(1, min(16, len(backends)))) as pool:
-                    self._hosts = list(pool.map(self._read, backends))
-                # fresh from when the read ended: a host that does not answer holds a read up to the timeout, and a
-                # caller that waited for it must not read again (it waited up to twice the timeout: 8.2 s measured)
-                self._at = self.clock()
-            return self._hosts
+            # fresh from when it ended: a caller that waited for it must not read again
+            self._reads[backend["name"]] = {"read": read, "started": started, "ended": self.clock()}
+            self._asking.pop(backend["name"], None)
+        done.set()
+
+    def _fresh(self, last, since: float) -> bool:
+        """The read will do for a request that began at `since`: made since then, or within the ttl (and
+        after the last refresh either way)."""
+        if not last or last["started"] < self._refreshed:
+            return False
+        return last["started"] >= since or self.clock() - last["ended"] < self.ttl
+
+    def _ask(self, backend: dict, since: float):
+        """The read of this host to wait for, started when none is under way; None when its last read will do."""
+        name, last = backend["name"], self._reads.get(backend["name"])
+        if self._fresh(last, since):
+            return None
+        if name not in self._asking:
+            done = threading.Event()
+            self._asking[name] = (done, time.monotonic())
+            threading.Thread(target=self._read_into, args=(backend, done), daemon=True, name=f"read {name}").start()
+        done, began = self._asking[name]
+        if (last and not last["read"]["reachable"]) or time.monotonic() - began >= self.wait:
+            return None
+        return done, began + self.wait
+
+    def _answer(self, backend: dict, since: float) -> dict:
+        last = self._reads.get(backend["name"])
+        if self._fresh(last, since) or (last and not last["read"]["reachable"]):
+            return last["read"]
+        why = f"TimeoutError: no answer within {self.wait:g} s (still asking)"
+        return {"name": backend["name"], "reachable": False, "error": why, "status": {}}
+
+    def hosts(self) -> list:
+        backends = self.config.get("hosts") or []
+        deadline, since = time.monotonic() + self.wait, self.clock()
+        while time.monotonic() < deadline:
+            with self._lock:
+                waiting = [read for read in (self._ask(b, since) for b in backends) if read is not None]
+            if not waiting:
+                break
+            # a read that began before a refresh() is waited for, then another, all within the request's wait
+            for done, until in waiting:
+                done.wait(max(0.0, min(until, deadline) - time.monotonic()))
+        with self._lock:
+            return [self._answer(b, since) for b in backends]
 
     def refresh(self) -> None:
         """The next read asks the hosts again (something changed there)."""
         with self._lock:
-            self._at = None
+            self._refreshed = self.clock()
 
     def host_view(self, read: dict, operator: bool) -> dict:
         status = read["status"]

@@ -279,4 +279,91 @@ def test_a_read_that_waited_for_a_slow_host_is_fresh_from_its_end_not_its_start(
     assert fleet.hosts()[0]["reachable"] is False and len(asked) == 1
     now[0] += 2.0
     fleet.hosts()
+    for _wait in range(100):
+        if len(asked) == 2:
+            break
+        time.sleep(0.01)
     assert len(asked) == 2
+
+
+class Frozen:
+    """Status answers by host name; a frozen host holds each read until it is thawed."""
+
+    def __init__(self):
+        self.thawed, self.frozen, self.asked = threading.Event(), set(), []
+
+    def __call__(self, url):
+        name = url.split("/")[2]
+        self.asked.append(name)
+        if name in self.frozen:
+            self.thawed.wait(10)
+            raise OSError(f"{name}: timed out")
+        return json.dumps({"instances": [{"id": 0, "configured": True, "ready": True}]}).encode()
+
+
+def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_others_stay_fresh():
+    frozen = Frozen()
+    hosts = [{"name": n, "status_url": f"http://{n}/status"} for n in ("gpu-1", "gpu-2", "gpu-3")]
+    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, timeout=5, wait=0.5, fetch=frozen)
+    try:
+        assert [h["reachable"] for h in fleet.hosts()] == [True, True, True]
+        frozen.frozen.add("gpu-2")
+        time.sleep(0.25)  # past the ttl: the next request asks every host again
+        began = time.monotonic()
+        reads = fleet.hosts()
+        took = time.monotonic() - began
+        # reported within the wait, not the timeout; the others were read afresh meanwhile
+        assert 0.4 <= took < 2.0, took
+        assert [h["reachable"] for h in reads] == [True, False, True]
+        assert reads[1]["error"] == "TimeoutError: no answer within 0.5 s (still asking)"
+        # while that read still hangs, a request neither waits for it nor asks it again; the others are
+        # asked again once past the ttl
+        time.sleep(0.25)
+        asked = len(frozen.asked)
+        began = time.monotonic()
+        reads = fleet.hosts()
+        assert time.monotonic() - began < 0.3
+        assert [h["reachable"] for h in reads] == [True, False, True]
+        assert sorted(frozen.asked[asked:]) == ["gpu-1", "gpu-3"]
+        # its read fails at last: later requests are answered from that failure at once while it is asked again
+        frozen.thawed.set()
+        for _wait in range(100):
+            if "gpu-2" not in fleet._asking:  # pylint: disable=protected-access
+                break
+            time.sleep(0.01)
+        frozen.thawed.clear()
+        time.sleep(0.25)
+        began = time.monotonic()
+        reads = fleet.hosts()
+        assert time.monotonic() - began < 0.3
+        assert reads[1]["error"] == "OSError: gpu-2: timed out"
+        # it answers again: the request that sees its failure asks it again (without waiting for it), and
+        # the answer is there for the next one at the latest
+        frozen.frozen.clear()
+        frozen.thawed.set()
+        for _wait in range(100):
+            if "gpu-2" not in fleet._asking:  # pylint: disable=protected-access
+                break
+            time.sleep(0.01)
+        time.sleep(0.25)
+        fleet.hosts()
+        for _wait in range(100):
+            if "gpu-2" not in fleet._asking:  # pylint: disable=protected-access
+                break
+            time.sleep(0.01)
+        assert [h["reachable"] for h in fleet.hosts()] == [True, True, True]
+    finally:
+        frozen.thawed.set()
+
+
+def test_a_refresh_is_not_answered_by_a_read_that_began_before_it():
+    now = [0.0]
+    answers = iter([b'{"instances": [], "deployed": "old"}', b'{"instances": [], "deployed": "new"}'])
+    fleet = fleet_api.Fleet({"hosts": [{"name": "gpu-1", "status_url": "http://gpu-1/status"}]}, ttl=60,
+                            fetch=lambda url: next(answers), clock=lambda: now[0])  # fmt: skip
+    assert fleet.hosts()[0]["status"]["deployed"] == "old"
+    now[0] += 1
+    assert fleet.hosts()[0]["status"]["deployed"] == "old"  # within the ttl
+    fleet.refresh()
+    now[0] += 1
+    assert fleet.hosts()[0]["status"]["deployed"] == "new"
