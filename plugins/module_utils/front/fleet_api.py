@@ -200,13 +200,17 @@ class Fleet:
             return {"name": backend["name"], "reachable": False, "error": f"{type(exc).__name__}: {exc}", "status": {}}
 
     def _read_into(self, backend: dict, done: threading.Event) -> None:
-        started = self.clock()
-        read = self._read(backend)
-        with self._lock:
-            # fresh from when it ended: a caller that waited for it must not read again
-            self._reads[backend["name"]] = {"read": read, "started": started, "ended": self.clock()}
-            self._asking.pop(backend["name"], None)
-        done.set()
+        started, read = self.clock(), None
+        try:
+            read = self._read(backend)
+        finally:
+            # whatever became of the read, the host is asked again next time (else it would stay "still asking")
+            with self._lock:
+                if read is not None:
+                    # fresh from when it ended: a caller that waited for it must not read again
+                    self._reads[backend["name"]] = {"read": read, "started": started, "ended": self.clock()}
+                self._asking.pop(backend["name"], None)
+            done.set()
 
     def _fresh(self, last, since: float) -> bool:
         """The read will do for a request that began at `since`: made since then, or within the ttl (and
@@ -223,7 +227,11 @@ class Fleet:
         if name not in self._asking:
             done = threading.Event()
             self._asking[name] = (done, time.monotonic())
-            threading.Thread(target=self._read_into, args=(backend, done), daemon=True, name=f"read {name}").start()
+            try:
+                threading.Thread(target=self._read_into, args=(backend, done), daemon=True, name=f"read {name}").start()
+            except BaseException:
+                del self._asking[name]
+                raise
         done, began = self._asking[name]
         if (last and not last["read"]["reachable"]) or time.monotonic() - began >= self.wait:
             return None
@@ -233,16 +241,20 @@ class Fleet:
         last = self._reads.get(backend["name"])
         if self._fresh(last, since) or (last and not last["read"]["reachable"]):
             return last["read"]
-        why = f"TimeoutError: no answer within {self.wait:g} s (still asking)"
+        asking = self._asking.get(backend["name"])
+        if asking:
+            why = f"TimeoutError: no answer within {time.monotonic() - asking[1]:.1f} s (still asking)"
+        else:
+            why = f"TimeoutError: no fresh answer within {self.wait:g} s"
         return {"name": backend["name"], "reachable": False, "error": why, "status": {}}
 
     def hosts(self) -> list:
         backends = self.config.get("hosts") or []
         deadline, since = time.monotonic() + self.wait, self.clock()
-        while time.monotonic() < deadline:
+        while True:
             with self._lock:
                 waiting = [read for read in (self._ask(b, since) for b in backends) if read is not None]
-            if not waiting:
+            if not waiting or time.monotonic() >= deadline:
                 break
             # a read that began before a refresh() is waited for, then another, all within the request's wait
             for done, until in waiting:

@@ -434,6 +434,9 @@ def check_the_api(host, address, bearer):
     viewer = login(address, "vic", "view-secret").getheader("Set-Cookie").split(";", 1)[0].split("=", 1)[1]
     assert request(address, "GET", logs, cookie=viewer)[0].status == 403
     assert request(address, "GET", f"/api/hosts/{name}/instances/1", cookie=viewer)[0].status == 200
+    # a viewer's action is refused by the API itself, whatever the page shows (it shows no buttons)
+    response, data, _v = request(address, "POST", f"/api/hosts/{name}/instances/1/restart", cookie=viewer)
+    assert response.status == 403 and json.loads(data)["error"] == "operators only", data[:300]
 
 
 def api_call(address, method, path, token, body=None, timeout=30):

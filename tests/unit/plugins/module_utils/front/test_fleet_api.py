@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import re
 import socket
 import threading
 import time
@@ -304,7 +305,7 @@ class Frozen:
 def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_others_stay_fresh():
     frozen = Frozen()
     hosts = [{"name": n, "status_url": f"http://{n}/status"} for n in ("gpu-1", "gpu-2", "gpu-3")]
-    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, timeout=5, wait=0.5, fetch=frozen)
+    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, timeout=5, wait=1.0, fetch=frozen)
     try:
         assert [h["reachable"] for h in fleet.hosts()] == [True, True, True]
         frozen.frozen.add("gpu-2")
@@ -313,16 +314,16 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         reads = fleet.hosts()
         took = time.monotonic() - began
         # reported within the wait, not the timeout; the others were read afresh meanwhile
-        assert 0.4 <= took < 2.0, took
+        assert 0.9 <= took < 2.5, took
         assert [h["reachable"] for h in reads] == [True, False, True]
-        assert reads[1]["error"] == "TimeoutError: no answer within 0.5 s (still asking)"
+        assert re.fullmatch(r"TimeoutError: no answer within 1\.\d s \(still asking\)", reads[1]["error"]), reads[1]
         # while that read still hangs, a request neither waits for it nor asks it again; the others are
         # asked again once past the ttl
         time.sleep(0.25)
         asked = len(frozen.asked)
         began = time.monotonic()
         reads = fleet.hosts()
-        assert time.monotonic() - began < 0.3
+        assert time.monotonic() - began < 0.7
         assert [h["reachable"] for h in reads] == [True, False, True]
         assert sorted(frozen.asked[asked:]) == ["gpu-1", "gpu-3"]
         # its read fails at last: later requests are answered from that failure at once while it is asked again
@@ -335,7 +336,7 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         time.sleep(0.25)
         began = time.monotonic()
         reads = fleet.hosts()
-        assert time.monotonic() - began < 0.3
+        assert time.monotonic() - began < 0.7
         assert reads[1]["error"] == "OSError: gpu-2: timed out"
         # it answers again: the request that sees its failure asks it again (without waiting for it), and
         # the answer is there for the next one at the latest
@@ -357,6 +358,48 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
 
 
 def test_a_refresh_is_not_answered_by_a_read_that_began_before_it():
+    # a read under way across the refresh (its answer may predate the change) is not taken for one after it
+    held, answers = threading.Event(), iter([b'{"deployed": "old"}', b'{"deployed": "new"}'])
+
+    def fetch(url):
+        held.wait(10)
+        return next(answers)
+
+    fleet = fleet_api.Fleet({"hosts": [{"name": "gpu-1", "status_url": "http://gpu-1/status"}]}, ttl=60, wait=5,
+                            fetch=fetch)  # fmt: skip
+    first = []
+    asking = threading.Thread(target=lambda: first.append(fleet.hosts()[0]))
+    asking.start()
+    for _wait in range(100):
+        if "gpu-1" in fleet._asking:  # pylint: disable=protected-access
+            break
+        time.sleep(0.01)
+    fleet.refresh()
+    held.set()
+    asking.join(10)
+    assert first[0]["status"]["deployed"] in ("old", "new")
+    assert fleet.hosts()[0]["status"]["deployed"] == "new"
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_host_is_asked_again_whatever_became_of_its_last_read():
+    calls = []
+
+    def fetch(url):
+        calls.append(url)
+        if len(calls) == 1:
+            raise KeyboardInterrupt  # escapes the read's own handling of errors
+        return b'{"instances": []}'
+
+    fleet = fleet_api.Fleet({"hosts": [{"name": "gpu-1", "status_url": "http://gpu-1/status"}]}, ttl=0, wait=1,
+                            fetch=fetch)  # fmt: skip
+    # the read that broke is not left "still asking": the same request asks again, and gets the answer
+    assert fleet.hosts()[0]["reachable"] is True and len(calls) == 2
+    for reader in [t for t in threading.enumerate() if t.name == "read gpu-1"]:
+        reader.join(5)  # its exception reported within this test
+
+
+def test_a_refresh_is_not_answered_by_a_read_made_within_the_ttl_before_it():
     now = [0.0]
     answers = iter([b'{"instances": [], "deployed": "old"}', b'{"instances": [], "deployed": "new"}'])
     fleet = fleet_api.Fleet({"hosts": [{"name": "gpu-1", "status_url": "http://gpu-1/status"}]}, ttl=60,
