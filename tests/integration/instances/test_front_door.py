@@ -11,6 +11,7 @@ import http.client
 import json
 import os
 import re
+import shlex
 import socket
 import ssl
 import subprocess
@@ -464,6 +465,22 @@ def acted(address, token, path, body=None) -> dict:
     return dict(answer, events=events)
 
 
+def curl_as_a_ci_job(host, address, token, api) -> dict:
+    """The guide's curl lines, as a CI job runs them (on the test host, with the door's CA and the token
+    in files): the fleet listed, instance 2 restarted and its events followed to the end. The action."""
+    sh(host, f"umask 077 && printf '%s' {shlex.quote(token)} > /root/olga-ops.token")
+    sh(host, f"printf '%s' {shlex.quote((ca_dir() / 'ca.crt').read_text())} > /root/door-ca.crt")
+    curl = 'curl -sS -f --cacert /root/door-ca.crt -H "Authorization: Bearer $(cat /root/olga-ops.token)"'
+    listed = json.loads(sh(host, f"{curl} https://{address}/api/fleet").stdout)
+    assert [h["name"] for h in listed["hosts"]] == [testbed.name(host)], listed
+    taken = json.loads(sh(host, f"{curl} -X POST https://{address}{api}/instances/2/restart").stdout)
+    events = [
+        json.loads(line) for line in sh(host, f"{curl} -N 'https://{address}{taken['events']}'").stdout.splitlines()
+    ]
+    assert events[-1]["state"] == "succeeded", events
+    return dict(taken, events=events)
+
+
 AGENT = "isaac-sim-agent.service"
 AGENT_PORT = 8291
 
@@ -496,7 +513,7 @@ def check_actions(host, address, tmp):
     [file] = (tmp / "tokens").glob("*-olga-ops.token")
     token = file.read_text().strip()
 
-    done = acted(address, token, f"{api}/instances/2/restart")
+    done = curl_as_a_ci_job(host, address, token, api)
     texts = [e["text"] for e in done["events"]]
     assert texts[0] == "accepted: restart isaac-sim-2 by olga (token ops)" and any(
         "restart of isaac-sim-2 done" in t for t in texts
