@@ -226,3 +226,39 @@ def check_a_stream_from_outside_the_lan(door: str, cookie: str, gpu_host: str, p
     # through the door's relay: the GPU host sent the stream to a relay port of the fixed range
     kind, relay_address, relay_port = sent["pair"]["remote"]
     assert (kind, relay_address) == ("relay", door) and 50000 <= relay_port <= 50199, sent
+
+
+AGENT_PORT = 8291
+
+
+def agent_answer(address, cert=None, netns=None) -> str:
+    """What a TLS client with `cert` (certificate, key) gets of a host's action agent at GET /health, in
+    the network namespace of process netns (None: this machine's): the status line, or the error."""
+    script = (
+        "import http.client, ssl, sys\n"
+        "ctx = ssl.create_default_context(cafile=sys.argv[1])\n"
+        "if len(sys.argv) > 3: ctx.load_cert_chain(sys.argv[3], sys.argv[4])\n"
+        f"conn = http.client.HTTPSConnection(sys.argv[2], {AGENT_PORT}, context=ctx, timeout=5)\n"
+        "try:\n    conn.request('GET', '/health'); print(conn.getresponse().status)\n"
+        "except Exception as exc:\n    print(type(exc).__name__, exc)\n"
+    )
+    argv = [sys.executable, "-c", script, str(ca_dir() / "ca.crt"), address, *map(str, cert or ())]
+    if netns:
+        argv = ["nsenter", "-t", str(netns), "-n", *argv]
+    return subprocess.run(argv, capture_output=True, text=True, timeout=30, check=True).stdout.strip()
+
+
+def another_ca_door_cert(directory: Path) -> tuple:
+    """(certificate, key) with the door's name, signed by a CA of its own: not the collection's."""
+    other = directory / "other-ca"
+    other.mkdir(exist_ok=True)
+    for args in (
+        ["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=other CA",
+         "-keyout", "ca.key", "-out", "ca.crt"],
+        ["req", "-new", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=isaacsim.fleet front door",
+         "-keyout", "door.key", "-out", "door.csr"],
+        ["x509", "-req", "-in", "door.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-set_serial", "7", "-days", "2",
+         "-out", "door.crt"],
+    ):  # fmt: skip
+        subprocess.run(["openssl", *args], cwd=other, check=True, capture_output=True)
+    return other / "door.crt", other / "door.key"

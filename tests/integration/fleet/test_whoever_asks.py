@@ -22,7 +22,7 @@ import testbed
 import yaml
 from browser import chromium, console_errors
 from fleethosts import INSTANCES, hosts, ip, playbook, sh, squash
-from frontdoor import as_person, ca_dir, log_in, request, session, settings
+from frontdoor import agent_answer, another_ca_door_cert, as_person, ca_dir, log_in, request, session, settings
 from selenium.webdriver.support.ui import Select
 from test_stream_addresses import viewer_image
 from test_suite import FIXTURES, image
@@ -132,6 +132,23 @@ def end_everything(address: str, olga: str, *free_hosts: str) -> None:
     )
     for h in free_hosts:
         testbed.wait_for(lambda h=h: ready_and_free(h), timeout=180, what=f"{h}'s instances free")
+
+
+def test_a_host_s_action_channel_takes_the_door_alone(door, tmp_path):
+    """The first host's agent: from the door's own address, the door's certificate gets an answer, and
+    neither no certificate nor one of another CA in the door's name does. From the third host, a test
+    host that is not the door, nothing reaches the port, whatever certificate it shows."""
+    first, _second, third = hosts()
+    netns = {h: testbed.client().containers.get(h).attrs["State"]["Pid"] for h in (DOOR, third)}
+    door_cert, other = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key"), another_ca_door_cert(tmp_path)
+    assert agent_answer(ip(first), door_cert, netns[DOOR]) == "200"
+    said = agent_answer(ip(first), None, netns[DOOR])
+    assert said.startswith(("SSLError", "ConnectionResetError", "SSLEOFError")), said
+    said = agent_answer(ip(first), other, netns[DOOR])
+    assert not said.startswith("200"), said
+    for cert in (None, other, door_cert):
+        said = agent_answer(ip(first), cert, netns[third])
+        assert said.startswith(("TimeoutError", "ConnectionRefusedError", "OSError")), (cert, said)
 
 
 def test_a_test_suite_and_sessions_share_one_pool(door, tmp_path):

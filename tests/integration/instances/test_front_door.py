@@ -15,7 +15,6 @@ import shlex
 import socket
 import ssl
 import subprocess
-import sys
 import threading
 import time
 import urllib.error
@@ -24,7 +23,19 @@ import urllib.request
 import pytest
 import testbed
 from browser import chromium, console_errors
-from frontdoor import UNITS, as_person, ca_dir, door_inventory, log_in, login, request, session, settings
+from frontdoor import (
+    UNITS,
+    agent_answer,
+    another_ca_door_cert,
+    as_person,
+    ca_dir,
+    door_inventory,
+    log_in,
+    login,
+    request,
+    session,
+    settings,
+)
 from selenium.common.exceptions import (
     NoAlertPresentException,
     NoSuchElementException,
@@ -482,24 +493,6 @@ def curl_as_a_ci_job(host, address, token, api) -> dict:
 
 
 AGENT = "isaac-sim-agent.service"
-AGENT_PORT = 8291
-
-
-def agent_answer(address, cert=None, netns=None) -> str:
-    """What a TLS client with `cert` (certificate, key) gets of the host's agent at GET /health, in the
-    network namespace of process netns (None: this machine's): the status line, or the error."""
-    script = (
-        "import http.client, ssl, sys\n"
-        "ctx = ssl.create_default_context(cafile=sys.argv[1])\n"
-        "if len(sys.argv) > 3: ctx.load_cert_chain(sys.argv[3], sys.argv[4])\n"
-        f"conn = http.client.HTTPSConnection(sys.argv[2], {AGENT_PORT}, context=ctx, timeout=5)\n"
-        "try:\n    conn.request('GET', '/health'); print(conn.getresponse().status)\n"
-        "except Exception as exc:\n    print(type(exc).__name__, exc)\n"
-    )
-    argv = [sys.executable, "-c", script, str(ca_dir() / "ca.crt"), address, *map(str, cert or ())]
-    if netns:
-        argv = ["nsenter", "-t", str(netns), "-n", *argv]
-    return subprocess.run(argv, capture_output=True, text=True, timeout=30, check=True).stdout.strip()
 
 
 def check_actions(host, address, tmp):
@@ -574,18 +567,7 @@ def check_actions(host, address, tmp):
     door_cert = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key")
     assert agent_answer(address, door_cert, netns) == "200"
     assert agent_answer(address, None, netns).startswith(("SSLError", "ConnectionResetError", "SSLEOFError"))
-    other = tmp / "other"
-    other.mkdir()
-    for args in (
-        ["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=other CA",
-         "-keyout", "ca.key", "-out", "ca.crt"],
-        ["req", "-new", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=isaacsim.fleet front door",
-         "-keyout", "door.key", "-out", "door.csr"],
-        ["x509", "-req", "-in", "door.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-set_serial", "7", "-days", "2",
-         "-out", "door.crt"],
-    ):  # fmt: skip
-        subprocess.run(["openssl", *args], cwd=other, check=True, capture_output=True)
-    refused = agent_answer(address, (other / "door.crt", other / "door.key"), netns)
+    refused = agent_answer(address, another_ca_door_cert(tmp), netns)
     assert not refused.startswith("200"), refused
     # from this machine, not the door: the host's firewall lets nothing reach the port
     assert agent_answer(address, door_cert).startswith(("TimeoutError", "ConnectionRefusedError", "OSError")), (
