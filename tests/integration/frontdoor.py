@@ -262,3 +262,24 @@ def another_ca_door_cert(directory: Path) -> tuple:
     ):  # fmt: skip
         subprocess.run(["openssl", *args], cwd=other, check=True, capture_output=True)
     return other / "door.crt", other / "door.key"
+
+
+def check_the_action_channel(agent: str, door: str, tmp: Path, elsewhere=None) -> None:
+    """A host's action agent (at address `agent`) takes the door alone. From the door's container (its
+    network namespace), the door's certificate gets an answer, and neither no certificate nor another
+    CA's in the door's name does; from `elsewhere` (a container; None: this machine), nothing reaches
+    the port, whatever certificate it shows."""
+
+    def netns(name):
+        return client().containers.get(name).attrs["State"]["Pid"]
+
+    door_cert, other = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key"), another_ca_door_cert(tmp)
+    assert agent_answer(agent, door_cert, netns(door)) == "200"
+    said = agent_answer(agent, None, netns(door))
+    assert said.startswith(("SSLError", "ConnectionResetError", "SSLEOFError")), said
+    said = agent_answer(agent, other, netns(door))
+    assert not said.startswith("200"), said
+    outside = netns(elsewhere) if elsewhere else None
+    for cert in (None, other, door_cert):
+        said = agent_answer(agent, cert, outside)
+        assert said.startswith(("TimeoutError", "ConnectionRefusedError", "OSError")), (cert, said)

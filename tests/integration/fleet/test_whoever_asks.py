@@ -22,7 +22,7 @@ import testbed
 import yaml
 from browser import chromium, console_errors
 from fleethosts import INSTANCES, hosts, ip, playbook, sh, squash
-from frontdoor import agent_answer, another_ca_door_cert, as_person, ca_dir, log_in, request, session, settings
+from frontdoor import as_person, ca_dir, check_the_action_channel, log_in, request, session, settings
 from selenium.webdriver.support.ui import Select
 from test_stream_addresses import viewer_image
 from test_suite import FIXTURES, image
@@ -139,16 +139,7 @@ def test_a_host_s_action_channel_takes_the_door_alone(door, tmp_path):
     neither no certificate nor one of another CA in the door's name does. From the third host, a test
     host that is not the door, nothing reaches the port, whatever certificate it shows."""
     first, _second, third = hosts()
-    netns = {h: testbed.client().containers.get(h).attrs["State"]["Pid"] for h in (DOOR, third)}
-    door_cert, other = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key"), another_ca_door_cert(tmp_path)
-    assert agent_answer(ip(first), door_cert, netns[DOOR]) == "200"
-    said = agent_answer(ip(first), None, netns[DOOR])
-    assert said.startswith(("SSLError", "ConnectionResetError", "SSLEOFError")), said
-    said = agent_answer(ip(first), other, netns[DOOR])
-    assert not said.startswith("200"), said
-    for cert in (None, other, door_cert):
-        said = agent_answer(ip(first), cert, netns[third])
-        assert said.startswith(("TimeoutError", "ConnectionRefusedError", "OSError")), (cert, said)
+    check_the_action_channel(ip(first), DOOR, tmp_path, elsewhere=third)
 
 
 def test_a_test_suite_and_sessions_share_one_pool(door, tmp_path):

@@ -25,10 +25,9 @@ import testbed
 from browser import chromium, console_errors
 from frontdoor import (
     UNITS,
-    agent_answer,
-    another_ca_door_cert,
     as_person,
     ca_dir,
+    check_the_action_channel,
     door_inventory,
     log_in,
     login,
@@ -562,17 +561,8 @@ def check_actions(host, address, tmp):
 
     check_a_session(host, address, token)
 
-    # the channel: the door's certificate from the door's address; nothing else
-    netns = testbed.client().containers.get(name).attrs["State"]["Pid"]
-    door_cert = (ca_dir() / "door-client.crt", ca_dir() / "door-client.key")
-    assert agent_answer(address, door_cert, netns) == "200"
-    assert agent_answer(address, None, netns).startswith(("SSLError", "ConnectionResetError", "SSLEOFError"))
-    refused = agent_answer(address, another_ca_door_cert(tmp), netns)
-    assert not refused.startswith("200"), refused
-    # from this machine, not the door: the host's firewall lets nothing reach the port
-    assert agent_answer(address, door_cert).startswith(("TimeoutError", "ConnectionRefusedError", "OSError")), (
-        agent_answer(address, door_cert)
-    )
+    # the channel: the door's certificate from the door's address; from this machine, not the door, nothing
+    check_the_action_channel(address, name, tmp)
     testbed.assert_sandboxed(host, AGENT)
 
 
