@@ -305,7 +305,8 @@ class Frozen:
 def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_others_stay_fresh():
     frozen = Frozen()
     hosts = [{"name": n, "status_url": f"http://{n}/status"} for n in ("gpu-1", "gpu-2", "gpu-3")]
-    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, timeout=5, wait=1.0, fetch=frozen)
+    # a wait well above what a loaded machine adds to a request that does not wait (CI runs these beside others)
+    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, timeout=8, wait=2.0, fetch=frozen)
     try:
         assert [h["reachable"] for h in fleet.hosts()] == [True, True, True]
         frozen.frozen.add("gpu-2")
@@ -314,16 +315,16 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         reads = fleet.hosts()
         took = time.monotonic() - began
         # reported within the wait, not the timeout; the others were read afresh meanwhile
-        assert 0.9 <= took < 2.5, took
+        assert 1.9 <= took < 5, took
         assert [h["reachable"] for h in reads] == [True, False, True]
-        assert re.fullmatch(r"TimeoutError: no answer within 1\.\d s \(still asking\)", reads[1]["error"]), reads[1]
+        assert re.fullmatch(r"TimeoutError: no answer within [2-5]\.\d s \(still asking\)", reads[1]["error"]), reads[1]
         # while that read still hangs, a request neither waits for it nor asks it again; the others are
         # asked again once past the ttl
         time.sleep(0.25)
         asked = len(frozen.asked)
         began = time.monotonic()
         reads = fleet.hosts()
-        assert time.monotonic() - began < 0.7
+        assert time.monotonic() - began < 1.5
         assert [h["reachable"] for h in reads] == [True, False, True]
         assert sorted(frozen.asked[asked:]) == ["gpu-1", "gpu-3"]
         # its read fails at last: later requests are answered from that failure at once while it is asked again
@@ -336,7 +337,7 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         time.sleep(0.25)
         began = time.monotonic()
         reads = fleet.hosts()
-        assert time.monotonic() - began < 0.7
+        assert time.monotonic() - began < 1.5
         assert reads[1]["error"] == "OSError: gpu-2: timed out"
         # it answers again: the request that sees its failure asks it again (without waiting for it), and
         # the answer is there for the next one at the latest
