@@ -276,6 +276,41 @@ def test_claims_of_one_instance_at_once_lend_it_once(tmp_path):
     assert lifecycle.lent_to(h.host, 1).startswith("session-s") and runlock.read(a.lock) is None
 
 
+def test_the_same_restart_sent_eight_times_at_once_runs_once_and_the_others_are_told_who_holds_the_host(tmp_path):
+    a, h, _lines = make(tmp_path)
+    # the restart runs until every request has had its answer: none can find the host free again
+    answered, run = threading.Event(), h.host.run
+
+    def held(argv):
+        if argv[:2] == ["systemctl", "restart"]:
+            answered.wait(10)
+        return run(argv)
+
+    h.host.run = held
+    answers = []
+
+    def restart():
+        try:
+            answers.append(a.submit(req())[:2])
+        except agent.RefusedError as refused:
+            answers.append((refused.code, refused.body))
+
+    threads = [threading.Thread(target=restart) for _n in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    answered.set()
+    a.wait()
+    assert sorted(code for code, _body in answers) == [202] + [409] * 7, answers
+    [first] = [body["id"] for code, body in answers if code == 202]
+    for code, body in answers:
+        if code == 409:
+            assert f"alice through the fleet API (action {first}: restart isaac-sim-2)" in body["error"], body
+    assert h.commands("restart") == ["systemctl restart isaac-sim@2.service"]
+    assert a.get(first)["state"] == "succeeded" and runlock.read(a.lock) is None
+
+
 @pytest.mark.parametrize("why", ["drained", "not ready", "deploy", "not there"])
 def test_a_claim_is_refused_with_nothing_changed(tmp_path, why):
     a, h, _lines = make(tmp_path)
