@@ -49,8 +49,9 @@ MAX_ANSWER = 16 * 1024 * 1024
 # a host's status read is waited for at most this long, then the host is reported as not answering while
 # the read goes on (up to its timeout): "a host that does not answer is reported within 5 s"
 ANSWER_WAIT = 3.0
-# a followed journal asks again who is reading this often: a logout or a revoked token ends it
-RECHECK_SECONDS = 10
+# a followed journal asks again who is reading this often: a logout or a revoked token ends it within 5 s,
+# as it refuses any other request at once
+RECHECK_SECONDS = 3
 # the scope a token needs for each action (a session holds its role's); confirming an action that takes
 # a host below N-1 serving instances needs operate
 ACTION_SCOPES = {

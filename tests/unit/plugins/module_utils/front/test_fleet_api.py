@@ -197,7 +197,7 @@ def test_a_followed_journal_streams_until_the_token_reading_it_is_revoked(api):
         revoked = time.monotonic()
         while chunk := client.recv(4096):
             got += chunk
-        # ended at the next check (every 0.5 s here, 10 s on a door), said in the stream and the journal
+        # ended at the next check (every 0.5 s here, 3 s on a door), said in the stream and the journal
         assert time.monotonic() - revoked < 3
         assert got.endswith(b"[the session or token ended: the journal stops here]\n")
     assert "follow user=olga token=tail path='/api/hosts/gpu-1/instances/1/logs' from=127.0.0.1" in lines
