@@ -302,11 +302,20 @@ class Frozen:
         return json.dumps({"instances": [{"id": 0, "configured": True, "ready": True}]}).encode()
 
 
+def read_ended(fleet, name):
+    """Waits until no read of the host is under way."""
+    for _wait in range(500):
+        if name not in fleet._asking:  # pylint: disable=protected-access
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"the read of {name} never ended")
+
+
 def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_others_stay_fresh():
     frozen = Frozen()
     hosts = [{"name": n, "status_url": f"http://{n}/status"} for n in ("gpu-1", "gpu-2", "gpu-3")]
     # a wait well above what a loaded machine adds to a request that does not wait (CI runs these beside others)
-    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, timeout=8, wait=2.0, fetch=frozen)
+    fleet = fleet_api.Fleet({"hosts": hosts}, ttl=0.2, wait=2.0, fetch=frozen)
     try:
         assert [h["reachable"] for h in fleet.hosts()] == [True, True, True]
         frozen.frozen.add("gpu-2")
@@ -317,7 +326,7 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         # reported within the wait, not the timeout; the others were read afresh meanwhile
         assert 1.9 <= took < 5, took
         assert [h["reachable"] for h in reads] == [True, False, True]
-        assert re.fullmatch(r"TimeoutError: no answer within [2-5]\.\d s \(still asking\)", reads[1]["error"]), reads[1]
+        assert re.fullmatch(r"TimeoutError: no answer within [1-5]\.\d s \(still asking\)", reads[1]["error"]), reads[1]
         # while that read still hangs, a request neither waits for it nor asks it again; the others are
         # asked again once past the ttl
         time.sleep(0.25)
@@ -329,10 +338,7 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         assert sorted(frozen.asked[asked:]) == ["gpu-1", "gpu-3"]
         # its read fails at last: later requests are answered from that failure at once while it is asked again
         frozen.thawed.set()
-        for _wait in range(100):
-            if "gpu-2" not in fleet._asking:  # pylint: disable=protected-access
-                break
-            time.sleep(0.01)
+        read_ended(fleet, "gpu-2")
         frozen.thawed.clear()
         time.sleep(0.25)
         began = time.monotonic()
@@ -343,16 +349,10 @@ def test_a_host_that_stops_answering_holds_a_request_at_most_the_wait_and_the_ot
         # the answer is there for the next one at the latest
         frozen.frozen.clear()
         frozen.thawed.set()
-        for _wait in range(100):
-            if "gpu-2" not in fleet._asking:  # pylint: disable=protected-access
-                break
-            time.sleep(0.01)
+        read_ended(fleet, "gpu-2")
         time.sleep(0.25)
         fleet.hosts()
-        for _wait in range(100):
-            if "gpu-2" not in fleet._asking:  # pylint: disable=protected-access
-                break
-            time.sleep(0.01)
+        read_ended(fleet, "gpu-2")
         assert [h["reachable"] for h in fleet.hosts()] == [True, True, True]
     finally:
         frozen.thawed.set()

@@ -287,9 +287,10 @@ def test_the_same_restart_sent_eight_times_at_once_runs_once_and_the_others_are_
         return run(argv)
 
     h.host.run = held
-    answers = []
+    answers, together = [], threading.Barrier(8)
 
     def restart():
+        together.wait(10)
         try:
             answers.append(a.submit(req())[:2])
         except agent.RefusedError as refused:
